@@ -1,0 +1,40 @@
+"""evtrack: fast 6-DoF object pose tracking with an event camera and an RGB-D camera.
+
+Public API (see DESIGN.md)::
+
+    import evtrack
+    ev = evtrack.io.read_events("recording.h5")
+    cam = evtrack.PinholeCamera(fx, fy, cx, cy, width, height)
+    seq = evtrack.Sequence.load("sequence_folder")
+"""
+
+from __future__ import annotations
+
+from evtrack import geometry, io
+from evtrack.camera import PinholeCamera
+from evtrack.errors import (
+    ConfigError,
+    EventFileError,
+    EventsError,
+    EvtrackError,
+    UnknownFormatError,
+)
+from evtrack.events import Events, EventsValidationReport, concatenate
+from evtrack.sequence import Sequence
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ConfigError",
+    "EventFileError",
+    "Events",
+    "EventsError",
+    "EventsValidationReport",
+    "EvtrackError",
+    "PinholeCamera",
+    "Sequence",
+    "UnknownFormatError",
+    "concatenate",
+    "geometry",
+    "io",
+]

@@ -1,0 +1,62 @@
+"""The ``evtrack`` command.
+
+Each subcommand lives in its own module of this package and exposes
+``register(subparsers) -> None``, which adds an ``argparse`` parser whose default ``func``
+takes the parsed arguments and returns an exit code. Modules are discovered automatically;
+``ORDER`` fixes how they are listed in ``--help``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+from collections.abc import Sequence
+
+from evtrack.errors import EvtrackError
+
+__all__ = ["main", "build_parser"]
+
+ORDER = ("info", "convert", "simulate", "flow", "train", "export", "track", "evaluate", "demo")
+
+
+def _command_modules() -> list[str]:
+    names = [m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")]
+    rank = {n: i for i, n in enumerate(ORDER)}
+    return sorted(names, key=lambda n: (rank.get(n, len(ORDER)), n))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="evtrack",
+        description=(
+            "Track the 6-DoF pose of a fast-moving known object with an event camera and an "
+            "RGB-D camera. Run 'evtrack COMMAND --help' for the options of each command."
+        ),
+    )
+    from evtrack import __version__
+
+    parser.add_argument("--version", action="version", version=f"evtrack {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _command_modules():
+        module = importlib.import_module(f"{__name__}.{name}")
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``evtrack`` console script; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except EvtrackError as exc:
+        print(f"evtrack {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,1 @@
+"""Event optical flow by triplet matching with RoI registration."""

@@ -1,0 +1,1 @@
+"""Event readers and writers (the io helper fills this in)."""

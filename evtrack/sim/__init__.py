@@ -1,0 +1,1 @@
+"""The synthetic data engine: renders, events, blurred RGB-D and ground truth."""

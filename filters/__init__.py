@@ -1,0 +1,1 @@
+"""Filters: the interaction matrix, the velocity Kalman filter and the pose UKF."""

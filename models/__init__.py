@@ -1,0 +1,1 @@
+"""Pose networks, their registry, keypoint decoding and PnP (the pose-network issue)."""

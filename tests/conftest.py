@@ -1,0 +1,46 @@
+"""Shared fixtures: the ../shared data folder, device and dtype options."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--device", default="cpu", help="torch device for device-aware tests")
+
+
+@pytest.fixture(scope="session")
+def device(request: pytest.FixtureRequest) -> torch.device:
+    dev = torch.device(request.config.getoption("--device"))
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        pytest.skip("--device cuda given but CUDA is not available")
+    return dev
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    """The ../shared folder beside the checkout; tests that need it skip when it is absent."""
+    if not SHARED.is_dir():
+        pytest.skip(f"../shared is absent (looked for {SHARED}); these tests need its data files")
+    return SHARED
+
+
+@pytest.fixture(scope="session")
+def formats_dir(shared_dir: Path) -> Path:
+    path = shared_dir / "data" / "formats"
+    if not path.is_dir():
+        pytest.skip(f"{path} is absent: the real camera files for reader tests are missing")
+    return path
+
+
+@pytest.fixture(scope="session")
+def ycb_dir(shared_dir: Path) -> Path:
+    path = shared_dir / "data" / "ycb"
+    if not path.is_dir():
+        pytest.skip(f"{path} is absent: the YCB meshes are missing")
+    return path

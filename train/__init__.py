@@ -1,0 +1,1 @@
+"""Lightning training of the pose network (the pose-network issue)."""
