@@ -160,7 +160,9 @@ class PinholeCamera:
             ConfigError: naming ``source`` and the missing or invalid field.
         """
         if not isinstance(data, Mapping):
-            raise ConfigError(f"{source}: expected a mapping of camera fields, got {type(data).__name__}")
+            raise ConfigError(
+                f"{source}: expected a mapping of camera fields, got {type(data).__name__}"
+            )
         missing = [k for k in _FIELDS if k not in data]
         if missing:
             raise ConfigError(f"{source}: missing camera field(s) {missing}")

@@ -120,7 +120,9 @@ class Events:
         if sensor_size is not None:
             w, h = (int(v) for v in sensor_size)
             if w <= 0 or h <= 0:
-                raise EventsError(f"sensor_size must be positive (width, height), got {sensor_size}")
+                raise EventsError(
+                    f"sensor_size must be positive (width, height), got {sensor_size}"
+                )
             sensor_size = (w, h)
         self.sensor_size = sensor_size
 

@@ -130,7 +130,9 @@ def integrate_twist(T: Tensor, twist: Tensor, dt: float | Tensor) -> Tensor:
     return _se3_exp(xi) @ T
 
 
-def integrate_twist_tq(t: Tensor, q: Tensor, twist: Tensor, dt: float | Tensor) -> tuple[Tensor, Tensor]:
+def integrate_twist_tq(
+    t: Tensor, q: Tensor, twist: Tensor, dt: float | Tensor
+) -> tuple[Tensor, Tensor]:
     """:func:`integrate_twist` on a ``(t (*,3), q (*,4) wxyz)`` pose; returns ``(t', q')``."""
     return matrix_to_tq(integrate_twist(tq_to_matrix(t, q), twist, dt))
 
