@@ -24,7 +24,7 @@ def _as_tensor(value: object, dtype: torch.dtype, name: str) -> Tensor:
     if isinstance(value, Tensor):
         tensor = value
     else:
-        tensor = torch.as_tensor(np.asarray(value))
+        tensor = torch.as_tensor(np.ascontiguousarray(value))
     if tensor.ndim != 1:
         raise EventsError(f"Events.{name} must be 1-D, got shape {tuple(tensor.shape)}")
     if tensor.is_floating_point() and dtype != tensor.dtype:
@@ -104,8 +104,9 @@ class Events:
         p: Tensor | np.ndarray | Sequence[int],
         sensor_size: tuple[int, int] | None = None,
     ) -> None:
-        xt = x if isinstance(x, Tensor) else torch.as_tensor(np.asarray(x))
-        coord_dtype = xt.dtype if xt.dtype in (torch.int16, torch.int32) else torch.int32
+        if not isinstance(x, Tensor):
+            x = torch.as_tensor(np.ascontiguousarray(x))
+        coord_dtype = x.dtype if x.dtype in (torch.int16, torch.int32) else torch.int32
         self.x = _as_tensor(x, coord_dtype, "x")
         self.y = _as_tensor(y, coord_dtype, "y")
         self.t = _as_tensor(t, torch.int64, "t")
@@ -136,7 +137,7 @@ class Events:
     @classmethod
     def from_unsigned_polarity(cls, x, y, t, p01, sensor_size=None) -> Events:
         """Build from a 0/1 (OFF/ON) polarity, as most camera formats store it."""
-        p = p01 if isinstance(p01, Tensor) else torch.as_tensor(np.asarray(p01))
+        p = p01 if isinstance(p01, Tensor) else torch.as_tensor(np.ascontiguousarray(p01))
         p = p.to(torch.int8)
         if p.numel() and (p.min() < 0 or p.max() > 1):
             bad = _first_true((p < 0) | (p > 1))

@@ -1,0 +1,148 @@
+"""Tests of the Events container."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from evtrack import Events, EventsError, concatenate
+
+
+def make_events(n: int = 100, seed: int = 0, size=(64, 48)) -> Events:
+    g = np.random.default_rng(seed)
+    t = np.sort(g.integers(0, 1_000_000, n))
+    return Events(g.integers(0, size[0], n), g.integers(0, size[1], n), t,
+                  g.choice([-1, 1], n), sensor_size=size)
+
+
+def test_dtypes_and_len():
+    ev = make_events(10)
+    assert len(ev) == 10
+    assert ev.t.dtype == torch.int64 and ev.p.dtype == torch.int8
+    assert ev.x.dtype == torch.int32 and ev.y.dtype == torch.int32
+    ev16 = Events(torch.tensor([1], dtype=torch.int16), torch.tensor([2], dtype=torch.int16),
+                  [5], [1])
+    assert ev16.x.dtype == torch.int16
+
+
+def test_large_timestamps_are_exact():
+    t = [10**15 + 1, 10**15 + 2]
+    ev = Events([0, 0], [0, 0], t, [1, 1])
+    assert ev.t.tolist() == t
+
+
+def test_mismatched_lengths_raise():
+    with pytest.raises(EventsError, match="differ in length"):
+        Events([1, 2], [1], [1, 2], [1, 1])
+
+
+def test_fractional_coordinates_raise():
+    with pytest.raises(EventsError, match="integers"):
+        Events(np.array([1.5]), [1], [1], [1])
+
+
+def test_slicing_and_masks():
+    ev = make_events(50)
+    assert ev[3:7] == Events(ev.x[3:7], ev.y[3:7], ev.t[3:7], ev.p[3:7], ev.sensor_size)
+    assert len(ev[ev.p > 0]) == int((ev.p > 0).sum())
+    one = ev[4]
+    assert len(one) == 1 and int(one.t[0]) == int(ev.t[4])
+    assert int(ev[-1].t[0]) == ev.t_end
+
+
+def test_between_matches_brute_force():
+    ev = make_events(500, seed=1)
+    for t0, t1 in [(0, 10), (100_000, 300_000), (999_999, 2_000_000), (5, 5)]:
+        got = ev.between(t0, t1)
+        mask = (ev.t >= t0) & (ev.t < t1)
+        assert got == ev[mask]
+
+
+def test_time_windows_partition_the_events():
+    ev = make_events(1000, seed=2)
+    windows = list(ev.windows(duration_us=50_000))
+    assert concatenate(windows) == ev
+    t0 = ev.t_start
+    for w in windows:
+        k = (int(w.t[0]) - t0) // 50_000
+        assert bool(((w.t - t0) // 50_000 == k).all())
+
+
+def test_count_windows():
+    ev = make_events(1001, seed=3)
+    windows = list(ev.windows(count=100))
+    assert [len(w) for w in windows] == [100] * 10 + [1]
+    assert concatenate(windows) == ev
+
+
+def test_windows_include_empty():
+    ev = Events([0, 0], [0, 0], [0, 1000], [1, 1])
+    assert len(list(ev.windows(duration_us=100))) == 2
+    assert len(list(ev.windows(duration_us=100, include_empty=True))) == 11
+
+
+def test_windows_argument_errors():
+    ev = make_events(5)
+    with pytest.raises(ValueError):
+        list(ev.windows())
+    with pytest.raises(ValueError):
+        list(ev.windows(duration_us=0))
+
+
+def test_empty_events():
+    ev = Events.empty((10, 10))
+    assert len(ev) == 0 and ev.validate().ok
+    assert list(ev.windows(duration_us=10)) == []
+    assert len(ev.between(0, 10)) == 0
+    with pytest.raises(EventsError):
+        _ = ev.t_start
+
+
+def test_validate_reports_counts_and_first_index():
+    ev = Events([1, 2, 70, 3, 80], [1, 1, 1, -1, 1], [10, 5, 20, 30, 25], [1, 0, 1, -1, 2],
+                sensor_size=(64, 48))
+    rep = ev.validate()
+    assert not rep.ok
+    assert (rep.unsorted, rep.first_unsorted) == (2, 1)
+    assert (rep.outside, rep.first_outside) == (3, 2)
+    assert (rep.bad_polarity, rep.first_bad_polarity) == (2, 1)
+    with pytest.raises(EventsError, match="my.file"):
+        ev.check("my.file")
+
+
+def test_validate_ok():
+    assert make_events(100).validate().ok
+
+
+def test_unsigned_polarity():
+    ev = Events.from_unsigned_polarity([1, 2], [1, 2], [1, 2], [0, 1])
+    assert ev.p.tolist() == [-1, 1]
+    with pytest.raises(EventsError):
+        Events.from_unsigned_polarity([1], [1], [1], [2])
+
+
+def test_from_structured():
+    arr = np.zeros(3, dtype=[("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "u1")])
+    arr["t"], arr["x"], arr["p"] = [1, 2, 3], [4, 5, 6], [0, 1, 1]
+    ev = Events.from_structured(arr, (10, 10))
+    assert ev.p.tolist() == [-1, 1, 1] and ev.x.tolist() == [4, 5, 6]
+    with pytest.raises(EventsError, match="lacks fields"):
+        Events.from_structured(np.zeros(2, dtype=[("t", "<i8")]))
+
+
+def test_concatenate_checks_sensor_size():
+    a = make_events(5, size=(10, 10))
+    b = make_events(5, size=(20, 20))
+    with pytest.raises(EventsError, match="sensor sizes"):
+        concatenate([a, b])
+    c = concatenate([a, Events([1], [1], [10**7], [1])])
+    assert len(c) == 6 and c.sensor_size == (10, 10)
+
+
+def test_to_device_roundtrip(device):
+    ev = make_events(20)
+    moved = ev.to(device)
+    assert moved.device.type == device.type
+    assert moved.to("cpu") == ev
+
