@@ -1,1 +1,83 @@
-"""Pose networks, their registry, keypoint decoding and PnP (the pose-network issue)."""
+"""Pose networks, their registry, keypoint decoding + PnP, and the ONNX runtime estimator.
+
+Example::
+
+    from evtrack.models import create, list_models, TorchPoseEstimator, export_onnx
+    net = create("dope_lite_base", weights="path/to/weights.pt")   # or weights="default"
+    estimator = TorchPoseEstimator(net, camera)                    # camera: PinholeCamera
+    for det in estimator(rgb):                                     # rgb: uint8 (H, W, 3)
+        det.pose, det.confidence, det.keypoints                    # (4,4) object->camera, ...
+    export_onnx(net, "pose.onnx")
+    onnx_estimator = OnnxPoseEstimator("pose.onnx", camera)        # same interface
+"""
+
+from __future__ import annotations
+
+from evtrack.models import dope_lite  # noqa: F401  (registers the DOPE-Lite models)
+from evtrack.models._registry import is_model, list_models, model_entrypoint, register_model
+from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
+from evtrack.models.decode import (
+    DecodeConfig,
+    InstanceKeypoints,
+    PoseDetection,
+    decode_poses,
+    extract_instances,
+    solve_pose,
+)
+from evtrack.models.dope_lite import DopeLite, DopeLiteConfig
+from evtrack.models.estimator import PoseEstimator, TorchPoseEstimator, preprocess
+from evtrack.models.factory import create, load_model
+from evtrack.models.keypoints import find_peaks, grid_to_pixel, pixel_to_grid
+from evtrack.models.onnx_estimator import OnnxPoseEstimator
+from evtrack.models.onnx_export import ExportError, export_onnx, read_onnx_record
+from evtrack.models.summary import count_flops, count_parameters
+from evtrack.models.weights import (
+    WeightsError,
+    WeightsRecord,
+    find_default_weights,
+    list_weights,
+    load_weights_file,
+    model_card,
+    save_weights,
+    write_model_card,
+)
+
+__all__ = [
+    "CENTROID_INDEX",
+    "NUM_KEYPOINTS",
+    "Cuboid",
+    "DecodeConfig",
+    "DopeLite",
+    "DopeLiteConfig",
+    "ExportError",
+    "InstanceKeypoints",
+    "OnnxPoseEstimator",
+    "PoseDetection",
+    "PoseEstimator",
+    "TorchPoseEstimator",
+    "WeightsError",
+    "WeightsRecord",
+    "count_flops",
+    "count_parameters",
+    "create",
+    "decode_poses",
+    "export_onnx",
+    "extract_instances",
+    "find_default_weights",
+    "find_peaks",
+    "grid_to_pixel",
+    "is_model",
+    "list_models",
+    "list_weights",
+    "load_model",
+    "load_weights_file",
+    "model_card",
+    "model_entrypoint",
+    "pixel_to_grid",
+    "preprocess",
+    "read_onnx_record",
+    "register_model",
+    "save_weights",
+    "solve_pose",
+    "write_model_card",
+]

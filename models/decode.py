@@ -1,0 +1,308 @@
+"""From belief maps and affinity fields to object poses.
+
+1. Peaks of the 9 belief maps (:func:`evtrack.models.keypoints.find_peaks`).
+2. Every centroid peak starts an instance. Every corner peak reads its affinity vector (the
+   predicted direction towards its object's centroid) and joins the centroid whose direction
+   from the corner makes the smallest angle with it, if that angle is below
+   ``max_angle_deg``; per instance and corner the best-aligned peak wins.
+3. PnP with OpenCV on the instance's keypoints and the object's cuboid: EPnP (inside RANSAC
+   when asked) and SQPnP as a second start, each refined with Levenberg-Marquardt; the
+   solution with the smaller reprojection error is kept.
+4. ``confidence = mean over the 9 keypoints of the clipped peak value (0 if missing)
+   * exp(-0.5 * (rms_reprojection_px / reprojection_scale_px)^2)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from evtrack.errors import ConfigError
+from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
+from evtrack.models.keypoints import SUBPIXEL_METHODS, find_peaks, grid_to_pixel, sample_bilinear
+
+__all__ = [
+    "DecodeConfig",
+    "PoseDetection",
+    "InstanceKeypoints",
+    "extract_instances",
+    "solve_pose",
+    "decode_poses",
+]
+
+
+@dataclass(frozen=True)
+class DecodeConfig:
+    """How belief maps and affinity fields become poses.
+
+    Attributes:
+        peak_threshold: minimum belief value of a keypoint peak.
+        nms_radius: peaks closer than this many cells to a stronger one are suppressed.
+        subpixel: sub-cell refinement, ``"log_quadratic"``, ``"centroid"`` or ``"none"``.
+        max_angle_deg: largest angle between a corner's affinity vector and the direction to
+            a centroid for the corner to join that centroid's instance.
+        min_affinity_norm: corners whose affinity vector is shorter than this are ignored
+            (the field is ~unit length where the network is sure).
+        min_points: fewest keypoints (corners + centroid) for a pose (>= 4).
+        ransac: run EPnP inside RANSAC (needs >= 6 points, else plain EPnP).
+        ransac_reprojection_px: RANSAC inlier threshold, pixels.
+        ransac_iterations: RANSAC iterations.
+        refine: ``"lm"`` (Levenberg-Marquardt on the reprojection error) or ``"none"``.
+        reprojection_scale_px: reprojection RMS at which the confidence falls by exp(-1/2).
+        min_confidence: detections below this confidence are dropped.
+        max_instances: at most this many centroid peaks (the strongest) are decoded.
+    """
+
+    peak_threshold: float = 0.1
+    nms_radius: int = 1
+    subpixel: str = "log_quadratic"
+    max_angle_deg: float = 30.0
+    min_affinity_norm: float = 0.2
+    min_points: int = 5
+    ransac: bool = False
+    ransac_reprojection_px: float = 6.0
+    ransac_iterations: int = 100
+    refine: str = "lm"
+    reprojection_scale_px: float = 8.0
+    min_confidence: float = 0.0
+    max_instances: int = 16
+
+    def __post_init__(self) -> None:
+        if self.subpixel not in SUBPIXEL_METHODS:
+            raise ConfigError(f"decode.subpixel must be one of {SUBPIXEL_METHODS}")
+        if self.refine not in ("lm", "none"):
+            raise ConfigError(f"decode.refine must be 'lm' or 'none', got {self.refine!r}")
+        if self.min_points < 4:
+            raise ConfigError(f"decode.min_points must be >= 4 for PnP, got {self.min_points}")
+        if not 0 < self.max_angle_deg <= 180:
+            raise ConfigError(f"decode.max_angle_deg must be in (0, 180], got {self.max_angle_deg}")
+        if self.nms_radius < 1 or self.max_instances < 1:
+            raise ConfigError("decode.nms_radius and decode.max_instances must be >= 1")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None, source: str = "decode") -> DecodeConfig:
+        data = dict(data or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"{source}: unknown field(s) {unknown}; known: {sorted(known)}")
+        return cls(**data)
+
+
+@dataclass
+class PoseDetection:
+    """One detected object instance.
+
+    Attributes:
+        pose: (4, 4) float64 object-to-camera transform (metres).
+        confidence: in [0, 1]; see the module docstring.
+        keypoints: (9, 2) float64 pixels in the input image (8 corners, centroid); NaN where
+            missing.
+        keypoint_scores: (9,) float64 belief peak values; 0 where missing.
+        reprojection_error_px: RMS reprojection error over the keypoints used by PnP.
+        num_points: keypoints used by PnP.
+        object_name: the object the network was trained for ("" if unknown).
+    """
+
+    pose: Tensor
+    confidence: float
+    keypoints: Tensor
+    keypoint_scores: Tensor
+    reprojection_error_px: float
+    num_points: int
+    object_name: str = ""
+
+
+@dataclass
+class InstanceKeypoints:
+    """Keypoints of one instance before PnP: (9, 2) pixels (NaN missing) and (9,) scores."""
+
+    keypoints: np.ndarray
+    scores: np.ndarray
+
+
+def extract_instances(
+    belief: np.ndarray, affinity: np.ndarray, stride: int, config: DecodeConfig | None = None
+) -> list[InstanceKeypoints]:
+    """Group belief peaks into instances through the affinity fields (steps 1-2).
+
+    Args:
+        belief: (9, h, w) belief maps.
+        affinity: (16, h, w) affinity fields (x, y per corner).
+        stride: the network's output stride (pixels per cell).
+
+    Returns:
+        One entry per centroid peak, strongest first; keypoints in input-image pixels.
+    """
+    cfg = config or DecodeConfig()
+    belief = np.asarray(belief, dtype=np.float32)
+    affinity = np.asarray(affinity, dtype=np.float32)
+    if belief.shape[0] != NUM_KEYPOINTS or affinity.shape[0] != 2 * (NUM_KEYPOINTS - 1):
+        raise ValueError(
+            f"expected 9 belief maps and 16 affinity maps, got {belief.shape}, {affinity.shape}"
+        )
+    if belief.shape[1:] != affinity.shape[1:]:
+        raise ValueError(f"belief {belief.shape} and affinity {affinity.shape} sizes differ")
+    peaks = find_peaks(belief, cfg.peak_threshold, cfg.nms_radius, cfg.subpixel)  # type: ignore[arg-type]
+    centroids = peaks[CENTROID_INDEX][: cfg.max_instances]
+    m = len(centroids)
+    if m == 0:
+        return []
+    kp = np.full((m, NUM_KEYPOINTS, 2), np.nan)
+    sc = np.zeros((m, NUM_KEYPOINTS))
+    kp[:, CENTROID_INDEX] = centroids[:, :2]
+    sc[:, CENTROID_INDEX] = centroids[:, 2]
+    max_angle = math.radians(cfg.max_angle_deg)
+    for k in range(NUM_KEYPOINTS - 1):
+        best_angle = np.full(m, np.inf)
+        for x, y, score in peaks[k]:
+            a = sample_bilinear(affinity[2 * k: 2 * k + 2], x, y)
+            a_norm = float(np.hypot(*a))
+            if a_norm < cfg.min_affinity_norm:
+                continue
+            d = centroids[:, :2] - np.array([x, y])
+            d_norm = np.hypot(d[:, 0], d[:, 1])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cos = (d @ a) / (d_norm * a_norm)
+            cos = np.where(d_norm < 1e-9, 1.0, cos)  # a corner on its centroid agrees with any
+            angle = np.arccos(np.clip(cos, -1.0, 1.0))
+            j = int(np.argmin(angle))
+            better = angle[j] < best_angle[j] or (angle[j] == best_angle[j] and score > sc[j, k])
+            if angle[j] <= max_angle and better:
+                best_angle[j] = angle[j]
+                kp[j, k] = (x, y)
+                sc[j, k] = score
+    kp = grid_to_pixel(kp, stride)
+    return [InstanceKeypoints(kp[i], sc[i]) for i in range(m)]
+
+
+def _reprojection_rms(
+    obj: np.ndarray, img: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray,
+    dist: np.ndarray | None,
+) -> float:
+    uv, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+    return float(np.sqrt(np.mean(np.sum((uv.reshape(-1, 2) - img) ** 2, axis=1))))
+
+
+def _in_front(obj: np.ndarray, rvec: np.ndarray, tvec: np.ndarray) -> bool:
+    R, _ = cv2.Rodrigues(rvec)
+    z = (obj @ R.T + tvec.reshape(1, 3))[:, 2]
+    return bool(np.all(z > 0))
+
+
+def solve_pose(
+    instance: InstanceKeypoints,
+    cuboid: Cuboid,
+    K: np.ndarray,
+    dist: np.ndarray | None = None,
+    config: DecodeConfig | None = None,
+    object_name: str = "",
+) -> PoseDetection | None:
+    """PnP on one instance's keypoints (steps 3-4); ``None`` when no valid pose is found.
+
+    Args:
+        instance: keypoints in pixels of the image that ``K`` describes.
+        cuboid: the object's cuboid.
+        K: (3, 3) intrinsics; dist: OpenCV distortion coefficients or ``None``.
+    """
+    cfg = config or DecodeConfig()
+    mask = np.all(np.isfinite(instance.keypoints), axis=1)
+    n = int(mask.sum())
+    if n < cfg.min_points:
+        return None
+    K = np.asarray(K, dtype=np.float64)
+    dist = None if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
+    obj = np.ascontiguousarray(cuboid.points()[mask])
+    img = np.ascontiguousarray(instance.keypoints[mask].astype(np.float64))
+    used = np.ones(n, dtype=bool)
+    starts: list[tuple[np.ndarray, np.ndarray]] = []
+    if cfg.ransac and n >= 6:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+            obj, img, K, dist, iterationsCount=cfg.ransac_iterations,
+            reprojectionError=cfg.ransac_reprojection_px, flags=cv2.SOLVEPNP_EPNP,
+        )
+        if ok and inliers is not None and len(inliers) >= cfg.min_points:
+            used = np.zeros(n, dtype=bool)
+            used[inliers.reshape(-1)] = True
+            starts.append((rvec, tvec))
+    else:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_EPNP)
+        if ok:
+            starts.append((rvec, tvec))
+    obj_u, img_u = obj[used], img[used]
+    ok, rvec, tvec = cv2.solvePnP(obj_u, img_u, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+    if ok:
+        starts.append((rvec, tvec))
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    for rvec, tvec in starts:
+        rvec, tvec = rvec.astype(np.float64).copy(), tvec.astype(np.float64).copy()
+        if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
+            continue
+        if cfg.refine == "lm":
+            rvec, tvec = cv2.solvePnPRefineLM(obj_u, img_u, K, dist, rvec, tvec)
+        if not _in_front(cuboid.points(), rvec, tvec):
+            continue
+        err = _reprojection_rms(obj_u, img_u, rvec, tvec, K, dist)
+        if np.isfinite(err) and (best is None or err < best[0]):
+            best = (err, rvec, tvec)
+    if best is None:
+        return None
+    err, rvec, tvec = best
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(rvec)[0]
+    pose[:3, 3] = tvec.reshape(3)
+    scores = np.clip(instance.scores, 0.0, 1.0)
+    confidence = float(scores.mean() * math.exp(-0.5 * (err / cfg.reprojection_scale_px) ** 2))
+    if confidence < cfg.min_confidence:
+        return None
+    kp = instance.keypoints.copy()
+    return PoseDetection(
+        pose=torch.from_numpy(pose),
+        confidence=confidence,
+        keypoints=torch.from_numpy(kp.astype(np.float64)),
+        keypoint_scores=torch.from_numpy(instance.scores.astype(np.float64)),
+        reprojection_error_px=err,
+        num_points=int(used.sum()),
+        object_name=object_name,
+    )
+
+
+def decode_poses(
+    belief: np.ndarray,
+    affinity: np.ndarray,
+    cuboid: Cuboid,
+    K: np.ndarray,
+    dist: np.ndarray | None = None,
+    *,
+    stride: int = 8,
+    config: DecodeConfig | None = None,
+    pixel_scale: float | tuple[float, float] = 1.0,
+    object_name: str = "",
+) -> list[PoseDetection]:
+    """Poses of every instance in one image's maps, most confident first.
+
+    Args:
+        belief: (9, h, w); affinity: (16, h, w) for one image.
+        cuboid: the object's cuboid; K: (3, 3) intrinsics of the *original* image.
+        dist: distortion coefficients of the original image, or ``None``.
+        stride: network output stride.
+        pixel_scale: the network saw the image resized by this factor (or by ``(sx, sy)``);
+            keypoints are mapped back with ``p_orig = (p + 0.5) / scale - 0.5`` per axis.
+    """
+    cfg = config or DecodeConfig()
+    scale = np.broadcast_to(np.asarray(pixel_scale, dtype=np.float64), (2,))
+    out = []
+    for inst in extract_instances(belief, affinity, stride, cfg):
+        if np.any(scale != 1.0):
+            inst = InstanceKeypoints((inst.keypoints + 0.5) / scale - 0.5, inst.scores)
+        det = solve_pose(inst, cuboid, K, dist, cfg, object_name)
+        if det is not None:
+            out.append(det)
+    out.sort(key=lambda d: -d.confidence)
+    return out

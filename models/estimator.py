@@ -1,0 +1,225 @@
+"""``PoseEstimator``: RGB image in, object poses out, for any backend (torch or onnxruntime).
+
+``estimator(rgb_uint8_hwc) -> list[PoseDetection]``. The base class does what every backend
+shares: input checks, resizing by ``input_scale``, normalisation with the weights record's
+mean/std, padding to a multiple of the output stride, decoding and PnP. A backend only
+implements :meth:`PoseEstimator.run_network` on a normalised float32 batch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import nn
+
+from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError
+from evtrack.models.cuboid import Cuboid
+from evtrack.models.decode import DecodeConfig, PoseDetection, decode_poses
+from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD, WeightsRecord
+
+__all__ = ["PoseEstimator", "TorchPoseEstimator", "preprocess"]
+
+
+def preprocess(
+    rgb: np.ndarray,
+    mean: Sequence[float],
+    std: Sequence[float],
+    input_scale: float = 1.0,
+    size_divisor: int = 8,
+) -> tuple[np.ndarray, tuple[float, float]]:
+    """uint8 RGB (H, W, 3) -> normalised float32 (3, H', W') padded to ``size_divisor``.
+
+    The image is resized by ``input_scale`` (area interpolation when shrinking), scaled to
+    [0, 1], normalised per channel, and zero-padded at the bottom and right (zero = the mean
+    colour) so both sides are multiples of ``size_divisor``; padding moves no keypoint.
+
+    Returns:
+        The network input and the actual ``(sx, sy)`` resize factors (after rounding).
+    """
+    h, w = rgb.shape[:2]
+    if input_scale != 1.0:
+        nw, nh = max(1, round(w * input_scale)), max(1, round(h * input_scale))
+        interp = cv2.INTER_AREA if input_scale < 1 else cv2.INTER_LINEAR
+        rgb = cv2.resize(rgb, (nw, nh), interpolation=interp)
+    else:
+        nw, nh = w, h
+    x = rgb.astype(np.float32) * np.float32(1.0 / 255.0)
+    x = (x - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    ph, pw = -nh % size_divisor, -nw % size_divisor
+    if ph or pw:
+        x = np.pad(x, ((0, ph), (0, pw), (0, 0)))
+    return np.ascontiguousarray(x.transpose(2, 0, 1)), (nw / w, nh / h)
+
+
+def _check_rgb(rgb: object) -> np.ndarray:
+    if not isinstance(rgb, np.ndarray):
+        raise ValueError(f"expected an RGB image as a numpy array, got {type(rgb).__name__}")
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"expected a uint8 (H, W, 3) RGB image, got {rgb.dtype} {rgb.shape}")
+    if rgb.shape[0] < 8 or rgb.shape[1] < 8:
+        raise ValueError(f"image {rgb.shape[1]}x{rgb.shape[0]} is smaller than one output cell")
+    return rgb
+
+
+class PoseEstimator:
+    """Base class: image -> list of :class:`PoseDetection`, most confident first.
+
+    Args:
+        camera: the camera of the images (intrinsics and distortion; its size must match
+            the images), or a (3, 3) intrinsic matrix for undistorted images of any size.
+        cuboid: the object's cuboid.
+        object_name: name reported in detections.
+        mean, std: input normalisation (RGB in [0, 1]).
+        output_stride: the network's output stride.
+        decode: decoding and PnP settings.
+        input_scale: resize images by this factor before the network (e.g. 0.5 runs a
+            640x480 camera at 320x240); poses stay in the camera's pixel frame.
+    """
+
+    def __init__(
+        self,
+        camera: PinholeCamera | np.ndarray,
+        cuboid: Cuboid,
+        *,
+        object_name: str = "",
+        mean: Sequence[float] = IMAGENET_MEAN,
+        std: Sequence[float] = IMAGENET_STD,
+        output_stride: int = 8,
+        decode: DecodeConfig | None = None,
+        input_scale: float = 1.0,
+    ) -> None:
+        if not input_scale > 0:
+            raise ConfigError(f"input_scale must be positive, got {input_scale}")
+        self.camera = camera
+        self.cuboid = cuboid
+        self.object_name = object_name
+        self.mean = tuple(mean)
+        self.std = tuple(std)
+        self.output_stride = int(output_stride)
+        self.decode = decode or DecodeConfig()
+        self.input_scale = float(input_scale)
+
+    # ------------------------------------------------------------------ backend
+    def run_network(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 3, H, W) float32 -> belief (B, 9, H/8, W/8), affinity (B, 16, H/8, W/8)."""
+        raise NotImplementedError(f"{type(self).__name__} must implement run_network")
+
+    # ------------------------------------------------------------------ shared pipeline
+    def _intrinsics(
+        self, camera: PinholeCamera | np.ndarray | None, shape: tuple[int, ...]
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        cam = self.camera if camera is None else camera
+        if isinstance(cam, PinholeCamera):
+            if (cam.width, cam.height) != (shape[1], shape[0]):
+                raise ValueError(
+                    f"image is {shape[1]}x{shape[0]} but the camera is {cam.width}x{cam.height}"
+                )
+            dist = None if cam.dist is None else cam.dist.numpy()
+            return cam.K().numpy(), dist
+        K = np.asarray(cam, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise ValueError(f"camera must be a PinholeCamera or a (3, 3) K, got shape {K.shape}")
+        return K, None
+
+    def predict_maps(self, images: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, tuple]:
+        """Network maps for a list of same-size uint8 RGB images.
+
+        Returns:
+            ``belief (B, 9, h, w)``, ``affinity (B, 16, h, w)`` (float32) and the ``(sx, sy)``
+            resize factors applied before the network.
+        """
+        images = [_check_rgb(im) for im in images]
+        if len({im.shape for im in images}) > 1:
+            raise ValueError("all images of a batch must have the same size")
+        inputs, scales = zip(
+            *(preprocess(im, self.mean, self.std, self.input_scale, self.output_stride)
+              for im in images),
+            strict=True,
+        )
+        belief, affinity = self.run_network(np.stack(inputs))
+        return np.asarray(belief, np.float32), np.asarray(affinity, np.float32), scales[0]
+
+    def estimate_batch(
+        self, images: Sequence[np.ndarray], camera: PinholeCamera | np.ndarray | None = None
+    ) -> list[list[PoseDetection]]:
+        """Poses for a list of same-size images (one network call)."""
+        if len(images) == 0:
+            return []
+        K, dist = self._intrinsics(camera, images[0].shape)
+        belief, affinity, scale = self.predict_maps(images)
+        return [
+            decode_poses(
+                belief[i], affinity[i], self.cuboid, K, dist, stride=self.output_stride,
+                config=self.decode, pixel_scale=scale, object_name=self.object_name,
+            )
+            for i in range(len(images))
+        ]
+
+    def __call__(
+        self, rgb: np.ndarray, camera: PinholeCamera | np.ndarray | None = None
+    ) -> list[PoseDetection]:
+        """Poses of the object's instances in one uint8 (H, W, 3) RGB image."""
+        return self.estimate_batch([rgb], camera)[0]
+
+
+def _record_kwargs(record: WeightsRecord | None, cuboid: Cuboid | None, object_name: str | None):
+    if record is None and cuboid is None:
+        raise ConfigError("the network has no weights record: pass cuboid=... (and object_name)")
+    return {
+        "cuboid": cuboid if cuboid is not None else record.cuboid,
+        "object_name": object_name if object_name is not None else (
+            record.object_name if record else ""),
+        "mean": record.mean if record else IMAGENET_MEAN,
+        "std": record.std if record else IMAGENET_STD,
+        "output_stride": record.output_stride if record else 8,
+    }
+
+
+class TorchPoseEstimator(PoseEstimator):
+    """:class:`PoseEstimator` running a torch network (eager).
+
+    Args:
+        net: a network from :func:`evtrack.models.create`; its ``weights_record`` supplies
+            cuboid, object name and normalisation unless given here.
+        camera: see :class:`PoseEstimator`.
+        device: torch device to run on.
+        cuboid, object_name: override (or supply, for a network without a record).
+        **kwargs: ``decode`` and ``input_scale`` as in :class:`PoseEstimator`.
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        camera: PinholeCamera | np.ndarray,
+        *,
+        device: str | torch.device = "cpu",
+        cuboid: Cuboid | None = None,
+        object_name: str | None = None,
+        **kwargs,
+    ) -> None:
+        record = getattr(net, "weights_record", None)
+        super().__init__(camera, **_record_kwargs(record, cuboid, object_name), **kwargs)
+        self.device = torch.device(device)
+        self.net = net.to(self.device).eval()
+
+    @classmethod
+    def from_weights(
+        cls, path: str | Path, camera: PinholeCamera | np.ndarray, *,
+        object_name: str | None = None, **kwargs
+    ) -> TorchPoseEstimator:
+        """Load a weights file (or training checkpoint) and wrap it."""
+        from evtrack.models.factory import load_model
+
+        net, _ = load_model(path, object_name=object_name)
+        return cls(net, camera, **kwargs)
+
+    def run_network(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with torch.inference_mode():
+            x = torch.from_numpy(batch).to(self.device)
+            belief, affinity = self.net(x)
+        return belief.float().cpu().numpy(), affinity.float().cpu().numpy()
