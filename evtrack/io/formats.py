@@ -63,15 +63,15 @@ FORMATS: dict[str, FormatInfo] = {
         FormatInfo("hdf5", (".h5", ".hdf5", ".hdf"), True, True,
                    "evtrack native HDF5: events/{x,y,t,p} + ms_to_idx time index"),
         FormatInfo("text", (".txt",), True, True,
-                   "text lines 't x y p' (t in seconds, p 0/1), as in the Event Camera Dataset"),
+                   "lines 't x y p' (t in s, p 1/0), as in the Event Camera Dataset"),
         FormatInfo("npz", (".npz",), True, True,
-                   "numpy .npz with arrays x, y, t (µs), p (±1) and sensor_size (W, H)"),
+                   "numpy arrays x, y, t (µs), p (±1), sensor_size (W, H)"),
         FormatInfo("aedat4", (".aedat4",), True, False,
-                   "iniVation AEDAT 4.0 (read only, via the 'aedat' package)"),
+                   "iniVation AEDAT 4.0, via the 'aedat' package"),
         FormatInfo("evt2", (".raw",), True, False,
-                   "Prophesee RAW EVT 2.0 (read only, via 'expelliarmus')"),
+                   "Prophesee RAW EVT 2.0, via 'expelliarmus'"),
         FormatInfo("evt3", (".raw",), True, False,
-                   "Prophesee RAW EVT 3.0 (read only, via 'expelliarmus')"),
+                   "Prophesee RAW EVT 3.0, via 'expelliarmus'"),
     )
 }
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from evtrack.errors import EventFileError, EventsError, EvtrackError
 from evtrack.events import Events
-from evtrack.io.reader import EventReader, Locator, check_events
+from evtrack.io.reader import EventReader, Locator, check_events, quick_valid
 from evtrack.utils import atomic_path
 
 __all__ = [
@@ -46,6 +46,8 @@ DEFAULT_CHUNK_EVENTS = 1 << 16  # HDF5 chunk length (events) of each dataset
 DEFAULT_READ_BLOCK = 1 << 20  # events per block when streaming
 _WRITE_BUFFER_CHUNKS = 8  # writer flushes after this many HDF5 chunks of buffered events
 _MAX_CHUNK_BYTES = 64 << 20  # larger chunks than this are taken as corruption
+# Longest span the ms index may cover (2**28 ms, about 74.5 hours; 2 GiB of index).
+MAX_INDEX_ENTRIES = 1 << 28
 _INT16_MAX_SIDE = 32767
 _COMPRESSIONS = (None, "lzf", "gzip")
 # HDF5 filter ids that keep the stored size at least the raw size: shuffle, fletcher32.
@@ -137,6 +139,10 @@ class EventWriter:
                 )
                 for k, dt in dtypes.items()
             }
+            self._ms_ds = self._file.create_dataset(
+                "ms_to_idx", shape=(0,), maxshape=(None,), dtype=np.int64,
+                chunks=(self._chunk,), fletcher32=bool(checksum),
+            )
         except BaseException:
             self._abort_quietly()
             raise
@@ -154,9 +160,8 @@ class EventWriter:
                 f"{self.sensor_size}"
             )
         ev = Events(events.x, events.y, events.t, events.p, self.sensor_size)
-        report = ev.validate()
-        if not report.ok:
-            raise EventsError(f"{self.path}: cannot write invalid events: {report}")
+        if not quick_valid(ev):
+            raise EventsError(f"{self.path}: cannot write invalid events: {ev.validate()}")
         t = ev.t.cpu().numpy()
         if self._last_t is not None and t[0] < self._last_t:
             raise EventsError(
@@ -187,6 +192,11 @@ class EventWriter:
         k_hi = (int(t[-1]) - self._t0) // US_PER_MS
         if k_hi < self._next_k:
             return
+        if k_hi + 2 > MAX_INDEX_ENTRIES:
+            raise EventsError(
+                f"{self.path}: the events span {k_hi} ms from t0_us={self._t0}; the ms index is "
+                f"limited to {MAX_INDEX_ENTRIES} entries (about 74 hours): split the recording"
+            )
         ks = np.arange(self._next_k, k_hi + 1, dtype=np.int64)
         bounds = self._t0 + ks * US_PER_MS
         self._ms.append(self._n + np.searchsorted(t, bounds, side="left").astype(np.int64))
@@ -202,6 +212,16 @@ class EventWriter:
             self._ds[k].resize((stop,))
             self._ds[k][start:stop] = data
         self._buf, self._buf_n = [], 0
+        self._append_ms(self._ms)
+        self._ms = []
+
+    def _append_ms(self, parts: list[np.ndarray]) -> None:
+        if not parts:
+            return
+        table = np.concatenate(parts)
+        start = self._ms_ds.shape[0]
+        self._ms_ds.resize((start + table.shape[0],))
+        self._ms_ds[start:] = table
 
     # ----------------------------------------------------------------- finishing
     def close(self) -> None:
@@ -210,9 +230,7 @@ class EventWriter:
             return
         try:
             self._flush()
-            ms = self._ms + [np.array([self._n], dtype=np.int64)]
-            table = np.concatenate(ms) if self._n else np.zeros(1, dtype=np.int64)
-            self._file.create_dataset("ms_to_idx", data=table, dtype=np.int64)
+            self._append_ms([np.array([self._n], dtype=np.int64)])  # end sentinel ([0] if empty)
             attrs = self._file.attrs
             attrs["sensor_width"], attrs["sensor_height"] = self.sensor_size
             attrs["t0_us"] = np.int64(self._t0 if self._t0 is not None else 0)
@@ -449,16 +467,24 @@ class Hdf5Reader(EventReader):
         ev = self._guard(self._slice, 0, self._n)
         check_events(ev, self.path)
         if self._ms is not None and self._n:
-            table = self._guard(lambda: self._ms[()])
-            k = np.arange(table.shape[0], dtype=np.int64)
-            want = np.searchsorted(ev.t.numpy(), self._t0 + k * US_PER_MS, side="left")
-            bad = np.flatnonzero(table != want)
-            if bad.size:
-                raise self._fail(
-                    f"'ms_to_idx' disagrees with events/t at {bad.size} entries, first at "
-                    f"k={int(bad[0])} ({int(table[bad[0]])} instead of {int(want[bad[0]])})"
-                )
+            self._verify_ms_table(self._guard(lambda: self._ms[()]), ev.t.numpy())
         return ev
+
+    def _verify_ms_table(self, table: np.ndarray, t: np.ndarray) -> None:
+        """Check every entry: t[ms[k] - 1] < t0 + k·1000 <= t[ms[k]] (edges excepted)."""
+        n = self._n
+        bounds = self._t0 + np.arange(table.shape[0], dtype=np.int64) * US_PER_MS
+        inside = (table >= 0) & (table <= n)
+        at = np.clip(table, 0, n - 1)
+        before = np.clip(table - 1, 0, n - 1)
+        ok = inside & ((table == n) | (t[at] >= bounds)) & ((table == 0) | (t[before] < bounds))
+        bad = np.flatnonzero(~ok)
+        if bad.size:
+            k = int(bad[0])
+            raise self._fail(
+                f"'ms_to_idx' disagrees with events/t at {bad.size} entries, first at k={k} "
+                f"(index {int(table[k])} for t >= {int(bounds[k])} µs)"
+            )
 
     def read(self, t0_us: int | None = None, t1_us: int | None = None) -> Events:
         """Events with ``t0_us <= t < t1_us``; only that window is read from disk."""

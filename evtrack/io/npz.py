@@ -24,7 +24,7 @@ import numpy as np
 
 from evtrack.errors import EventFileError, EventsError, EvtrackError
 from evtrack.events import Events
-from evtrack.io.reader import EventReader, Locator, check_events
+from evtrack.io.reader import EventReader, Locator, check_events, quick_valid
 from evtrack.utils import atomic_path
 
 __all__ = ["NpzReader", "NpzWriter", "write_npz"]
@@ -236,9 +236,8 @@ class NpzWriter:
             )
         size = self.sensor_size if self.sensor_size is not None else events.sensor_size
         ev = Events(events.x, events.y, events.t, events.p, size)
-        report = ev.validate()
-        if not report.ok:
-            raise EventsError(f"{self.path}: cannot write invalid events: {report}")
+        if not quick_valid(ev):
+            raise EventsError(f"{self.path}: cannot write invalid events: {ev.validate()}")
         d = ev.numpy()
         if self._last_t is not None and d["t"][0] < self._last_t:
             raise EventsError(

@@ -13,12 +13,20 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from evtrack.errors import EventFileError
 from evtrack.events import Events, concatenate
 
-__all__ = ["EventReader", "DEFAULT_WINDOW_COUNT", "Locator", "rewindow", "check_events"]
+__all__ = [
+    "DEFAULT_WINDOW_COUNT",
+    "EventReader",
+    "Locator",
+    "check_events",
+    "quick_valid",
+    "rewindow",
+]
 
 # Window size used by iter_events/iter_windows when neither window_us nor count is given.
 DEFAULT_WINDOW_COUNT = 1_000_000
@@ -53,6 +61,8 @@ def check_events(
         locate: optional map from a chunk index to a place in the file (e.g. a line number).
         scope: optional words appended to counts (e.g. ``" in events 0..99"``).
     """
+    if (prev_t is None or not len(ev) or int(ev.t[0]) >= prev_t) and quick_valid(ev):
+        return
     problems: list[str] = []
     if prev_t is not None and len(ev) and int(ev.t[0]) < prev_t:
         problems.append(
@@ -81,6 +91,28 @@ def check_events(
         )
     if problems:
         raise EventFileError(path, "invalid events: " + "; ".join(problems))
+
+
+def quick_valid(ev: Events) -> bool:
+    """Whether :meth:`Events.validate` would find no problem, computed with numpy.
+
+    Same conditions (time order, ``0 <= x < width``, ``0 <= y < height``, polarity ±1), about
+    ten times faster on CPU than the torch implementation; readers call ``validate`` only to
+    describe a problem this finds.
+    """
+    if not len(ev):
+        return True
+    d = ev.numpy()
+    t, x, y, p = d["t"], d["x"], d["y"], d["p"]
+    if t.size > 1 and bool((t[1:] < t[:-1]).any()):
+        return False
+    if int(x.min()) < 0 or int(y.min()) < 0:
+        return False
+    if ev.sensor_size is not None:
+        w, h = ev.sensor_size
+        if int(x.max()) >= w or int(y.max()) >= h:
+            return False
+    return bool((np.abs(p) == 1).all())  # abs(-128) stays -128 in int8: still rejected
 
 
 def _shift(locate: Locator | None, offset: int) -> Locator | None:
@@ -152,46 +184,56 @@ def _time_windows(
 ) -> Iterator[Events]:
     if window_us <= 0:
         raise ValueError(f"window_us must be positive, got {window_us}")
-    start: int | None = None  # start of the window being filled
-    pending: list[Events] = []
+    start: int | None = None  # start time of window 0 of the current chunk
+    pending: list[Events] = []  # pieces of the window being filled (window 0)
     for ch in chunks:
         if not len(ch):
             continue
+        t = ch.t.cpu().numpy()
         if start is None:
-            first = int(ch.t[0])
+            first = int(t[0])
             if t_start_us is not None and int(t_start_us) > first:
                 raise ValueError(
                     f"t_start_us={t_start_us} is after the first event (t={first} µs); "
                     "windows must contain every event"
                 )
             start = first if t_start_us is None else int(t_start_us)
-        while len(ch):
-            end = start + window_us
-            k = int(torch.searchsorted(ch.t, torch.tensor([end], dtype=torch.int64))[0])
-            if k:
-                pending.append(ch[:k])
-                ch = ch[k:]
-            if not len(ch):
-                break
-            # The current window is complete: events remain at or after its end.
-            if pending or include_empty:
-                yield _join(pending, sensor_size)
-            pending = []
-            next_t = int(ch.t[0])
-            if include_empty:
-                start = end
-            else:
-                start = end + (next_t - end) // window_us * window_us
+        widx = (t - start) // window_us  # window of each event, counted from `start`
+        cuts = np.flatnonzero(widx[1:] != widx[:-1]) + 1
+        bounds = np.concatenate(([0], cuts, [len(t)])).tolist()
+        current = 0
+        for s, e in zip(bounds[:-1], bounds[1:], strict=True):
+            w = int(widx[s])
+            if w != current:  # the window being filled is complete
+                if pending or include_empty:
+                    yield _join(pending, sensor_size)
+                pending = []
+                if include_empty:
+                    for _ in range(w - current - 1):
+                        yield Events.empty(sensor_size)
+                current = w
+            pending.append(ch[s:e])
+        start += current * window_us
     if pending:
         yield _join(pending, sensor_size)
 
 
 def _join(pieces: list[Events], sensor_size: tuple[int, int] | None) -> Events:
+    """Concatenate CPU chunks with numpy (several times faster than torch.cat here)."""
     if not pieces:
         return Events.empty(sensor_size)
     if len(pieces) == 1:
         return pieces[0]
-    return concatenate(pieces)
+    if any(pc.device.type != "cpu" for pc in pieces):
+        return concatenate(pieces)
+    arrays = [pc.numpy() for pc in pieces]
+    coord = np.int32 if any(a["x"].dtype == np.int32 for a in arrays) else arrays[0]["x"].dtype
+    cat = {k: np.concatenate([a[k] for a in arrays]) for k in ("t", "p")}
+    return Events(
+        np.concatenate([a["x"].astype(coord, copy=False) for a in arrays]),
+        np.concatenate([a["y"].astype(coord, copy=False) for a in arrays]),
+        cat["t"], cat["p"], pieces[0].sensor_size,
+    )
 
 
 class EventReader(ABC):
