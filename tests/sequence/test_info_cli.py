@@ -1,0 +1,41 @@
+"""``evtrack info`` on event files and sequence folders."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from evtrack import Events
+from evtrack.cli import main
+from evtrack.io import write_events
+
+
+def test_info_event_file(tmp_path, capsys):
+    g = np.random.default_rng(0)
+    n = 5000
+    p = np.where(np.arange(n) < 1000, 1, -1)
+    ev = Events(g.integers(3, 60, n), g.integers(5, 40, n), np.arange(n) * 100, p,
+                sensor_size=(64, 48))
+    write_events(tmp_path / "ev.h5", ev)
+    assert main(["info", str(tmp_path / "ev.h5"), "--json", "--window-ms", "7"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["events"] == n
+    assert out["sensor_size"] == [64, 48]
+    assert abs(out["duration_s"] - (n - 1) * 1e-4) < 1e-12
+    assert abs(out["on_fraction"] - 0.2) < 1e-12
+    assert out["x_range"] == [int(ev.x.min()), int(ev.x.max())]
+    assert main(["info", str(tmp_path / "ev.h5")]) == 0
+    assert "Mev/s" in capsys.readouterr().out
+
+
+def test_info_missing_file(tmp_path, capsys):
+    assert main(["info", str(tmp_path / "nope.h5")]) == 1
+    assert "nope.h5" in capsys.readouterr().err
+
+
+def test_info_sequence(tmp_path, capsys, sequence_factory):
+    sequence_factory().save(tmp_path / "seq")
+    assert main(["info", str(tmp_path / "seq")]) == 0
+    out = capsys.readouterr().out
+    assert "rgb frames" in out and "2,000" in out and "poses" in out
