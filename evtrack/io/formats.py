@@ -212,7 +212,8 @@ def detect_format(path: str | Path) -> str:
 
     The content decides when it carries a signature (HDF5, ``#!AER-DAT4.0``, zip/npz, a
     Prophesee ``%`` header whose ``evt`` or ``format`` line names EVT 2.0 or 3.0) or reads as
-    ``t x y p`` text lines. An empty file is ``'text'`` when named ``*.txt`` (zero events).
+    ``t x y p`` text lines. A ``*.txt`` file without another format's signature is ``'text'``
+    (the text reader then reports any bad line by number; an empty file holds zero events).
 
     Args:
         path: the file.
@@ -238,7 +239,7 @@ def detect_format(path: str | Path) -> str:
         return _raw_encoding(path, head)
     if sniffed is not None:
         return sniffed
-    if not head and by_ext == "text":
+    if by_ext == "text":  # the text reader reports what is wrong, with the line number
         return "text"
     if by_ext is not None:
         expected = {
@@ -246,7 +247,6 @@ def detect_format(path: str | Path) -> str:
             "aedat4": "'#!AER-DAT4.0'",
             "npz": "the zip signature 'PK\\x03\\x04'",
             "raw": "a '% ' header line",
-            "text": "ASCII lines of 't x y p'",
         }[by_ext]
         what = "is empty" if not head else "has other content"
         raise EventFileError(

@@ -245,7 +245,8 @@ class TextReader(EventReader):
     def _parse_header(self, head: bytes, sensor_size: tuple[int, int] | None) -> None:
         pos = 0
         lines = 0
-        self._magic = False
+        # Written by evtrack (even if cut inside the first line): the trailer is then required.
+        self._magic = head.startswith(HEADER_MAGIC.encode())
         while True:
             end = head.find(b"\n", pos)
             if end < 0:
@@ -253,8 +254,6 @@ class TextReader(EventReader):
             line = head[pos:end].decode("latin-1").strip()
             if (line and not line.startswith("#")) or _TRAILER_RE.fullmatch(line.encode()):
                 break
-            if line.startswith(HEADER_MAGIC):
-                self._magic = True
             m = _SENSOR_RE.match(line)
             if m and sensor_size is None:
                 w, h = int(m.group(1)), int(m.group(2))
