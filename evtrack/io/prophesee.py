@@ -19,6 +19,7 @@ ON (+1), 0 is OFF (-1).
 from __future__ import annotations
 
 import contextlib
+import os
 import re
 import shutil
 import tempfile
@@ -119,12 +120,21 @@ class RawReader(EventReader):
             self.sensor_size = found[0]
 
     def _decoder_path(self) -> Path:
-        """expelliarmus insists on a '.raw' name; other names get a symlink in a temp dir."""
-        if self.path.suffix == ".raw":
-            return self.path.resolve()
+        """expelliarmus insists on a name ending '.raw' (after resolving symlinks).
+
+        Other names get a hard link named ``events.raw`` in a temporary folder, or a copy when
+        the temporary folder is on another file system.
+        """
+        real = self.path.resolve()
+        if real.suffix == ".raw":
+            return real
         if self._tmpdir is None:
             self._tmpdir = Path(tempfile.mkdtemp(prefix="evtrack-raw-"))
-            (self._tmpdir / "events.raw").symlink_to(self.path.resolve())
+            target = self._tmpdir / "events.raw"
+            try:
+                os.link(real, target)
+            except OSError:
+                shutil.copyfile(real, target)
         return self._tmpdir / "events.raw"
 
     def _to_events(self, arr: np.ndarray) -> Events:
