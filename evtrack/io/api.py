@@ -104,11 +104,24 @@ def iter_events(
     :data:`evtrack.io.reader.DEFAULT_WINDOW_COUNT` events. Empty time windows are skipped
     unless ``include_empty``. The windows concatenate to exactly :func:`read_events`'s result.
     Memory: one window plus one decoder chunk, except ``.npz`` (loaded whole).
+
+    The file is opened (and its format detected) when this is called, so a missing or
+    unrecognised file raises here; the file is closed when the iteration ends.
     """
-    with open_events(path, sensor_size=sensor_size) as reader:
-        yield from reader.iter_windows(
+    reader = open_events(path, sensor_size=sensor_size)
+    try:
+        windows = reader.iter_windows(
             window_us, count, t_start_us=t_start_us, include_empty=include_empty
         )
+    except BaseException:
+        reader.close()
+        raise
+    return _closing(reader, windows)
+
+
+def _closing(reader: EventReader, windows: Iterator[Events]) -> Iterator[Events]:
+    with reader:
+        yield from windows
 
 
 def _writable_format(path: Path, format: str | None) -> str:

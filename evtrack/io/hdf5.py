@@ -348,6 +348,12 @@ class Hdf5Reader(EventReader):
                     f"dtype {ds.dtype}"
                 )
             self._ds[k] = ds
+        version = f.attrs.get("format_version")
+        if version is not None and int(version) > FORMAT_VERSION:
+            raise self._fail(
+                f"format_version {int(version)} is newer than this evtrack reads "
+                f"({FORMAT_VERSION}): update evtrack"
+            )
         lengths = {k: ds.shape[0] for k, ds in self._ds.items()}
         if len(set(lengths.values())) != 1:
             raise self._fail(

@@ -150,16 +150,17 @@ def rewindow(
     if (window_us is None) == (count is None):
         raise ValueError("give exactly one of window_us and count")
     if count is not None:
-        yield from _count_windows(chunks, int(count), sensor_size)
-    else:
-        yield from _time_windows(chunks, int(window_us), t_start_us, include_empty, sensor_size)
+        if int(count) <= 0:
+            raise ValueError(f"count must be positive, got {count}")
+        return _count_windows(chunks, int(count), sensor_size)
+    if int(window_us) <= 0:
+        raise ValueError(f"window_us must be positive, got {window_us}")
+    return _time_windows(chunks, int(window_us), t_start_us, include_empty, sensor_size)
 
 
 def _count_windows(
     chunks: Iterator[Events], count: int, sensor_size: tuple[int, int] | None
 ) -> Iterator[Events]:
-    if count <= 0:
-        raise ValueError(f"count must be positive, got {count}")
     pending: list[Events] = []
     have = 0
     for ch in chunks:
@@ -182,8 +183,6 @@ def _time_windows(
     include_empty: bool,
     sensor_size: tuple[int, int] | None,
 ) -> Iterator[Events]:
-    if window_us <= 0:
-        raise ValueError(f"window_us must be positive, got {window_us}")
     start: int | None = None  # start time of window 0 of the current chunk
     pending: list[Events] = []  # pieces of the window being filled (window 0)
     for ch in chunks:

@@ -209,3 +209,11 @@ def test_truncated_file(tmp_path, events_factory):
     (tmp_path / "cut.h5").write_bytes(data[: len(data) // 2])
     with pytest.raises(EventFileError, match="cut.h5"):
         read_events(tmp_path / "cut.h5")
+
+
+def test_newer_format_version_is_refused(tmp_path, events_factory):
+    path = _good(tmp_path, events_factory)
+    with h5py.File(path, "a") as f:
+        f.attrs["format_version"] = 2
+    with pytest.raises(EventFileError, match="format_version 2 is newer"):
+        read_events(path)

@@ -155,3 +155,16 @@ def test_sensor_size_argument_overrides_the_file(tmp_path, events_factory):
         assert read_events(path, sensor_size=(100, 100)).sensor_size == (100, 100)
         with pytest.raises(EventFileError, match="outside the sensor"):
             read_events(path, sensor_size=(10, 10))
+
+
+def test_iter_events_checks_arguments_and_file_at_call(tmp_path, events_factory):
+    with pytest.raises(EventFileError, match="no such file"):
+        iter_events(tmp_path / "missing.h5", window_us=10)
+    write_events(tmp_path / "a.h5", events_factory(10))
+    for kwargs in ({"window_us": 10, "count": 5}, {"window_us": 0}, {"count": -1}):
+        with pytest.raises(ValueError):
+            iter_events(tmp_path / "a.h5", **kwargs)
+    default = list(iter_events(tmp_path / "a.h5"))  # default: runs of DEFAULT_WINDOW_COUNT
+    assert len(default) == 1 and len(default[0]) == 10
+    with pytest.raises(ValueError, match="after the first event"):
+        list(iter_events(tmp_path / "a.h5", window_us=10, t_start_us=10**12))
