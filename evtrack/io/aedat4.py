@@ -4,7 +4,8 @@ The sensor size is the event stream's ``width``/``height`` from the file's descr
 Packets are decoded one at a time (``aedat.Decoder`` iterates packets) and grouped into chunks
 of about :data:`CHUNK_EVENTS` events, so a file is streamed without being loaded whole.
 Timestamps are the camera's absolute µs (t u64 in the file, int64 here). IMU, trigger and frame
-streams are skipped. A file with several event streams is read from the one with the lowest id.
+streams are skipped. A file with several event streams must be read with an explicit
+``Aedat4Reader(path, stream_id=...)``; the other readers refuse it rather than drop a stream.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ class Aedat4Reader(EventReader):
     Args:
         path: the file.
         sensor_size: overrides the event stream's width/height.
+        stream_id: the event stream to read; required when the file has more than one.
 
     Raises:
         EventFileError: the decoder cannot open the file, the file has no event stream, or the
@@ -41,7 +43,13 @@ class Aedat4Reader(EventReader):
 
     format = "aedat4"
 
-    def __init__(self, path: str | Path, sensor_size: tuple[int, int] | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        sensor_size: tuple[int, int] | None = None,
+        *,
+        stream_id: int | None = None,
+    ) -> None:
         super().__init__(path, sensor_size)
         decoder = self._open()
         streams = decoder.id_to_stream()
@@ -49,7 +57,19 @@ class Aedat4Reader(EventReader):
         if not events:
             kinds = sorted({s.get("type", "?") for s in streams.values()})
             raise EventFileError(self.path, f"no event stream in the file (streams: {kinds})")
-        self._stream = events[0]
+        if stream_id is not None:
+            if stream_id not in events:
+                raise EventFileError(
+                    self.path, f"stream {stream_id} is not an event stream (those are {events})"
+                )
+            self._stream = stream_id
+        elif len(events) > 1:
+            raise EventFileError(
+                self.path, f"the file has {len(events)} event streams {events}; choose one with "
+                "Aedat4Reader(path, stream_id=...)"
+            )
+        else:
+            self._stream = events[0]
         info = streams[self._stream]
         if sensor_size is None:
             w, h = int(info.get("width", 0)), int(info.get("height", 0))

@@ -8,6 +8,7 @@ import pytest
 from evtrack.errors import EventFileError
 from evtrack.events import concatenate
 from evtrack.io import (
+    Aedat4Reader,
     RawReader,
     detect_format,
     iter_events,
@@ -147,3 +148,10 @@ def test_truncated_aedat4(tmp_path, aedat4_file):
     (tmp_path / "hdr.aedat4").write_bytes(data[:40])
     with pytest.raises(EventFileError, match="hdr.aedat4"):
         read_events(tmp_path / "hdr.aedat4")
+
+
+def test_aedat4_stream_choice(aedat4_file):
+    with Aedat4Reader(aedat4_file, stream_id=0) as r:
+        assert r.num_events == AEDAT4_COUNT
+    with pytest.raises(EventFileError, match="stream 2 is not an event stream"):
+        Aedat4Reader(aedat4_file, stream_id=2)  # the IMU stream
