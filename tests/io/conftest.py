@@ -10,11 +10,6 @@ import pytest
 
 from evtrack.events import Events
 
-EVT3_COUNT = 219_596
-EVT2_COUNT = 539_481
-AEDAT4_COUNT = 111_954
-
-
 def make_events(
     n: int,
     *,
