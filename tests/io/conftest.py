@@ -10,6 +10,7 @@ import pytest
 
 from evtrack.events import Events
 
+
 def make_events(
     n: int,
     *,
