@@ -68,7 +68,10 @@ class EventsValidationReport:
         return f"{self.num_events} events: " + "; ".join(self.problems)
 
 
-def _first_true(mask: Tensor) -> int:
+def _first_true(mask: Tensor | np.ndarray) -> int:
+    """Index of the first True of a 1-D mask (numpy or torch), or -1."""
+    if isinstance(mask, np.ndarray):
+        return int(mask.argmax()) if mask.any() else -1
     idx = torch.nonzero(mask, as_tuple=False)
     return int(idx[0, 0]) if idx.numel() else -1
 
@@ -282,37 +285,39 @@ class Events:
         """
         n = len(self)
         problems: list[str] = []
-        unsorted = first_unsorted = outside = first_outside = bad = first_bad = 0
+        unsorted = outside = bad = 0
         first_unsorted = first_outside = first_bad = -1
+        # numpy on CPU (zero-copy views, ~10x faster than torch's int16/int8 kernels there)
+        x, y, t, p = (self.numpy()[k] for k in "xytp") if self.device.type == "cpu" else (
+            self.x, self.y, self.t, self.p)
         if n > 1:
-            dec = self.t[1:] < self.t[:-1]
+            dec = t[1:] < t[:-1]
             unsorted = int(dec.sum())
             if unsorted:
                 first_unsorted = _first_true(dec) + 1
                 problems.append(
                     f"{unsorted} timestamps go backwards, first at index {first_unsorted} "
-                    f"(t={int(self.t[first_unsorted])} µs after {int(self.t[first_unsorted - 1])})"
+                    f"(t={int(t[first_unsorted])} µs after {int(t[first_unsorted - 1])})"
                 )
         if n:
-            out = (self.x < 0) | (self.y < 0)
+            out = (x < 0) | (y < 0)
             if self.sensor_size is not None:
                 w, h = self.sensor_size
-                out |= (self.x >= w) | (self.y >= h)
+                out |= (x >= w) | (y >= h)
             outside = int(out.sum())
             if outside:
                 first_outside = _first_true(out)
                 problems.append(
                     f"{outside} events outside the sensor {self.sensor_size}, first at index "
-                    f"{first_outside} (x={int(self.x[first_outside])}, "
-                    f"y={int(self.y[first_outside])})"
+                    f"{first_outside} (x={int(x[first_outside])}, y={int(y[first_outside])})"
                 )
-            badp = (self.p != 1) & (self.p != -1)
+            badp = (p != 1) & (p != -1)
             bad = int(badp.sum())
             if bad:
                 first_bad = _first_true(badp)
                 problems.append(
                     f"{bad} events with polarity other than +1/-1, first at index {first_bad} "
-                    f"(p={int(self.p[first_bad])})"
+                    f"(p={int(p[first_bad])})"
                 )
         return EventsValidationReport(
             n, unsorted, first_unsorted, outside, first_outside, bad, first_bad, tuple(problems)
@@ -337,14 +342,18 @@ def concatenate(chunks: Sequence[Events]) -> Events:
     if len(sizes) > 1:
         raise EventsError(f"cannot concatenate events of different sensor sizes {sorted(sizes)}")
     dtype = torch.int32 if any(c.x.dtype == torch.int32 for c in chunks) else chunks[0].x.dtype
-    cat = {k: torch.cat([getattr(c, k) for c in chunks]) for k in ("t", "p")}
-    return Events(
-        torch.cat([c.x.to(dtype) for c in chunks]),
-        torch.cat([c.y.to(dtype) for c in chunks]),
-        cat["t"],
-        cat["p"],
-        sizes.pop() if sizes else None,
-    )
+    if all(c.device.type == "cpu" for c in chunks):  # numpy's concatenate is much faster on CPU
+        np_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+        fields = {
+            k: torch.from_numpy(np.concatenate(
+                [c.numpy()[k].astype(np_dtype, copy=False) if k in "xy" else c.numpy()[k]
+                 for c in chunks]))
+            for k in ("x", "y", "t", "p")
+        }
+    else:
+        fields = {k: torch.cat([getattr(c, k).to(dtype) if k in "xy" else getattr(c, k)
+                                for c in chunks]) for k in ("x", "y", "t", "p")}
+    return Events(**fields, sensor_size=sizes.pop() if sizes else None)
 
 
 Events.concatenate = staticmethod(concatenate)  # type: ignore[attr-defined]
