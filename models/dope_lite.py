@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from evtrack.errors import ConfigError
 from evtrack.models._registry import register_model
 
 __all__ = [
@@ -226,10 +227,15 @@ def _build(defaults: DopeLiteConfig, **kwargs) -> DopeLite:
     fields = defaults.to_dict()
     unknown = sorted(set(kwargs) - set(fields))
     if unknown:
-        raise TypeError(f"unknown DOPE-Lite hyper-parameter(s) {unknown}; known: {sorted(fields)}")
+        raise ConfigError(
+            f"unknown DOPE-Lite hyper-parameter(s) {unknown}; known: {sorted(fields)}"
+        )
     merged = {**fields, **kwargs}
     merged = {k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()}
-    return DopeLite(DopeLiteConfig(**merged))
+    try:
+        return DopeLite(DopeLiteConfig(**merged))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"invalid DOPE-Lite hyper-parameters {kwargs}: {exc}") from exc
 
 
 @register_model

@@ -41,7 +41,11 @@ def _config_of(net: nn.Module) -> Any:
 
 
 def _load_into(net: nn.Module, state: dict, path: Path, name: str) -> None:
-    result = net.load_state_dict(state, strict=False)
+    try:
+        result = net.load_state_dict(state, strict=False)
+    except RuntimeError as exc:  # tensors of the wrong shape
+        first = str(exc).strip().splitlines()
+        raise WeightsError(path, f"weights do not fit {name}: {' '.join(first[:3])}") from exc
     if result.missing_keys or result.unexpected_keys:
         raise WeightsError(
             path,

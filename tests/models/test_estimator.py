@@ -1,0 +1,100 @@
+"""The shared PoseEstimator pipeline (input checks, resize, padding, decoding, PnP)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError
+from evtrack.models import Cuboid, PoseEstimator, TorchPoseEstimator, create, preprocess
+
+CAM = PinholeCamera(400.0, 400.0, 159.5, 119.5, 320, 240)
+CUBOID = Cuboid((0.08, 0.12, 0.05))
+
+
+def truth_pose() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", [0.4, -0.6, 0.3]).as_matrix()
+    T[:3, 3] = (0.02, -0.01, 0.5)
+    return T
+
+
+class AnalyticEstimator(PoseEstimator):
+    """A 'network' that returns the ideal maps of ``truth_pose`` for whatever input it gets."""
+
+    def run_network(self, batch):
+        b, _, h, w = batch.shape
+        # the input was resized by input_scale from the 320x240 camera image (then padded)
+        s = self.input_scale
+        uv = (CUBOID.project(truth_pose(), CAM.K().numpy()) + 0.5) * s - 0.5
+        gy, gx = np.mgrid[0 : h // 8, 0 : w // 8]
+        px, py = gx * 8 + 3.5, gy * 8 + 3.5
+        belief = np.stack([np.exp(-((px - u) ** 2 + (py - v) ** 2) / 2 / 6.0**2) for u, v in uv])
+        affinity = np.zeros((16, h // 8, w // 8))
+        for k in range(8):
+            d = uv[8] - uv[k]
+            d /= np.linalg.norm(d)
+            disc = np.hypot(px - uv[k, 0], py - uv[k, 1]) < 12
+            affinity[2 * k][disc], affinity[2 * k + 1][disc] = d
+        self.seen_shape = batch.shape
+        return np.repeat(belief[None], b, 0), np.repeat(affinity[None], b, 0)
+
+
+@pytest.mark.parametrize("scale,expected_shape", [(1.0, (1, 3, 240, 320)), (0.5, (1, 3, 120, 160)),
+                                                  (0.3, (1, 3, 72, 96))])
+def test_pipeline_recovers_the_pose(scale, expected_shape):
+    est = AnalyticEstimator(CAM, CUBOID, object_name="box", input_scale=scale)
+    image = np.zeros((240, 320, 3), np.uint8)
+    (det,) = est(image)
+    assert est.seen_shape == expected_shape  # 0.3 * 240 = 72, 0.3 * 320 = 96: padded already
+    T = truth_pose()
+    assert np.linalg.norm(det.pose[:3, 3].numpy() - T[:3, 3]) < 2e-3
+    err = Rotation.from_matrix(det.pose[:3, :3].numpy().T @ T[:3, :3]).magnitude()
+    assert np.degrees(err) < 0.5
+    assert det.object_name == "box"
+    assert det.keypoints.shape == (9, 2)
+
+
+def test_batch_and_K_matrix_camera():
+    est = AnalyticEstimator(CAM.K().numpy(), CUBOID)
+    images = [np.zeros((240, 320, 3), np.uint8)] * 3
+    out = est.estimate_batch(images)
+    assert len(out) == 3 and all(len(d) == 1 for d in out)
+    assert est.estimate_batch([]) == []
+
+
+def test_preprocess_normalises_and_pads():
+    rgb = np.full((20, 30, 3), 255, np.uint8)
+    x, scale = preprocess(rgb, (0.5, 0.5, 0.5), (0.25, 0.5, 1.0), 1.0, 8)
+    assert x.shape == (3, 24, 32) and x.dtype == np.float32 and scale == (1.0, 1.0)
+    np.testing.assert_allclose(x[:, :20, :30].reshape(3, -1).mean(1), [2.0, 1.0, 0.5])
+    assert np.all(x[:, 20:, :] == 0) and np.all(x[:, :, 30:] == 0)
+    x2, scale2 = preprocess(rgb, (0, 0, 0), (1, 1, 1), 0.5, 8)
+    assert x2.shape == (3, 16, 16) and scale2 == (0.5, 0.5)
+
+
+def test_bad_inputs_are_clear_errors():
+    est = TorchPoseEstimator(create("dope_lite_tiny"), CAM, cuboid=CUBOID)
+    with pytest.raises(ValueError, match="uint8"):
+        est(np.zeros((240, 320, 3), np.float32))
+    with pytest.raises(ValueError, match="uint8"):
+        est(np.zeros((240, 320), np.uint8))
+    with pytest.raises(ValueError, match="numpy array"):
+        est(torch.zeros(240, 320, 3, dtype=torch.uint8))
+    with pytest.raises(ValueError, match="camera is 320x240"):
+        est(np.zeros((480, 640, 3), np.uint8))
+    with pytest.raises(ConfigError, match="no weights record"):
+        TorchPoseEstimator(create("dope_lite_tiny"), CAM)
+    with pytest.raises(ConfigError, match="input_scale"):
+        TorchPoseEstimator(create("dope_lite_tiny"), CAM, cuboid=CUBOID, input_scale=0)
+
+
+def test_torch_estimator_runs_a_real_network():
+    torch.manual_seed(0)
+    est = TorchPoseEstimator(create("dope_lite_tiny"), CAM, cuboid=CUBOID)
+    belief, affinity, scale = est.predict_maps([np.zeros((240, 320, 3), np.uint8)])
+    assert belief.shape == (1, 9, 30, 40) and affinity.shape == (1, 16, 30, 40)
+    assert isinstance(est(np.zeros((240, 320, 3), np.uint8)), list)

@@ -1,0 +1,169 @@
+"""Weights files: records, safe loading, wrong architecture/object/hyper-parameters, the zoo."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import evtrack.models.weights as weights_module
+from evtrack.models import (
+    Cuboid,
+    WeightsError,
+    WeightsRecord,
+    create,
+    find_default_weights,
+    list_weights,
+    load_model,
+    load_weights_file,
+    model_card,
+    save_weights,
+)
+
+
+def make_record(arch="dope_lite_tiny", obj="demo_box", **kw) -> WeightsRecord:
+    return WeightsRecord(arch=arch, object_name=obj, cuboid=Cuboid((0.1, 0.2, 0.05), (0, 0.01, 0)),
+                         input_size=(96, 128), training_data="unit test", **kw)
+
+
+@pytest.fixture()
+def saved(tmp_path):
+    torch.manual_seed(3)
+    net = create("dope_lite_tiny")
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(torch.randn_like(p))
+    path = save_weights(tmp_path / "w.pt", net, make_record(metrics={"val/loss": 0.5}))
+    return net, path
+
+
+def test_roundtrip_restores_state_and_record(saved):
+    net, path = saved
+    loaded = create("dope_lite_tiny", weights=path)
+    assert not loaded.training
+    for k, v in net.state_dict().items():
+        torch.testing.assert_close(loaded.state_dict()[k], v)
+    rec = loaded.weights_record
+    assert rec == make_record(metrics={"val/loss": 0.5}, created=rec.created)
+    assert rec.cuboid == Cuboid((0.1, 0.2, 0.05), (0, 0.01, 0))
+    net2, rec2 = load_model(path)
+    assert net2.arch_name == "dope_lite_tiny" and rec2.object_name == "demo_box"
+
+
+def test_file_is_plain_data_for_weights_only_loading(saved):
+    _, path = saved
+    payload = torch.load(path, weights_only=True)
+    assert payload["format"] == "evtrack.pose_weights"
+    assert payload["record"]["arch"] == "dope_lite_tiny"
+
+
+def test_wrong_architecture_is_a_clear_error(saved):
+    _, path = saved
+    with pytest.raises(WeightsError, match="architecture 'dope_lite_tiny', not 'dope_lite_small'"):
+        create("dope_lite_small", weights=path)
+
+
+def test_wrong_object_is_a_clear_error(saved):
+    _, path = saved
+    with pytest.raises(WeightsError, match="object 'demo_box', not 'mustard'"):
+        create("dope_lite_tiny", weights=path, object_name="mustard")
+    with pytest.raises(WeightsError, match="object"):
+        load_model(path, object_name="mustard")
+
+
+def test_conflicting_hyper_parameters_are_refused(saved):
+    _, path = saved
+    with pytest.raises(WeightsError, match="differ from those of the weights"):
+        create("dope_lite_tiny", weights=path, refine_dilations=[1, 3])
+
+
+def test_record_lying_about_the_architecture_is_caught(tmp_path):
+    small = create("dope_lite_small")
+    path = save_weights(tmp_path / "lie.pt", small, make_record(arch="dope_lite_tiny"))
+    with pytest.raises(WeightsError, match="do not fit dope_lite_tiny"):
+        create("dope_lite_tiny", weights=path)
+
+
+def test_pickled_code_is_refused(tmp_path):
+    path = tmp_path / "evil.pt"
+    torch.save({"format": "evtrack.pose_weights", "obj": torch.nn.Linear(2, 2)}, path)
+    with pytest.raises(WeightsError, match="weights_only=True"):
+        load_weights_file(path)
+
+
+@pytest.mark.parametrize("content", [b"", b"not a zip file at all"])
+def test_corrupt_files_are_clear_errors(tmp_path, content):
+    path = tmp_path / "bad.pt"
+    path.write_bytes(content)
+    with pytest.raises(WeightsError, match="cannot read weights"):
+        load_weights_file(path)
+
+
+def test_truncated_file_is_a_clear_error(saved, tmp_path):
+    _, path = saved
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(path.read_bytes()[:-200])
+    with pytest.raises(WeightsError, match=str(cut)):
+        load_weights_file(cut)
+
+
+def test_foreign_and_missing_files(tmp_path):
+    other = tmp_path / "other.pt"
+    torch.save({"model": {"w": torch.zeros(1)}}, other)
+    with pytest.raises(WeightsError, match="not an evtrack weights file"):
+        load_weights_file(other)
+    with pytest.raises(WeightsError, match="not found"):
+        create("dope_lite_tiny", weights=tmp_path / "missing.pt")
+    bad_version = tmp_path / "v9.pt"
+    torch.save({"format": "evtrack.pose_weights", "format_version": 9}, bad_version)
+    with pytest.raises(WeightsError, match="version 9"):
+        load_weights_file(bad_version)
+
+
+def test_lightning_style_checkpoint_is_accepted(saved, tmp_path):
+    net, path = saved
+    payload = torch.load(path, weights_only=True)
+    ckpt = {
+        "state_dict": {f"net.{k}": v for k, v in payload["state_dict"].items()},
+        "hyper_parameters": {"record": payload["record"], "optim": {"lr": 1e-3}},
+        "epoch": 3,
+    }
+    torch.save(ckpt, tmp_path / "x.ckpt")
+    loaded = create("dope_lite_tiny", weights=tmp_path / "x.ckpt")
+    torch.testing.assert_close(loaded.state_dict(), net.state_dict())
+    torch.save({"state_dict": {}, "hyper_parameters": {}}, tmp_path / "y.ckpt")
+    with pytest.raises(WeightsError, match="without an evtrack weights record"):
+        load_weights_file(tmp_path / "y.ckpt")
+
+
+def test_default_weights_come_from_the_zoo(saved, tmp_path, monkeypatch):
+    net, path = saved
+    zoo = tmp_path / "zoo"
+    zoo.mkdir()
+    monkeypatch.setattr(weights_module, "zoo_dir", lambda: zoo)
+    with pytest.raises(WeightsError, match="no shipped weights for dope_lite_tiny"):
+        create("dope_lite_tiny", weights="default")
+    (zoo / "demo.pt").write_bytes(path.read_bytes())
+    assert [r.object_name for _, r in list_weights()] == ["demo_box"]
+    loaded = create("dope_lite_tiny", weights="default")
+    torch.testing.assert_close(loaded.state_dict(), net.state_dict())
+    save_weights(zoo / "other.pt", net, make_record(obj="other_box"))
+    with pytest.raises(WeightsError, match="several weights"):
+        find_default_weights("dope_lite_tiny")
+    assert find_default_weights("dope_lite_tiny", "other_box").name == "other.pt"
+
+
+def test_model_card_states_what_the_weights_are():
+    card = model_card(make_record(metrics={"val/loss": 0.25}, training={"wall_time_s": 12.5}),
+                      config={"model": {"name": "dope_lite_tiny"}})
+    for text in ("dope_lite_tiny", "demo_box", "unit test", "BSD-3-Clause", "val/loss: 0.25",
+                 "wall_time_s: 12.5", "trained at 128x96", "```yaml"):
+        assert text in card
+
+
+def test_record_validation():
+    with pytest.raises(WeightsError, match="lacks field"):
+        WeightsRecord.from_dict({"arch": "x"})
+    with pytest.raises(WeightsError, match="unknown field"):
+        WeightsRecord.from_dict({**make_record().to_dict(), "colour": "red"})
+    assert WeightsRecord.from_dict(make_record().to_dict()) == make_record(
+        created=WeightsRecord.from_dict(make_record().to_dict()).created)

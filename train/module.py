@@ -1,0 +1,233 @@
+"""The ``LightningModule`` that trains a pose network on belief maps and affinity fields.
+
+The loss is DOPE's: mean squared error between every stage's belief maps and affinity fields
+and their targets, summed over stages. Inference never needs this module: the trained network
+is saved as a weights file (:func:`evtrack.models.save_weights`) and loaded with
+:func:`evtrack.models.create`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from evtrack.errors import ConfigError
+from evtrack.models.keypoints import find_peaks
+from evtrack.models.weights import WeightsRecord
+
+__all__ = ["OptimConfig", "LossConfig", "PoseLightningModule", "keypoint_metrics"]
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """AdamW with an optional cosine schedule.
+
+    Attributes:
+        lr: peak learning rate.
+        weight_decay: AdamW weight decay.
+        schedule: ``"cosine"`` (to ``lr * final_lr_fraction`` over the run, per step) or
+            ``"constant"``.
+        warmup_steps: linear warm-up steps from 0.
+        final_lr_fraction: end of the cosine schedule as a fraction of ``lr``.
+    """
+
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    schedule: str = "cosine"
+    warmup_steps: int = 100
+    final_lr_fraction: float = 0.02
+
+    def __post_init__(self) -> None:
+        if self.schedule not in ("cosine", "constant"):
+            raise ConfigError(f"optim.schedule must be 'cosine' or 'constant', "
+                              f"got {self.schedule!r}")
+        if self.lr <= 0 or self.weight_decay < 0 or self.warmup_steps < 0:
+            raise ConfigError("optim: lr must be > 0, weight_decay and warmup_steps >= 0")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Loss weights.
+
+    Attributes:
+        belief_weight: weight of the belief-map MSE.
+        affinity_weight: weight of the affinity-field MSE.
+        last_stage_weight: weight of the last stage (earlier stages weigh 1).
+        match_px: a predicted peak within this distance of a true keypoint counts as found
+            (validation metrics).
+        peak_threshold: minimum belief value of a peak (validation metrics).
+    """
+
+    belief_weight: float = 1.0
+    affinity_weight: float = 1.0
+    last_stage_weight: float = 1.0
+    match_px: float = 8.0
+    peak_threshold: float = 0.1
+
+
+def keypoint_metrics(
+    pred_belief: np.ndarray, target_belief: np.ndarray, stride: int, threshold: float,
+    match_px: float,
+) -> tuple[int, int, list[float]]:
+    """Compare predicted and target keypoint peaks of a batch.
+
+    Target peaks are the keypoints' Gaussians; each is matched to the nearest predicted peak of
+    the same channel.
+
+    Args:
+        pred_belief, target_belief: (B, 9, h, w).
+
+    Returns:
+        ``(found, total, errors_px)``: target keypoints with a predicted peak within
+        ``match_px``, all target keypoints, and the pixel errors of the found ones.
+    """
+    found, total, errors = 0, 0, []
+    for pred, target in zip(pred_belief, target_belief, strict=True):
+        pp = find_peaks(pred, threshold)
+        tp = find_peaks(target, 0.5)
+        for c in range(len(tp)):
+            for x, y, _ in tp[c]:
+                total += 1
+                if len(pp[c]) == 0:
+                    continue
+                d = np.hypot(pp[c][:, 0] - x, pp[c][:, 1] - y).min() * stride
+                if d <= match_px:
+                    found += 1
+                    errors.append(float(d))
+    return found, total, errors
+
+
+class PoseLightningModule(L.LightningModule):
+    """Trains a pose network (``net``) on batches of images, belief and affinity targets.
+
+    Args:
+        net: a network from :func:`evtrack.models.create` (it carries ``arch_name`` and
+            ``arch_kwargs``); its ``forward_stages`` gives every stage's maps.
+        record: the weights record to save with the weights (object, cuboid, normalisation).
+        optim: optimiser settings.
+        loss: loss weights.
+
+    The hyper-parameters saved in checkpoints are plain dicts (record, optim, loss), so
+    checkpoints load with ``torch.load(..., weights_only=True)`` and
+    :func:`evtrack.models.create` reads them directly.
+    """
+
+    def __init__(
+        self,
+        net: nn.Module,
+        record: WeightsRecord,
+        optim: OptimConfig | None = None,
+        loss: LossConfig | None = None,
+    ) -> None:
+        super().__init__()
+        arch = getattr(net, "arch_name", None)
+        if arch is None:
+            raise ConfigError("net must come from evtrack.models.create (it has no arch_name)")
+        if record.arch != arch or record.arch_kwargs != getattr(net, "arch_kwargs", {}):
+            raise ConfigError(f"record describes {record.arch} {record.arch_kwargs}, the net is "
+                              f"{arch} {net.arch_kwargs}")
+        self.net = net
+        self.record = record
+        self.optim_config = optim or OptimConfig()
+        self.loss_config = loss or LossConfig()
+        self.save_hyperparameters({
+            "record": record.to_dict(),
+            "optim": asdict(self.optim_config),
+            "loss": asdict(self.loss_config),
+        })
+        self._val_found = self._val_total = 0
+        self._val_errors: list[float] = []
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        return self.net(x)
+
+    def compute_loss(
+        self, stages: list[tuple[Tensor, Tensor]], belief: Tensor, affinity: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Weighted sum over stages of the belief and affinity MSEs: (total, belief, affinity)."""
+        cfg = self.loss_config
+        lb = belief.new_zeros(())
+        la = belief.new_zeros(())
+        for i, (b, a) in enumerate(stages):
+            w = cfg.last_stage_weight if i == len(stages) - 1 else 1.0
+            lb = lb + w * F.mse_loss(b, belief)
+            la = la + w * F.mse_loss(a, affinity)
+        return cfg.belief_weight * lb + cfg.affinity_weight * la, lb, la
+
+    def _common_step(self, batch: dict[str, Tensor], stage: str) -> Tensor:
+        stages = self.net.forward_stages(batch["image"])
+        loss, lb, la = self.compute_loss(stages, batch["belief"], batch["affinity"])
+        bs = batch["image"].shape[0]
+        train = stage == "train"
+        self.log(f"{stage}/loss", loss, prog_bar=True, on_step=train, on_epoch=True,
+                 batch_size=bs, sync_dist=not train)
+        self.log(f"{stage}/loss_belief", lb, on_step=False, on_epoch=True, batch_size=bs,
+                 sync_dist=not train)
+        self.log(f"{stage}/loss_affinity", la, on_step=False, on_epoch=True, batch_size=bs,
+                 sync_dist=not train)
+        if not train:
+            found, total, errors = keypoint_metrics(
+                stages[-1][0].detach().float().cpu().numpy(), batch["belief"].cpu().numpy(),
+                self.record.output_stride, self.loss_config.peak_threshold,
+                self.loss_config.match_px,
+            )
+            self._val_found += found
+            self._val_total += total
+            self._val_errors += errors
+        return loss
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        return self._common_step(batch, "train")
+
+    def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        return self._common_step(batch, "val")
+
+    def test_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        return self._common_step(batch, "test")
+
+    def _log_keypoint_metrics(self, stage: str) -> None:
+        recall = self._val_found / self._val_total if self._val_total else 0.0
+        median = float(np.median(self._val_errors)) if self._val_errors else float("nan")
+        self.log(f"{stage}/keypoint_recall", recall, sync_dist=True)
+        self.log(f"{stage}/keypoint_error_px", median, sync_dist=True)
+        self._val_found = self._val_total = 0
+        self._val_errors = []
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_keypoint_metrics("val")
+
+    def on_test_epoch_end(self) -> None:
+        self._log_keypoint_metrics("test")
+
+    def configure_optimizers(self):
+        cfg = self.optim_config
+        opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        total = max(1, int(self.trainer.estimated_stepping_batches)) if self._trainer else 1
+        warm = min(cfg.warmup_steps, max(0, total - 1))
+
+        def factor(step: int) -> float:
+            if step < warm:
+                return (step + 1) / (warm + 1)
+            if cfg.schedule == "constant":
+                return 1.0
+            progress = min(1.0, (step - warm) / max(1, total - warm))
+            lo = cfg.final_lr_fraction
+            return lo + (1 - lo) * 0.5 * (1 + np.cos(np.pi * progress))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def export_weights(self, path: str, **record_updates) -> str:
+        """Save the network with its record (updated with ``record_updates``) as a weights file."""
+        from dataclasses import replace
+
+        from evtrack.models.weights import save_weights
+
+        record = replace(self.record, **record_updates) if record_updates else self.record
+        save_weights(path, self.net, record)
+        return path
