@@ -1,0 +1,622 @@
+"""Quaternion pose UKFs (paper III-C): the pose driven by a measured twist, and the
+constant-velocity variant with the twist in the state (as ROFT).
+
+State of B tracks: translation ``t`` (m) and unit quaternion ``q`` (wxyz) of the
+object-to-camera pose, with a covariance in the tangent ``[δt, δθ]`` (m, rad; camera-frame
+left perturbation ``q = exp(δθ) ⊗ q̄``, see :mod:`ukf`). :class:`PoseTwistUKF` appends the twist
+``V = [v_o, ω]`` to the state (12-D tangent).
+
+Predict: each sigma point moves by the exact constant-twist motion (DESIGN convention
+``Ṗ = v_o + ω × P``): ``t' = R_Δ t + p_Δ``, ``q' = q_Δ ⊗ q`` with ``(q_Δ, p_Δ) = exp(dt·V)``
+(:func:`lie.se3_exp`), then ``P += Q·dt`` (``Q`` a noise density, so the filter does not depend
+on the update rate). The paper's first-order form ``(I + [ω]× dt) t + v_o dt`` is the same to
+first order in ``dt``.
+
+Update with a pose ``(t_m, q_m)`` and its 6x6 tangent covariance ``R``: the unscented update
+with measurement ``h(x) = pose`` and innovation ``ν = (t_m, q_m) ⊟ (z̄_t, z̄_q)``. A pose whose
+Mahalanobis distance ``νᵀ S⁻¹ ν`` exceeds ``gate_chi2`` is rejected and counted; after
+``reinit_after`` consecutive rejections the filter re-initialises on the pose (state = pose,
+covariance = ``R``), as it does on the first pose of a track that has none yet.
+
+Every step is branch-free on tensor values (``torch.where``), so it exports to ONNX
+(:mod:`onnx_export`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig
+from evtrack.filters.lie import pose_boxminus, pose_boxplus, quat_mul, quat_rotate, se3_exp
+from evtrack.filters.linalg import spd_inverse, symmetrize
+from evtrack.filters.ukf import merwe_weights, quat_mean, sigma_offsets, weighted_cov
+from torch import Tensor, nn
+
+__all__ = ["PoseUKF", "PoseTwistUKF"]
+
+
+class _PoseFilter(nn.Module):
+    """Shared state, reset, pose update and gating of the pose UKFs (tangent size ``n``)."""
+
+    t: Tensor
+    q: Tensor
+    cov: Tensor
+    initialized: Tensor
+    rejected_run: Tensor
+    rejected: Tensor
+    reinitialised: Tensor
+    w_mean: Tensor
+    w_cov: Tensor
+    q_density: Tensor
+    meas_cov: Tensor
+    init_var: Tensor
+    gamma: Tensor
+    gate: Tensor
+
+    def __init__(
+        self,
+        config: PoseUKFConfig,
+        n: int,
+        q_density: list[float],
+        init_var: list[float],
+        batch_size: int,
+        dtype: torch.dtype,
+        device: str | torch.device | None,
+    ) -> None:
+        super().__init__()
+        self.config = config
+        self.n = n
+        kw: dict[str, Any] = {"dtype": dtype, "device": device}
+        w = merwe_weights(n, config.sigma_alpha, config.sigma_beta, config.sigma_kappa)
+        # Scalars as tensors: exported graphs would keep Python floats as float32 constants.
+        self.register_buffer("gamma", torch.tensor(w.gamma, **kw))
+        self.register_buffer("gate", torch.tensor(config.gate_chi2, **kw))
+        self.register_buffer("w_mean", torch.tensor(w.mean, **kw))
+        self.register_buffer("w_cov", torch.tensor(w.cov, **kw))
+        self.register_buffer("q_density", torch.tensor(q_density, **kw))
+        meas = [config.meas_std_translation**2] * 3 + [config.meas_std_rotation**2] * 3
+        self.register_buffer("meas_cov", torch.diag(torch.tensor(meas, **kw)))
+        self.register_buffer("init_var", torch.tensor(init_var, **kw))
+        for name, shape, dt in (
+            ("t", (0, 3), dtype),
+            ("q", (0, 4), dtype),
+            ("cov", (0, n, n), dtype),
+            ("initialized", (0,), torch.bool),
+            ("rejected_run", (0,), torch.int64),
+            ("rejected", (0,), torch.int64),
+            ("reinitialised", (0,), torch.int64),
+        ):
+            self.register_buffer(name, torch.zeros(shape, dtype=dt, device=device))
+
+    # ------------------------------------------------------------------ state
+    @property
+    def batch_size(self) -> int:
+        """Number of tracks B."""
+        return self.t.shape[0]
+
+    def _reset_pose(self, B: int, t: Tensor | None, q: Tensor | None, cov: Tensor | None) -> None:
+        kw = {"dtype": self.init_var.dtype, "device": self.init_var.device}
+        if (t is None) != (q is None):
+            raise ValueError("reset: give both t and q, or neither")
+        if t is None:
+            self.t = torch.zeros(B, 3, **kw)
+            self.q = torch.zeros(B, 4, **kw)
+            self.q[:, 0] = 1
+            self.initialized = torch.zeros(B, dtype=torch.bool, device=kw["device"])
+        else:
+            assert q is not None
+            self.t = _checked(t, (B, 3), "t", kw)
+            q = _checked(q, (B, 4), "q", kw)
+            self.q = q / q.norm(dim=-1, keepdim=True)
+            self.initialized = torch.ones(B, dtype=torch.bool, device=kw["device"])
+        n = self.n
+        self.cov = (
+            torch.diag_embed(self.init_var).expand(B, n, n).clone()
+            if cov is None
+            else _checked(cov, (B, n, n), "cov", kw)
+        )
+        for name in ("rejected_run", "rejected", "reinitialised"):
+            setattr(self, name, torch.zeros(B, dtype=torch.int64, device=kw["device"]))
+
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):  # noqa: ANN001 - torch's signature
+        # A saved filter may hold another number of tracks: take the saved batch size.
+        key = prefix + "t"
+        if key in state_dict and state_dict[key].shape[0] != self.batch_size:
+            self.reset(state_dict[key].shape[0])  # type: ignore[attr-defined]
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+
+    # ------------------------------------------------------------------ pose update
+    def update(
+        self,
+        t_meas: Tensor,
+        q_meas: Tensor,
+        cov_meas: Tensor | None = None,
+        valid: Tensor | None = None,
+    ) -> Tensor:
+        """Fuse a pose measurement; returns (B,) bool, True where the pose was used.
+
+        Args:
+            t_meas: (B,3) metres. q_meas: (B,4) wxyz (normalised here; either sign).
+            cov_meas: (B,6,6) or (6,6) tangent covariance ``[δt, δθ]`` (m², rad²); default
+                from the config.
+            valid: (B,) bool, False for tracks without a pose this time (default all True).
+                Non-finite poses or covariances count as missing.
+        """
+        B = self.batch_size
+        kw = {"dtype": self.t.dtype, "device": self.t.device}
+        t_meas = _checked(t_meas, (B, 3), "t_meas", kw, copy=False)
+        q_meas = _checked(q_meas, (B, 4), "q_meas", kw, copy=False)
+        R = self.meas_cov if cov_meas is None else cov_meas.to(**kw)
+        if R.shape == (6, 6):
+            R = R.expand(B, 6, 6)
+        R = _checked(R, (B, 6, 6), "cov_meas", kw, copy=False)
+        if valid is None:
+            valid = torch.ones(B, dtype=torch.bool, device=kw["device"])
+        valid = _checked(valid, (B,), "valid", {"device": kw["device"]}, copy=False)
+        t, q, extra, P = self._state()
+        t, q, extra, P, self.initialized, self.rejected_run, used, rejected, reinit = (
+            self.update_pose_state(
+                t, q, extra, P, self.initialized, self.rejected_run, t_meas, q_meas, R, valid
+            )
+        )
+        self._set_state(t, q, extra, P)
+        self.rejected = self.rejected + rejected
+        self.reinitialised = self.reinitialised + reinit
+        return used
+
+    def update_pose_state(
+        self,
+        t: Tensor,
+        q: Tensor,
+        extra: Tensor,
+        cov: Tensor,
+        initialized: Tensor,
+        rejected_run: Tensor,
+        t_meas: Tensor,
+        q_meas: Tensor,
+        cov_meas: Tensor,
+        valid: Tensor,
+    ) -> tuple[Tensor, ...]:
+        """Pure, gated unscented pose update.
+
+        Args:
+            t (B,3), q (B,4), extra (B,k), cov (B,n,n): the prior; initialized (B,) bool;
+            rejected_run (B,) int64; t_meas (B,3), q_meas (B,4), cov_meas (B,6,6), valid (B,).
+
+        Returns:
+            ``(t, q, extra, cov, initialized, rejected_run, used, rejected, reinitialised)``,
+            the last three (B,) int64 flags of this update.
+        """
+        cfg = self.config
+        ok = (
+            valid
+            & torch.isfinite(t_meas).all(-1)
+            & torch.isfinite(q_meas).all(-1)
+            & torch.isfinite(cov_meas).flatten(1).all(-1)
+        )
+        t_meas = torch.where(ok.unsqueeze(-1), t_meas, t)
+        q_meas = torch.where(ok.unsqueeze(-1), q_meas, q)
+        q_meas = q_meas / torch.linalg.vector_norm(q_meas, dim=-1, keepdim=True)
+        R = torch.where(ok[:, None, None], cov_meas, self.meas_cov)
+
+        if cfg.sigma_points:
+            offs = sigma_offsets(cov, self.gamma)  # (B,S,n)
+            ts, qs = pose_boxplus(t.unsqueeze(1), q.unsqueeze(1), offs[..., :6])
+            zt = (self.w_mean.unsqueeze(-1) * ts).sum(1)
+            zq, eq = quat_mean(qs, self.w_mean, q, cfg.mean_iterations)
+            dz = torch.cat([ts - zt.unsqueeze(1), eq], dim=-1)  # Zᵢ ⊟ z̄, (B,S,6)
+            S = weighted_cov(dz, dz, self.w_cov) + R
+            Pxz = weighted_cov(offs, dz, self.w_cov)  # χᵢ ⊟ x̄ are the offsets themselves
+        else:
+            # h(x) = pose: symmetric sigma points give z̄ = x̄ and Zᵢ ⊟ z̄ = offsets, hence:
+            zt, zq = t, q
+            S = cov[:, :6, :6] + R
+            Pxz = cov[:, :, :6]
+        S_inv = spd_inverse(S)
+        nu = pose_boxminus(t_meas, q_meas, zt, zq).unsqueeze(-1)  # (B,6,1)
+        K = Pxz @ S_inv
+        d2 = (nu.transpose(-1, -2) @ (S_inv @ nu)).reshape(-1)
+        delta = (K @ nu).squeeze(-1)
+        t_up, q_up = pose_boxplus(t, q, delta[:, :6])
+        extra_up = extra + delta[:, 6:]
+        cov_up = symmetrize(cov - K @ Pxz.transpose(-1, -2))  # P − K S Kᵀ
+
+        fresh = ~initialized
+        accept = ok & (fresh | (d2 <= self.gate))
+        reject = ok & ~accept
+        reinit = reject & (rejected_run + 1 >= cfg.reinit_after)
+        take = ok & fresh | reinit
+        fuse = accept & ~fresh
+        cov_take = _reinit_cov(cov, R)
+        t_new = torch.where(take.unsqueeze(-1), t_meas, torch.where(fuse.unsqueeze(-1), t_up, t))
+        q_new = torch.where(take.unsqueeze(-1), q_meas, torch.where(fuse.unsqueeze(-1), q_up, q))
+        q_new = q_new / torch.linalg.vector_norm(q_new, dim=-1, keepdim=True)
+        extra_new = torch.where(fuse.unsqueeze(-1), extra_up, extra)
+        cov_new = torch.where(
+            take[:, None, None], cov_take, torch.where(fuse[:, None, None], cov_up, cov)
+        )
+        run = torch.where(
+            reject & ~reinit,
+            rejected_run + 1,
+            torch.where(ok, torch.zeros_like(rejected_run), rejected_run),
+        )
+        used = fuse | take
+        return (
+            t_new,
+            q_new,
+            extra_new,
+            cov_new,
+            initialized | ok,
+            run,
+            used,
+            reject.long(),
+            reinit.long(),
+        )
+
+    # ------------------------------------------------------------------ predict helper
+    def _propagate(
+        self, t: Tensor, q: Tensor, extra: Tensor, cov: Tensor, twist: Tensor | None, dt: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Unscented predict under a constant twist: the track's ``twist`` (B,6) for the
+        pose-only filter, or each sigma point's own (``twist=None``: from ``extra``)."""
+        offs = sigma_offsets(cov, self.gamma)
+        ts, qs = pose_boxplus(t.unsqueeze(1), q.unsqueeze(1), offs[..., :6])
+        es = extra.unsqueeze(1) + offs[..., 6:]
+        if twist is None:
+            xi = es * dt[:, None, None]  # each sigma point's own twist
+            qd, pd = se3_exp(xi)
+        else:
+            qd, pd = se3_exp(twist * dt.unsqueeze(-1))
+            qd, pd = qd.unsqueeze(1), pd.unsqueeze(1)
+        ts = quat_rotate(qd, ts) + pd
+        qs = quat_mul(qd, qs)
+        if twist is None:
+            es = es * self.decay_rate.mul(dt).exp()[:, None, None]  # V' = alpha^(dt/alpha_dt) V
+        wm = self.w_mean.unsqueeze(-1)
+        tm = (wm * ts).sum(1)
+        qm, eq = quat_mean(qs, self.w_mean, qs[:, 0], self.config.mean_iterations)
+        em = (wm * es).sum(1)
+        dev = torch.cat([ts - tm.unsqueeze(1), eq, es - em.unsqueeze(1)], dim=-1)
+        # P = Σ Wc devᵢ devᵢᵀ + Q dt
+        P = symmetrize(weighted_cov(dev, dev, self.w_cov)) + torch.diag_embed(
+            self.q_density * dt.unsqueeze(-1)
+        )
+        return tm, qm, em, P
+
+    def _dt(self, dt: float | Tensor) -> Tensor:
+        d = torch.as_tensor(dt, dtype=self.t.dtype, device=self.t.device)
+        if d.ndim == 0:
+            return d.expand(self.batch_size)
+        if tuple(d.shape) != (self.batch_size,):
+            raise ValueError(f"dt must be a float or ({self.batch_size},), got {tuple(d.shape)}")
+        return d
+
+    def _state(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        raise NotImplementedError  # pragma: no cover - defined by both subclasses
+
+    def _set_state(self, t: Tensor, q: Tensor, extra: Tensor, cov: Tensor) -> None:
+        raise NotImplementedError  # pragma: no cover - defined by both subclasses
+
+
+class PoseUKF(_PoseFilter):
+    """Quaternion pose UKF driven by a measured twist (paper III-C), batched over B tracks.
+
+    Args:
+        batch_size: number of tracks B.
+        config: :class:`PoseUKFConfig` (defaults documented there).
+        dtype: float64 by default. device: where the state lives.
+
+    Buffers (all in ``state_dict``): ``t`` (B,3), ``q`` (B,4), ``cov`` (B,6,6),
+    ``initialized`` (B,) bool, ``rejected_run`` (B,) consecutive rejections, and cumulative
+    counts ``rejected`` and ``reinitialised`` (B,).
+
+    Example:
+        >>> ukf = PoseUKF(batch_size=1)
+        >>> ukf.reset(t=torch.tensor([[0.0, 0.0, 1.0]]), q=torch.tensor([[1.0, 0.0, 0.0, 0.0]]))
+        >>> ukf.predict(torch.tensor([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]]), 0.5)[0].tolist()
+        [[0.05, 0.0, 1.0]]
+    """
+
+    def __init__(
+        self,
+        batch_size: int = 1,
+        config: PoseUKFConfig | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device | None = None,
+    ) -> None:
+        cfg = config if config is not None else PoseUKFConfig()
+        qd = [cfg.q_translation] * 3 + [cfg.q_rotation] * 3
+        var = [cfg.init_std_translation**2] * 3 + [cfg.init_std_rotation**2] * 3
+        super().__init__(cfg, 6, qd, var, batch_size, dtype, device)
+        self.register_buffer("eye3", torch.eye(3, dtype=dtype, device=device))
+        self.register_buffer(
+            "eye2_blocks", torch.eye(2, dtype=dtype, device=device)[:, None, :, None]
+        )
+        self.reset(batch_size)
+
+    def reset(
+        self,
+        batch_size: int | None = None,
+        t: Tensor | None = None,
+        q: Tensor | None = None,
+        cov: Tensor | None = None,
+    ) -> None:
+        """Start over with B tracks: at pose ``(t (B,3), q (B,4))`` (initialised), or without a
+        pose (the first pose update initialises each track). Counters are zeroed."""
+        self._reset_pose(self.batch_size if batch_size is None else int(batch_size), t, q, cov)
+
+    def predict(self, twist: Tensor, dt: float | Tensor) -> tuple[Tensor, Tensor]:
+        """Move the pose by the twist (B,6) ``[v_o, ω]`` over ``dt`` s; returns ``(t, q)``."""
+        twist = _checked(
+            twist,
+            (self.batch_size, 6),
+            "twist",
+            {"dtype": self.t.dtype, "device": self.t.device},
+            copy=False,
+        )
+        self.t, self.q, self.cov = self.predict_state(self.t, self.q, self.cov, twist, self._dt(dt))
+        return self.t, self.q
+
+    def predict_state(
+        self, t: Tensor, q: Tensor, cov: Tensor, twist: Tensor, dt: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Pure predict: (B,3), (B,4), (B,6,6), twist (B,6), dt (B,) -> (t, q, cov)."""
+        if self.config.sigma_points:
+            t, q, _, cov = self._propagate(t, q, t[:, :0], cov, twist, dt)
+            return t, q, cov
+        # Every sigma point moves by the same rigid motion, which acts on the tangent linearly:
+        # δt' = R_Δ δt, δθ' = R_Δ δθ. The unscented transform is exact: P' = A P Aᵀ + Q dt.
+        qd, pd = se3_exp(twist * dt.unsqueeze(-1))
+        t = quat_rotate(qd, t) + pd
+        q = quat_mul(qd, q)
+        q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+        Rd = quat_rotate(qd.unsqueeze(1), self.eye3).transpose(-1, -2)  # columns R e_i
+        A = (self.eye2_blocks * Rd[:, None, :, None, :]).reshape(-1, 6, 6)  # diag(R_Δ, R_Δ)
+        cov = A @ cov @ A.transpose(-1, -2) + torch.diag_embed(self.q_density * dt.unsqueeze(-1))
+        return t, q, cov
+
+    def forward(
+        self,
+        twist: Tensor,
+        dt: float | Tensor,
+        t_meas: Tensor,
+        q_meas: Tensor,
+        cov_meas: Tensor | None = None,
+        valid: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Predict with ``twist`` over ``dt`` then fuse the pose (see :meth:`update`);
+        returns the posterior ``(t, q)``."""
+        self.predict(twist, dt)
+        self.update(t_meas, q_meas, cov_meas, valid)
+        return self.t, self.q
+
+    def step(
+        self,
+        t: Tensor,
+        q: Tensor,
+        cov: Tensor,
+        initialized: Tensor,
+        rejected_run: Tensor,
+        twist: Tensor,
+        dt: Tensor,
+        t_meas: Tensor,
+        q_meas: Tensor,
+        cov_meas: Tensor,
+        valid: Tensor,
+    ) -> tuple[Tensor, ...]:
+        """Pure predict + gated update (the step exported to ONNX).
+
+        Returns:
+            ``(t, q, cov, initialized, rejected_run, used, rejected, reinitialised)``.
+        """
+        t, q, cov = self.predict_state(t, q, cov, twist, dt)
+        t, q, _, cov, initialized, run, used, rej, reinit = self.update_pose_state(
+            t, q, t[:, :0], cov, initialized, rejected_run, t_meas, q_meas, cov_meas, valid
+        )
+        return t, q, cov, initialized, run, used, rej, reinit
+
+    def _state(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return self.t, self.q, self.t[:, :0], self.cov
+
+    def _set_state(self, t: Tensor, q: Tensor, extra: Tensor, cov: Tensor) -> None:
+        self.t, self.q, self.cov = t, q, cov
+
+
+class PoseTwistUKF(_PoseFilter):
+    """Constant-velocity pose UKF with the twist in the state (as ROFT), batched.
+
+    State ``[t, q, V]`` with a 12-D tangent covariance ``[δt, δθ, δv_o, δω]``; predict moves
+    every sigma point by its own twist (then decays it by ``alpha ** (dt / alpha_dt)``; the
+    default ``alpha = 1`` is the constant-velocity model); :meth:`update` fuses poses (gated as
+    :class:`PoseUKF`), :meth:`update_twist` fuses twist measurements (e.g. the output of
+    :class:`VelocityKF`, ungated).
+
+    Buffers: those of :class:`PoseUKF` plus ``twist`` (B,6); ``cov`` is (B,12,12).
+    """
+
+    twist: Tensor
+    decay_rate: Tensor
+    twist_meas_cov: Tensor
+
+    def __init__(
+        self,
+        batch_size: int = 1,
+        config: PoseTwistUKFConfig | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device | None = None,
+    ) -> None:
+        cfg = config if config is not None else PoseTwistUKFConfig()
+        qd = (
+            [cfg.q_translation] * 3
+            + [cfg.q_rotation] * 3
+            + [cfg.q_linear] * 3
+            + [cfg.q_angular] * 3
+        )
+        var = (
+            [cfg.init_std_translation**2] * 3
+            + [cfg.init_std_rotation**2] * 3
+            + [cfg.init_std_linear**2] * 3
+            + [cfg.init_std_angular**2] * 3
+        )
+        super().__init__(cfg, 12, qd, var, batch_size, dtype, device)
+        tw = [cfg.meas_std_linear**2] * 3 + [cfg.meas_std_angular**2] * 3
+        self.register_buffer(
+            "decay_rate",
+            torch.tensor(math.log(cfg.alpha) / cfg.alpha_dt, dtype=dtype, device=device),
+        )
+        self.register_buffer(
+            "twist_meas_cov", torch.diag(torch.tensor(tw, dtype=dtype, device=device))
+        )
+        self.register_buffer("twist", torch.zeros(0, 6, dtype=dtype, device=device))
+        self.reset(batch_size)
+
+    def reset(
+        self,
+        batch_size: int | None = None,
+        t: Tensor | None = None,
+        q: Tensor | None = None,
+        twist: Tensor | None = None,
+        cov: Tensor | None = None,
+    ) -> None:
+        """Start over (see :meth:`PoseUKF.reset`); ``twist`` (B,6) defaults to zero."""
+        B = self.batch_size if batch_size is None else int(batch_size)
+        self._reset_pose(B, t, q, cov)
+        kw = {"dtype": self.t.dtype, "device": self.t.device}
+        self.twist = (
+            torch.zeros(B, 6, **kw) if twist is None else _checked(twist, (B, 6), "twist", kw)
+        )
+
+    def predict(self, dt: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Constant-velocity predict over ``dt`` s; returns ``(t, q, twist)``."""
+        self.t, self.q, self.twist, self.cov = self.predict_state(
+            self.t, self.q, self.twist, self.cov, self._dt(dt)
+        )
+        return self.t, self.q, self.twist
+
+    def predict_state(
+        self, t: Tensor, q: Tensor, twist: Tensor, cov: Tensor, dt: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Pure unscented predict: (B,3), (B,4), (B,6), (B,12,12), dt (B,) -> (t, q, twist, cov)."""
+        return self._propagate(t, q, twist, cov, None, dt)
+
+    def update_twist(
+        self, twist_meas: Tensor, cov_meas: Tensor | None = None, valid: Tensor | None = None
+    ) -> None:
+        """Fuse a twist measurement (B,6) with covariance (B,6,6) or (6,6) (default from the
+        config); ``valid`` (B,) bool marks the tracks that have one (non-finite ones are
+        skipped)."""
+        B = self.batch_size
+        kw = {"dtype": self.t.dtype, "device": self.t.device}
+        z = _checked(twist_meas, (B, 6), "twist_meas", kw, copy=False)
+        R = self.twist_meas_cov if cov_meas is None else cov_meas.to(**kw)
+        R = _checked(
+            R.expand(B, 6, 6) if R.shape == (6, 6) else R, (B, 6, 6), "cov_meas", kw, copy=False
+        )
+        if valid is None:
+            valid = torch.ones(B, dtype=torch.bool, device=kw["device"])
+        valid = _checked(valid, (B,), "valid", {"device": kw["device"]}, copy=False)
+        self.t, self.q, self.twist, self.cov = self.update_twist_state(
+            self.t, self.q, self.twist, self.cov, z, R, valid
+        )
+
+    def update_twist_state(
+        self,
+        t: Tensor,
+        q: Tensor,
+        twist: Tensor,
+        cov: Tensor,
+        twist_meas: Tensor,
+        cov_meas: Tensor,
+        valid: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Pure update with ``h(x) = V``: linear, so the unscented transform is exact and equals
+        the Kalman update ``S = P_VV + R``, ``K = P_xV S⁻¹``."""
+        ok = (
+            valid & torch.isfinite(twist_meas).all(-1) & torch.isfinite(cov_meas).flatten(1).all(-1)
+        )
+        R = torch.where(ok[:, None, None], cov_meas, self.twist_meas_cov)
+        S = cov[:, 6:, 6:] + R
+        Pxz = cov[:, :, 6:]
+        K = Pxz @ spd_inverse(S)
+        nu = torch.where(ok.unsqueeze(-1), twist_meas, twist) - twist
+        delta = (K @ nu.unsqueeze(-1)).squeeze(-1)
+        t_up, q_up = pose_boxplus(t, q, delta[:, :6])
+        cov_up = symmetrize(cov - K @ Pxz.transpose(-1, -2))
+        m = ok.unsqueeze(-1)
+        return (
+            torch.where(m, t_up, t),
+            torch.where(m, q_up / q_up.norm(dim=-1, keepdim=True), q),
+            torch.where(m, twist + delta[:, 6:], twist),
+            torch.where(m.unsqueeze(-1), cov_up, cov),
+        )
+
+    def forward(
+        self,
+        dt: float | Tensor,
+        t_meas: Tensor,
+        q_meas: Tensor,
+        cov_meas: Tensor | None = None,
+        valid: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Predict over ``dt`` then fuse the pose; returns ``(t, q, twist)``."""
+        self.predict(dt)
+        self.update(t_meas, q_meas, cov_meas, valid)
+        return self.t, self.q, self.twist
+
+    def step(
+        self,
+        t: Tensor,
+        q: Tensor,
+        twist: Tensor,
+        cov: Tensor,
+        initialized: Tensor,
+        rejected_run: Tensor,
+        dt: Tensor,
+        t_meas: Tensor,
+        q_meas: Tensor,
+        cov_meas: Tensor,
+        valid: Tensor,
+    ) -> tuple[Tensor, ...]:
+        """Pure predict + gated pose update (exported to ONNX).
+
+        Returns:
+            ``(t, q, twist, cov, initialized, rejected_run, used, rejected, reinitialised)``.
+        """
+        t, q, twist, cov = self.predict_state(t, q, twist, cov, dt)
+        return self.update_pose_state(
+            t, q, twist, cov, initialized, rejected_run, t_meas, q_meas, cov_meas, valid
+        )
+
+    def _state(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return self.t, self.q, self.twist, self.cov
+
+    def _set_state(self, t: Tensor, q: Tensor, extra: Tensor, cov: Tensor) -> None:
+        self.t, self.q, self.twist, self.cov = t, q, extra, cov
+
+
+def _reinit_cov(cov: Tensor, R: Tensor) -> Tensor:
+    """The covariance after re-initialising on a pose: ``R`` for the pose block, the old
+    covariance for any further state (the twist), no cross terms."""
+    n = cov.shape[-1]
+    if n == 6:
+        return R
+    top = torch.cat([R, torch.zeros_like(cov[:, :6, 6:])], dim=-1)
+    bottom = torch.cat([torch.zeros_like(cov[:, 6:, :6]), cov[:, 6:, 6:]], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def _checked(
+    t: Tensor, shape: tuple[int, ...], name: str, kw: dict[str, Any], copy: bool = True
+) -> Tensor:
+    if not isinstance(t, Tensor):
+        t = torch.as_tensor(t)
+    if tuple(t.shape) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+    t = t.to(**kw)
+    return t.clone() if copy else t

@@ -1,0 +1,414 @@
+"""The 6-DoF velocity Kalman filter: RoI optical flow + depth -> object twist (paper III-B).
+
+State: the twist ``V = [v_o (m/s), ω (rad/s)]`` of B tracks in the camera frame (DESIGN
+convention ``Ṗ = v_o + ω × P``) and its 6x6 covariance.
+
+Predict over ``dt`` seconds (decaying velocity model, rate-independent)::
+
+    a = alpha ** (dt / alpha_dt)          # the paper's alpha = 0.5 per 1 ms step, per second
+    V = a V,   P = a² P + Q dt            # Q: process-noise density, (m/s)²/s and (rad/s)²/s
+
+Update from RoI flows ``F_k`` (px/s) at ideal pinhole pixels ``uv_k`` with depths ``Z_k``: the
+predicted flow is ``J_k V`` (:mod:`interaction`). Each flow is written in its own flow-aligned
+frame, ``n = F/|F|`` and ``n⊥``: the along row measures ``nᵀ J V = |F|`` and the across row
+``n⊥ᵀ J V = 0``. A normal-only flow (aperture problem) keeps only the along row: the predicted
+flow projected on the measured direction against the measured magnitude, the paper's residual
+``r_k = (F·F̂/|F|) F/|F| − F`` written as the scalar it is a multiple of. A full flow keeps both
+rows, which with an isotropic ``R_F`` equals the plain 2-D flow measurement. The model is linear
+in ``V`` (``n`` comes from the measurement), so the update is an exact Kalman update.
+
+Rows are weighted by :func:`weighting.laplacian_weights` (noise ``R_F/ρ_j``) and fused in
+information form, O(N) in the number of RoIs plus fixed 6x6 algebra::
+
+    Λ = P⁻¹ + Hᵀ W H,   P⁺ = Λ⁻¹,   V⁺ = V + P⁺ Hᵀ W (z − H V),   W = diag(ρ_j / σ_F²)
+
+The weights' residuals are taken against a reference twist (by default the last posterior,
+see :class:`VelocityKFConfig.weighting_reference`) and refined over
+``weighting_iterations`` passes, each against the previous pass's posterior.
+
+Tracks with different numbers of RoIs share a batch through padding and a ``mask``. A RoI
+whose depth is missing, zero, negative or NaN is skipped and counted in ``skipped_depth``; one
+whose flow or pixel is not finite, or whose normal flow is zero (no direction), is skipped and
+counted in ``skipped_flow``. Skipped values never reach the arithmetic.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from evtrack.filters.config import VelocityKFConfig
+from evtrack.filters.interaction import undistort_flow
+from evtrack.filters.linalg import spd_inverse
+from evtrack.filters.weighting import laplacian_weights
+from torch import Tensor, nn
+
+from evtrack.camera import PinholeCamera
+
+__all__ = ["VelocityKF"]
+
+
+class VelocityKF(nn.Module):
+    """Batched 6-DoF velocity Kalman filter from event optical flow (paper III-B).
+
+    Args:
+        camera: the event camera (its intrinsics become buffers; distortion, if any, is undone
+            by :meth:`update` before the flows enter the filter, see
+            :func:`interaction.undistort_flow`).
+        batch_size: number of tracks B.
+        config: the filter's parameters; defaults to :class:`VelocityKFConfig`.
+        dtype: float64 by default.
+        device: where the state lives (``.to(device)`` moves it later too).
+
+    Buffers (all in ``state_dict``): the state ``twist`` (B,6), ``cov`` (B,6,6) and
+    ``reference`` (B,6) (the last posterior twist, which the weighting compares flows with);
+    cumulative counts ``skipped_depth`` and ``skipped_flow`` (B,); constants ``focal``
+    ``[fx, fy]``, ``principal`` ``[cx, cy]``, ``jac_coef``, ``jac_index``, ``q_density`` (6,),
+    ``init_var`` (6,) and ``consts`` (5,).
+
+    Example:
+        >>> cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+        >>> kf = VelocityKF(cam, batch_size=2)
+        >>> uv = torch.tensor([[[300.0, 200.0], [350.0, 260.0]]]).expand(2, 2, 2)
+        >>> depth, flow = torch.ones(2, 2), torch.full((2, 2, 2), 100.0)
+        >>> kf(1e-3, uv, depth, flow).shape
+        torch.Size([2, 6])
+    """
+
+    twist: Tensor
+    cov: Tensor
+    reference: Tensor
+    skipped_depth: Tensor
+    skipped_flow: Tensor
+    focal: Tensor
+    principal: Tensor
+    jac_coef: Tensor
+    jac_index: Tensor
+    q_density: Tensor
+    init_var: Tensor
+    consts: Tensor
+
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        batch_size: int = 1,
+        config: VelocityKFConfig | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device | None = None,
+    ) -> None:
+        super().__init__()
+        self.config = config if config is not None else VelocityKFConfig()
+        self.camera = camera
+        cfg = self.config
+        kw: dict[str, Any] = {"dtype": dtype, "device": device}
+        self.register_buffer("focal", torch.tensor([camera.fx, camera.fy], **kw))
+        self.register_buffer("principal", torch.tensor([camera.cx, camera.cy], **kw))
+        coef = [s * camera.fx for s in _J_SIGN[:6]] + [s * camera.fy for s in _J_SIGN[6:]]
+        self.register_buffer("jac_coef", torch.tensor(coef, **kw))
+        self.register_buffer("jac_index", torch.tensor(_J_INDEX, device=device))
+        self.register_buffer(
+            "q_density", torch.tensor([cfg.q_linear] * 3 + [cfg.q_angular] * 3, **kw)
+        )
+        var = [cfg.init_std_linear**2] * 3 + [cfg.init_std_angular**2] * 3
+        self.register_buffer("init_var", torch.tensor(var, **kw))
+        for name, shape, dt in (
+            ("twist", (0, 6), dtype),
+            ("cov", (0, 6, 6), dtype),
+            ("reference", (0, 6), dtype),
+            ("skipped_depth", (0,), torch.int64),
+            ("skipped_flow", (0,), torch.int64),
+        ):
+            self.register_buffer(name, torch.zeros(shape, dtype=dt, device=device))
+        # Scalars as tensors of the filter's dtype: an exported graph would store Python floats
+        # as float32 constants. [ln(alpha)/alpha_dt (1/s), 1/R_F ((px/s)⁻²), b or 0, b_min, floor]
+        consts = [
+            math.log(cfg.alpha) / cfg.alpha_dt,
+            1.0 / cfg.flow_std**2,
+            cfg.laplace_scale or 0.0,
+            cfg.laplace_scale_min,
+            cfg.weight_floor,
+        ]
+        self.register_buffer("consts", torch.tensor(consts, **kw))
+        self.reset(batch_size)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def batch_size(self) -> int:
+        """Number of tracks B."""
+        return self.twist.shape[0]
+
+    def reset(
+        self, batch_size: int | None = None, twist: Tensor | None = None, cov: Tensor | None = None
+    ) -> None:
+        """Start over: twist (B,6) (default 0), covariance (B,6,6) (default the initial one),
+        counters zeroed. ``batch_size`` defaults to the current one."""
+        B = self.batch_size if batch_size is None else int(batch_size)
+        kw = {"dtype": self.init_var.dtype, "device": self.init_var.device}
+        self.twist = (
+            torch.zeros(B, 6, **kw) if twist is None else _checked(twist, (B, 6), "twist", kw)
+        )
+        if cov is None:
+            self.cov = torch.diag_embed(self.init_var).expand(B, 6, 6).clone()
+        else:
+            self.cov = _checked(cov, (B, 6, 6), "cov", kw)
+        self.reference = self.twist.clone()
+        self.skipped_depth = torch.zeros(B, dtype=torch.int64, device=kw["device"])
+        self.skipped_flow = torch.zeros(B, dtype=torch.int64, device=kw["device"])
+
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):  # noqa: ANN001 - torch's signature
+        # A saved filter may hold another number of tracks: take the saved batch size.
+        key = prefix + "twist"
+        if key in state_dict and state_dict[key].shape[0] != self.batch_size:
+            self.reset(state_dict[key].shape[0])
+        super()._load_from_state_dict(
+            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+        )
+
+    # ------------------------------------------------------------------ stateful steps
+    def predict(self, dt: float | Tensor) -> Tensor:
+        """Decay the twist over ``dt`` seconds (float or (B,)); returns the prediction (B,6)."""
+        self.twist, self.cov = self.predict_state(self.twist, self.cov, self._dt(dt))
+        return self.twist
+
+    def update(
+        self,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor | None = None,
+        mask: Tensor | None = None,
+    ) -> Tensor:
+        """Correct the twist with RoI flows; returns the posterior twist (B,6).
+
+        Args:
+            uv: (B,N,2) RoI pixel coordinates as measured by the camera.
+            depth: (B,N) z-depth in metres at the RoIs (NaN, 0, negative or inf: missing).
+            flow: (B,N,2) RoI flows in px/s.
+            normal_only: (B,N) bool, True where a flow is only the component normal to an edge
+                (aperture problem); default: ``config.assume_normal`` for every RoI.
+            mask: (B,N) bool, False on padding; default all True.
+        """
+        uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
+        if self.camera.dist is not None:
+            uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
+        V, P, skipped = self.update_state(
+            self.twist, self.cov, self.reference, uv, depth, flow, normal_only, mask
+        )
+        self.twist, self.cov, self.reference = V, P, V
+        self.skipped_depth = self.skipped_depth + skipped[:, 0]
+        self.skipped_flow = self.skipped_flow + skipped[:, 1]
+        return V
+
+    def forward(
+        self,
+        dt: float | Tensor,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor | None = None,
+        mask: Tensor | None = None,
+    ) -> Tensor:
+        """One predict over ``dt`` seconds then one update (arguments as in :meth:`update`)."""
+        self.predict(dt)
+        return self.update(uv, depth, flow, normal_only, mask)
+
+    @property
+    def skipped_measurements(self) -> Tensor:
+        """(B,) RoIs skipped so far for a bad depth or a bad flow."""
+        return self.skipped_depth + self.skipped_flow
+
+    # ------------------------------------------------------------------ functional core
+    def predict_state(self, twist: Tensor, cov: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+        """Pure predict: twist (B,6), cov (B,6,6), dt (B,) seconds -> (twist, cov)."""
+        decay = torch.exp(dt * self.consts[0])  # alpha ** (dt / alpha_dt)
+        twist = twist * decay.unsqueeze(-1)
+        # P = a² P + Q dt
+        cov = cov * (decay * decay)[:, None, None] + torch.diag_embed(
+            self.q_density * dt.unsqueeze(-1)
+        )
+        return twist, cov
+
+    def update_state(
+        self,
+        twist: Tensor,
+        cov: Tensor,
+        reference: Tensor,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor,
+        mask: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Pure update in ideal pinhole pixels; no Python branches on tensor values.
+
+        Args:
+            twist (B,6), cov (B,6,6): the prior. reference (B,6): the twist the first weighting
+            pass compares flows with (used when ``weighting_reference == "previous"``).
+            uv (B,N,2) px, depth (B,N) m, flow (B,N,2) px/s, normal_only (B,N) bool,
+            mask (B,N) bool.
+
+        Returns:
+            ``(twist, cov, skipped (B,2))``, ``skipped`` counting this update's RoIs skipped
+            for a bad depth (column 0) and for a bad flow or pixel (column 1).
+        """
+        cfg = self.config
+        _, flow_info, scale, scale_min, floor = self.consts.unbind()
+        H, z, rows_ok, skipped = self._measurement_rows(uv, depth, flow, normal_only, mask)
+        HT = H.transpose(-1, -2)
+        innovation = z - (H @ twist.unsqueeze(-1)).squeeze(-1)  # (B, 2N)
+        innovation_col = innovation.unsqueeze(-1)
+        prior_info = spd_inverse(cov)
+        if cfg.weighting and cfg.weighting_reference == "previous":
+            residual = z - (H @ reference.unsqueeze(-1)).squeeze(-1)
+        else:
+            residual = innovation
+        passes = cfg.weighting_iterations if cfg.weighting else 1
+        rho: Tensor | None = None
+        post_twist, post_cov = twist, cov
+        for i in range(passes):
+            if cfg.weighting:
+                rho = laplacian_weights(
+                    residual,
+                    rows_ok,
+                    None if cfg.laplace_scale is None else scale,
+                    scale_min,
+                    floor,
+                    rho,
+                )
+                info = rho * flow_info
+            else:
+                info = rows_ok * flow_info
+            HTw = HT * info.unsqueeze(-2)  # Hᵀ W, (B, 6, 2N)
+            # Λ = P⁻¹ + Hᵀ W H;  P⁺ = Λ⁻¹;  V⁺ = V + P⁺ Hᵀ W (z − H V)
+            post_cov = spd_inverse(torch.baddbmm(prior_info, HTw, H))
+            post_twist = torch.baddbmm(twist.unsqueeze(-1), post_cov, HTw @ innovation_col).squeeze(
+                -1
+            )
+            if i + 1 < passes:
+                residual = z - (H @ post_twist.unsqueeze(-1)).squeeze(-1)
+        return post_twist, post_cov, skipped
+
+    def step(
+        self,
+        twist: Tensor,
+        cov: Tensor,
+        reference: Tensor,
+        dt: Tensor,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor,
+        mask: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Pure predict + update (the step exported to ONNX); returns ``(twist, cov, skipped)``.
+
+        The new ``reference`` is the returned twist (the posterior).
+        """
+        twist, cov = self.predict_state(twist, cov, dt)
+        return self.update_state(twist, cov, reference, uv, depth, flow, normal_only, mask)
+
+    def _measurement_rows(
+        self, uv: Tensor, depth: Tensor, flow: Tensor, normal_only: Tensor, mask: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Rows ``H`` (B,2N,6), values ``z`` (B,2N), row validity (B,2N), skip counts (B,2).
+
+        Written for few tensor ops (the batch-1 latency is bound by per-op dispatch): the 12
+        interaction-matrix entries are gathered from 9 polynomial features of ``(x, y, 1/Z)``.
+        """
+        B, N = depth.shape
+        depth_ok = mask & (depth > 0) & (depth < torch.inf)  # False for NaN too
+        finite = torch.isfinite(uv + flow).all(-1)
+        flow0 = torch.where(finite.unsqueeze(-1), flow, 0.0)
+        mag = torch.linalg.vector_norm(flow0, dim=-1)
+        moving = mag > 0
+        if self.config.normal_flow:
+            normal: Tensor | None = normal_only
+            valid = (
+                depth_ok & finite & (moving | ~normal_only)
+            )  # a zero normal flow has no direction
+        else:
+            normal = None
+            valid = depth_ok & finite
+        counts = torch.stack([mask, depth_ok, valid], dim=-1).sum(-2)
+        skipped = counts[:, :2] - counts[:, 1:]
+
+        principal = self.principal
+        xy = (torch.where(valid.unsqueeze(-1), uv, principal) - principal) / self.focal
+        x, y = xy.unbind(-1)
+        iz = 1.0 / torch.where(valid, depth, 1.0)
+        feats = torch.stack(
+            [iz, x * iz, y * iz, x * y, 1.0 + x * x, 1.0 + y * y, x, y, torch.zeros_like(x)], dim=-1
+        )
+        J = (feats.index_select(-1, self.jac_index) * self.jac_coef).unflatten(-1, (2, 1, 6))
+        # Flow-aligned frame: along n = F/|F|, across n⊥; the image axes for a zero full flow.
+        n = flow0 / torch.where(moving, mag, 1.0).unsqueeze(-1)
+        nx = torch.where(moving, n[..., 0], 1.0)
+        ny = n[..., 1]
+        frame = torch.stack([nx, -ny, ny, nx], dim=-1).unflatten(-1, (2, 2, 1))  # [u|v][row]
+        # rows (along, across) = frame[u] J_u + frame[v] J_v, each (B,N,2,6)
+        H = frame[..., 0, :, :] * J[..., 0, :, :] + frame[..., 1, :, :] * J[..., 1, :, :]
+        z = torch.stack([torch.where(valid, mag, 0.0), torch.zeros_like(mag)], dim=-1)
+        rows_ok = torch.stack([valid, valid if normal is None else valid & ~normal], dim=-1)
+        return H.reshape(B, 2 * N, 6), z.reshape(B, 2 * N), rows_ok.reshape(B, 2 * N), skipped
+
+    # ------------------------------------------------------------------ input handling
+    def _dt(self, dt: float | Tensor) -> Tensor:
+        d = torch.as_tensor(dt, dtype=self.twist.dtype, device=self.twist.device)
+        if d.ndim == 0:
+            return d.expand(self.batch_size)
+        if tuple(d.shape) != (self.batch_size,):
+            raise ValueError(
+                f"VelocityKF: dt must be a float or ({self.batch_size},), got {tuple(d.shape)}"
+            )
+        return d
+
+    def _inputs(
+        self,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor | None,
+        mask: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        B = self.batch_size
+        if depth.ndim != 2 or depth.shape[0] != B:
+            raise ValueError(
+                f"VelocityKF.update: depth must be (B={B}, N), got {tuple(depth.shape)}"
+            )
+        N = depth.shape[1]
+        for name, t in (("uv", uv), ("flow", flow)):
+            if tuple(t.shape) != (B, N, 2):
+                raise ValueError(
+                    f"VelocityKF.update: {name} must be ({B}, {N}, 2), got {tuple(t.shape)}"
+                )
+        kw = {"dtype": self.twist.dtype, "device": self.twist.device}
+        dev = self.twist.device
+        if normal_only is None:
+            normal_only = torch.full(
+                (B, N), self.config.assume_normal, dtype=torch.bool, device=dev
+            )
+        if mask is None:
+            mask = torch.ones(B, N, dtype=torch.bool, device=dev)
+        for name, t in (("normal_only", normal_only), ("mask", mask)):
+            if tuple(t.shape) != (B, N) or t.dtype != torch.bool:
+                raise ValueError(
+                    f"VelocityKF.update: {name} must be a ({B}, {N}) bool tensor, "
+                    f"got {tuple(t.shape)} {t.dtype}"
+                )
+        return uv.to(**kw), depth.to(**kw), flow.to(**kw), normal_only.to(dev), mask.to(dev)
+
+
+def _checked(t: Tensor, shape: tuple[int, ...], name: str, kw: dict[str, Any]) -> Tensor:
+    if tuple(t.shape) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+    return t.to(**kw).clone()
+
+
+# The interaction matrix (interaction.py) as signed, scaled picks from the features
+# φ = [1/Z, x/Z, y/Z, xy, 1 + x², 1 + y², x, y, 0]:
+#   J_u/fx = [1/Z, 0, -x/Z, -xy, 1 + x², -y],   J_v/fy = [0, 1/Z, -y/Z, -(1 + y²), xy, x].
+_J_INDEX = [0, 8, 1, 3, 4, 7, 8, 0, 2, 5, 3, 6]
+_J_SIGN = [1.0, 1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0]
