@@ -163,7 +163,10 @@ def load_weights_file(path: str | Path) -> tuple[WeightsRecord, dict[str, torch.
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt/unsafe files
-        raise WeightsError(path, f"cannot read weights (weights_only=True): {exc}") from exc
+        text = str(exc)
+        lines = [ln.strip() for ln in text.splitlines() if "WeightsUnpickler error" in ln]
+        reason = lines[0] if lines else text.strip().splitlines()[0] if text.strip() else repr(exc)
+        raise WeightsError(path, f"cannot read weights (weights_only=True): {reason}") from exc
     if not isinstance(payload, dict):
         raise WeightsError(path, f"expected a dict, found {type(payload).__name__}")
     if payload.get("format") == FORMAT:

@@ -40,6 +40,8 @@ FACES: tuple[tuple[tuple[int, int, int, int], int, int], ...] = (
 )
 _TEXTURE_SIZE = 128  # pixels per side of a face texture
 _DISTRACTOR_POOL = 32  # distinct random appearances of distractor boxes
+_SUBPIXEL_BITS = 4  # fixed-point fraction bits of OpenCV's polygon filling
+_SUBPIXEL = 1 << _SUBPIXEL_BITS
 
 
 @dataclass(frozen=True)
@@ -146,7 +148,10 @@ def draw_textured_cuboid(
     uv = corners @ np.asarray(K, np.float64).T
     uv = uv[:, :2] / uv[:, 2:3]
     light = np.array([0.0, 0.0, -1.0]) if light_dir is None else np.asarray(light_dir, float)
-    out = image.astype(np.float32)
+    # Faces are averaged by their coverage (so shared edges show no seam), then the object is
+    # blended over the background through its anti-aliased silhouette (the convex hull).
+    colour = np.zeros((h, w, 3), np.float32)
+    weight = np.zeros((h, w, 1), np.float32)
     for (idx, axis, sign), tex in zip(FACES, textures, strict=True):
         normal = sign * pose[:3, axis]
         centre = corners[list(idx)].mean(axis=0)
@@ -165,8 +170,16 @@ def draw_textured_cuboid(
         warped = cv2.warpPerspective(tex, H, size, flags=cv2.INTER_LINEAR)
         alpha = cv2.warpPerspective(np.ones(tex.shape[:2], np.float32), H, size,
                                     flags=cv2.INTER_LINEAR)[..., None]
-        roi = out[y0:y1, x0:x1]
-        out[y0:y1, x0:x1] = roi * (1 - alpha) + warped.astype(np.float32) * shade * alpha
+        # the warp blends the texture with the black border: ``warped`` is premultiplied
+        colour[y0:y1, x0:x1] += warped.astype(np.float32) * shade
+        weight[y0:y1, x0:x1] += alpha
+    hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
+    mask = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(mask, np.round(hull * _SUBPIXEL).astype(np.int32), 255,
+                       lineType=cv2.LINE_AA, shift=_SUBPIXEL_BITS)
+    silhouette = mask[..., None].astype(np.float32) / 255.0
+    layer = np.divide(colour, weight, out=np.zeros_like(colour), where=weight > 1e-6)
+    out = image.astype(np.float32) * (1 - silhouette) + layer * silhouette
     return np.clip(out + 0.5, 0, 255).astype(np.uint8)
 
 

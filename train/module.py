@@ -8,6 +8,7 @@ is saved as a weights file (:func:`evtrack.models.save_weights`) and loaded with
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import lightning as L
@@ -217,7 +218,8 @@ class PoseLightningModule(L.LightningModule):
                 return 1.0
             progress = min(1.0, (step - warm) / max(1, total - warm))
             lo = cfg.final_lr_fraction
-            return lo + (1 - lo) * 0.5 * (1 + np.cos(np.pi * progress))
+            # a Python float: numpy scalars would make checkpoints unloadable with weights_only
+            return float(lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * progress)))
 
         sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}

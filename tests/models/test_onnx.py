@@ -129,10 +129,11 @@ def test_onnx_estimator_gives_the_same_poses_as_torch(exported, source):
         assert len(t_dets) == len(o_dets)
         total += len(t_dets)
         for a, b in zip(t_dets, o_dets, strict=True):
-            torch.testing.assert_close(a.pose, b.pose, atol=1e-6, rtol=0)
-            torch.testing.assert_close(a.keypoints, b.keypoints, atol=1e-4, rtol=0,
+            # maps agree to ~1e-6: poses to 1e-5 (10 µm, 0.0006 degree), keypoints to 1e-3 px
+            torch.testing.assert_close(a.pose, b.pose, atol=1e-5, rtol=0)
+            torch.testing.assert_close(a.keypoints, b.keypoints, atol=1e-3, rtol=0,
                                        equal_nan=True)
-            assert a.confidence == pytest.approx(b.confidence, abs=1e-6)
+            assert a.confidence == pytest.approx(b.confidence, abs=1e-5)
             assert a.num_points == b.num_points
     assert total >= len(source)  # the comparison is not vacuous: the fitted net detects
 

@@ -1,0 +1,87 @@
+"""Domain-randomisation transforms: keypoints stay projections, inputs are never modified."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evtrack.errors import ConfigError
+from evtrack.models import Cuboid
+from evtrack.train import (
+    AugmentConfig,
+    ColorJitter,
+    CuboidSourceOptions,
+    GaussianNoise,
+    MotionBlur,
+    RandomOcclusion,
+    RandomScale,
+    SyntheticCuboidSource,
+)
+
+CUBOID = Cuboid((0.1, 0.16, 0.07))
+ALWAYS = [RandomScale(p=1), ColorJitter(p=1), RandomOcclusion(p=1), MotionBlur(p=1),
+          GaussianNoise(p=1)]
+
+
+@pytest.fixture(scope="module")
+def sample():
+    src = SyntheticCuboidSource(CUBOID, 1, (96, 128), options=CuboidSourceOptions(
+        empty_probability=0))
+    return src[0]
+
+
+def reprojection(sample):
+    out = []
+    for T in sample.poses:
+        P = CUBOID.points() @ T[:3, :3].T + T[:3, 3]
+        uvw = P @ sample.K.T
+        out.append(uvw[:, :2] / uvw[:, 2:])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("transform", ALWAYS, ids=lambda t: type(t).__name__)
+def test_transforms_keep_keypoints_projections_and_do_not_mutate(sample, transform):
+    before = sample.image.copy()
+    out = transform(sample, np.random.default_rng(0))
+    np.testing.assert_array_equal(sample.image, before)
+    out.check()
+    assert out.image.shape == sample.image.shape and out.image.dtype == np.uint8
+    np.testing.assert_allclose(out.keypoints, reprojection(out), atol=1e-3)
+    again = transform(sample, np.random.default_rng(0))
+    np.testing.assert_array_equal(out.image, again.image)
+
+
+def test_scale_moves_image_content_with_the_keypoints():
+    from evtrack.train import PoseSample
+
+    img = np.zeros((96, 128, 3), np.uint8)
+    u, v = 40, 30
+    img[v - 1:v + 2, u - 1:u + 2] = 255  # a bright dot at (40, 30)
+    kp = np.full((1, 9, 2), (u, v), np.float32)
+    s = PoseSample(img, np.eye(3), np.eye(4)[None], kp)
+    out = RandomScale(scale_range=(1.5, 1.5), max_shift=0.1, p=1)(s, np.random.default_rng(3))
+    nu, nv = out.keypoints[0, 0]
+    patch = out.image[int(round(nv)) - 1:int(round(nv)) + 2, int(round(nu)) - 1:int(round(nu)) + 2]
+    assert patch.mean() > 200
+    np.testing.assert_allclose(out.K[:2, :2], 1.5 * np.eye(2))
+
+
+def test_probability_zero_is_identity(sample):
+    for t in [RandomScale(p=0), ColorJitter(p=0), RandomOcclusion(p=0), MotionBlur(p=0),
+              GaussianNoise(p=0)]:
+        assert t(sample, np.random.default_rng(0)) is sample
+
+
+def test_config_from_dict():
+    cfg = AugmentConfig.from_dict({"noise": None, "scale": {"scale_range": [0.9, 1.1]},
+                                   "motion_blur": False})
+    assert cfg.noise is None and cfg.motion_blur is None
+    assert cfg.scale == RandomScale(scale_range=(0.9, 1.1))
+    assert [type(t).__name__ for t in cfg.build().transforms] == [
+        "RandomScale", "ColorJitter", "RandomOcclusion"]
+    assert AugmentConfig.from_dict(cfg.to_dict()) == cfg
+    assert AugmentConfig(enabled=False).build().transforms == ()
+    with pytest.raises(ConfigError, match="unknown section"):
+        AugmentConfig.from_dict({"blur": {}})
+    with pytest.raises(ConfigError, match=r"data.augment.noise: unknown field"):
+        AugmentConfig.from_dict({"noise": {"sigma": 3}})

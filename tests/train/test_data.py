@@ -1,0 +1,75 @@
+"""Dataset items, per-epoch seeding, distributed slicing and the shard cache of the data module."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from evtrack.models import Cuboid
+from evtrack.train import (
+    AugmentConfig,
+    CuboidSourceOptions,
+    DataConfig,
+    EpochSampler,
+    PoseDataModule,
+    PoseDataset,
+    SyntheticCuboidSource,
+)
+
+CUBOID = Cuboid((0.1, 0.16, 0.07))
+MEAN, STD = (0.5, 0.5, 0.5), (0.25, 0.25, 0.25)
+
+
+def test_items_and_seeding():
+    src = SyntheticCuboidSource(CUBOID, 4, (48, 64), options=CuboidSourceOptions(
+        empty_probability=0))
+    ds = PoseDataset(src, MEAN, STD, AugmentConfig().build(), seed=3)
+    item = ds[(0, 1)]
+    assert item["image"].shape == (3, 48, 64) and item["image"].dtype == torch.float32
+    assert item["belief"].shape == (9, 6, 8) and item["affinity"].shape == (16, 6, 8)
+    assert float(item["belief"].max()) > 0.5
+    torch.testing.assert_close(ds[(0, 1)]["image"], item["image"])  # same key, same bytes
+    assert not torch.equal(ds[(1, 1)]["image"], item["image"])  # another epoch, other augment
+    plain = PoseDataset(src, MEAN, STD)[1]["image"]
+    expected = (src[1].image.astype(np.float32) / 255 - 0.5) / 0.25
+    np.testing.assert_allclose(plain.numpy(), expected.transpose(2, 0, 1), atol=1e-6)
+
+
+def test_epoch_sampler_shuffles_per_epoch_and_slices_ranks(monkeypatch):
+    s = EpochSampler(10, shuffle=True, seed=1)
+    e0 = list(s)
+    assert sorted(i for _, i in e0) == list(range(10)) and {e for e, _ in e0} == {0}
+    assert list(s) == e0
+    s.set_epoch(1)
+    e1 = list(s)
+    assert {e for e, _ in e1} == {1} and [i for _, i in e1] != [i for _, i in e0]
+    keys = []
+    for rank in range(3):
+        monkeypatch.setattr(EpochSampler, "_rank_world", staticmethod(lambda r=rank: (r, 3)))
+        part = list(s)
+        assert len(part) == len(s) == 4
+        keys += [i for _, i in part]
+    assert set(keys) == set(range(10))  # 12 slots: every index, two repeated
+    monkeypatch.undo()
+    assert [i for _, i in EpochSampler(5, shuffle=False)] == [0, 1, 2, 3, 4]
+
+
+def test_data_module_renders_the_cache_once(tmp_path):
+    cfg = DataConfig(train_samples=6, val_samples=3, image_size=(48, 64), batch_size=4,
+                     cache_dir=str(tmp_path / "cache"), samples_per_shard=4)
+    dm = PoseDataModule(cfg, "box", CUBOID, mean=MEAN, std=STD)
+    dm.prepare_data()
+    folders = sorted(p.name for p in (tmp_path / "cache").iterdir())
+    assert len(folders) == 2 and folders[0].startswith("train_") and folders[1].startswith("val_")
+    stamp = [(p, p.stat().st_mtime_ns) for p in (tmp_path / "cache").rglob("*.h5")]
+    dm.prepare_data()  # second call: nothing rewritten
+    assert stamp == [(p, p.stat().st_mtime_ns) for p in (tmp_path / "cache").rglob("*.h5")]
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["image"].shape == (4, 3, 48, 64) and batch["belief"].shape == (4, 9, 6, 8)
+    assert len(dm.val_dataloader()) == 1
+    assert "cached samples" in dm.describe()
+    other = PoseDataModule(DataConfig(train_samples=6, val_samples=3, image_size=(48, 64),
+                                      seed=9, cache_dir=str(tmp_path / "cache")), "box", CUBOID)
+    other.prepare_data()  # another seed: another fingerprint, another folder
+    assert len(list((tmp_path / "cache").iterdir())) == 3

@@ -1,0 +1,159 @@
+"""Training end to end: a tiny overfit, a full run with resume, the train and export commands."""
+
+from __future__ import annotations
+
+import csv
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+
+from evtrack.cli import main
+from evtrack.errors import ConfigError
+from evtrack.models import (
+    Cuboid,
+    OnnxPoseEstimator,
+    WeightsError,
+    WeightsRecord,
+    create,
+    load_model,
+)
+from evtrack.train import (
+    CuboidSourceOptions,
+    LossConfig,
+    OptimConfig,
+    PoseDataset,
+    PoseLightningModule,
+    SyntheticCuboidSource,
+    TrainConfig,
+    run_training,
+)
+
+CUBOID = Cuboid((0.1, 0.16, 0.07))
+MEAN, STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+
+
+class LossRecorder(L.Callback):
+    def __init__(self):
+        self.losses = []
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        self.losses.append(float(outputs["loss"]))
+
+
+def test_tiny_overfit_loss_decreases_below_the_all_zero_baseline():
+    torch.manual_seed(0)
+    src = SyntheticCuboidSource(CUBOID, 4, (64, 96), options=CuboidSourceOptions(
+        empty_probability=0, distance_range=(1.8, 2.5), distractor_boxes=0))
+    ds = PoseDataset(src, MEAN, STD)  # no augmentation: the same 4 images every step
+    loader = torch.utils.data.DataLoader(ds, batch_size=4)
+    net = create("dope_lite_tiny")
+    record = WeightsRecord(arch="dope_lite_tiny", object_name="box", cuboid=CUBOID)
+    module = PoseLightningModule(net, record, OptimConfig(lr=5e-3, warmup_steps=0,
+                                                          schedule="constant"))
+    recorder = LossRecorder()
+    trainer = L.Trainer(max_steps=60, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, callbacks=[recorder])
+    trainer.fit(module, loader)
+    batch = next(iter(loader))
+    zero_loss = float((batch["belief"] ** 2).mean() + (batch["affinity"] ** 2).mean())
+    first, last = recorder.losses[0], float(np.mean(recorder.losses[-5:]))
+    assert len(recorder.losses) == 60
+    assert last < 0.1 * first
+    assert last < 0.8 * zero_loss  # it learned peaks, not just to output zeros
+
+
+def test_module_rejects_a_record_of_another_network():
+    net = create("dope_lite_tiny")
+    with pytest.raises(ConfigError, match="record describes dope_lite_small"):
+        PoseLightningModule(net, WeightsRecord(arch="dope_lite_small", object_name="box",
+                                               cuboid=CUBOID))
+    with pytest.raises(ConfigError, match="evtrack.models.create"):
+        PoseLightningModule(torch.nn.Conv2d(3, 25, 1),
+                            WeightsRecord(arch="x", object_name="box", cuboid=CUBOID))
+
+
+def test_loss_is_the_stage_sum_of_mses():
+    module = PoseLightningModule(create("dope_lite_tiny"),
+                                 WeightsRecord(arch="dope_lite_tiny", object_name="b",
+                                               cuboid=CUBOID),
+                                 loss=LossConfig(affinity_weight=0.5, last_stage_weight=2.0))
+    b, a = torch.ones(1, 9, 2, 2), torch.zeros(1, 16, 2, 2)
+    stages = [(torch.zeros_like(b), torch.ones_like(a)), (torch.full_like(b, 3.0),
+                                                          torch.full_like(a, 2.0))]
+    total, lb, la = module.compute_loss(stages, b, a)
+    assert float(lb) == pytest.approx(1 + 2 * 4)
+    assert float(la) == pytest.approx(1 + 2 * 4)
+    assert float(total) == pytest.approx(9 + 0.5 * 9)
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs")
+    cfg = TrainConfig.from_dict({
+        "object": {"name": "box", "dimensions": [0.1, 0.16, 0.07]},
+        "model": {"name": "dope_lite_tiny"},
+        "data": {"train_samples": 12, "val_samples": 4, "image_size": [48, 64],
+                 "batch_size": 4, "num_workers": 0, "cache_dir": str(out / "cache")},
+        "optim": {"warmup_steps": 2},
+        "trainer": {"max_epochs": 2, "accelerator": "cpu", "log_every_n_steps": 1},
+        "output_dir": str(out),
+    })
+    return cfg, run_training(cfg, verbose=False)
+
+
+def test_run_writes_checkpoints_logs_weights_and_card(trained_run):
+    cfg, result = trained_run
+    run = result.run_dir
+    assert run == cfg.output_dir / __import__("pathlib").Path(cfg.name)
+    assert (run / "config.yaml").is_file()
+    assert result.last_checkpoint.name == "last.ckpt" and result.best_checkpoint.is_file()
+    rows = list(csv.DictReader(open(next(run.glob("logs/version_*/metrics.csv")))))
+    assert any(r.get("val/loss") for r in rows) and any(r.get("train/loss_step") for r in rows)
+    # the checkpoint is plain data: weights_only loading works
+    ckpt = torch.load(result.last_checkpoint, weights_only=True)
+    assert ckpt["hyper_parameters"]["record"]["arch"] == "dope_lite_tiny"
+    net, record = load_model(result.weights)
+    assert record.object_name == "box" and record.training["epochs"] == 2
+    assert "val/loss" in record.metrics and record.training["steps"] == 6
+    assert "OpenCV-drawn" in record.training_data
+    card = result.card.read_text()
+    assert "val/keypoint_recall" in card and "wall_time_s" in card and "max_epochs: 2" in card
+    # the Lightning checkpoint loads the same way as the weights file
+    same = create("dope_lite_tiny", weights=result.best_checkpoint)
+    torch.testing.assert_close(same.state_dict(), net.state_dict())
+    with pytest.raises(WeightsError, match="object 'box', not 'mug'"):
+        create("dope_lite_tiny", weights=result.best_checkpoint, object_name="mug")
+
+
+def test_resume_continues_from_the_last_checkpoint(trained_run):
+    cfg, first = trained_run
+    more = TrainConfig.from_dict({**cfg.to_dict(), "trainer": {**cfg.trainer, "max_epochs": 3}})
+    result = run_training(more, resume="auto", verbose=False)
+    record = load_model(result.weights)[1]
+    assert record.training["epochs"] == 3 and record.training["steps"] == 9  # 6 + 3, not 9 + 6
+    with pytest.raises(ConfigError, match="not found"):
+        run_training(more, resume=str(cfg.output_dir) + "/missing.ckpt", verbose=False)
+
+
+def test_train_and_export_commands(trained_run, tmp_path, capsys):
+    cfg, result = trained_run
+    config_file = result.run_dir / "config.yaml"
+    assert main(["train", "--config", str(config_file), "--print-config",
+                 "--set", "trainer.max_epochs=7"]) == 0
+    assert "max_epochs: 7" in capsys.readouterr().out
+    assert main(["train", "--config", str(tmp_path / "none.yaml")]) == 1
+    assert "config file not found" in capsys.readouterr().err
+    onnx_path = tmp_path / "box.onnx"
+    assert main(["export", "pose", "--weights", str(result.best_checkpoint),
+                 "--out", str(onnx_path)]) == 0
+    assert "exported dope_lite_tiny for object 'box'" in capsys.readouterr().out
+    est = OnnxPoseEstimator(onnx_path, np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]))
+    assert est.object_name == "box" and est.cuboid == CUBOID
+    assert isinstance(est(np.zeros((48, 64, 3), np.uint8)), list)
+    assert main(["export", "pose", "--weights", str(result.weights), "--out",
+                 str(tmp_path / "x.onnx"), "--object", "mug"]) == 1
+    assert "not 'mug'" in capsys.readouterr().err
+    assert main(["export"]) == 2
