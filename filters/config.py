@@ -133,8 +133,10 @@ class PoseUKFConfig:
             the next rejected one (it takes the pose and its covariance as the state).
         sigma_alpha, sigma_beta, sigma_kappa: van der Merwe's scaled sigma-point parameters. The
             defaults (1, 2, 0) put the 2n outer points at ``±√n σ`` with a zero-weight centre.
-        mean_iterations: iterations of the weighted Karcher mean of the sigma quaternions
-            (started at the centre point; 2 are exact to float64 for the spreads met here).
+        mean_iterations: Gauss–Newton iterations of the weighted Karcher mean of the sigma
+            quaternions, started at the centre point. It converges linearly, faster the smaller
+            the spread; after a short predict the points are nearly symmetric about the centre,
+            which is then almost the mean already.
         sigma_points: propagate 2n+1 sigma points through every predict and pose update.
             ``False`` uses the closed form of the same unscented transform: the pose measurement
             is the state itself and a known twist moves every sigma point by one rigid motion,

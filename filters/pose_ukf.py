@@ -50,6 +50,7 @@ class _PoseFilter(nn.Module):
     w_mean: Tensor
     w_cov: Tensor
     q_density: Tensor
+    q_matrix: Tensor
     meas_cov: Tensor
     init_var: Tensor
     gamma: Tensor
@@ -76,6 +77,7 @@ class _PoseFilter(nn.Module):
         self.register_buffer("w_mean", torch.tensor(w.mean, **kw))
         self.register_buffer("w_cov", torch.tensor(w.cov, **kw))
         self.register_buffer("q_density", torch.tensor(q_density, **kw))
+        self.register_buffer("q_matrix", torch.diag(self.q_density))
         meas = [config.meas_std_translation**2] * 3 + [config.meas_std_rotation**2] * 3
         self.register_buffer("meas_cov", torch.diag(torch.tensor(meas, **kw)))
         self.register_buffer("init_var", torch.tensor(init_var, **kw))
@@ -284,9 +286,7 @@ class _PoseFilter(nn.Module):
         em = (wm * es).sum(1)
         dev = torch.cat([ts - tm.unsqueeze(1), eq, es - em.unsqueeze(1)], dim=-1)
         # P = Σ Wc devᵢ devᵢᵀ + Q dt
-        P = symmetrize(weighted_cov(dev, dev, self.w_cov)) + torch.diag_embed(
-            self.q_density * dt.unsqueeze(-1)
-        )
+        P = symmetrize(weighted_cov(dev, dev, self.w_cov)) + dt[:, None, None] * self.q_matrix
         return tm, qm, em, P
 
     def _dt(self, dt: float | Tensor) -> Tensor:
@@ -378,7 +378,7 @@ class PoseUKF(_PoseFilter):
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
         Rd = quat_rotate(qd.unsqueeze(1), self.eye3).transpose(-1, -2)  # columns R e_i
         A = (self.eye2_blocks * Rd[:, None, :, None, :]).reshape(-1, 6, 6)  # diag(R_Δ, R_Δ)
-        cov = A @ cov @ A.transpose(-1, -2) + torch.diag_embed(self.q_density * dt.unsqueeze(-1))
+        cov = symmetrize(A @ cov @ A.transpose(-1, -2)) + dt[:, None, None] * self.q_matrix
         return t, q, cov
 
     def forward(

@@ -58,13 +58,15 @@ class VelocityKF(nn.Module):
             :func:`interaction.undistort_flow`).
         batch_size: number of tracks B.
         config: the filter's parameters; defaults to :class:`VelocityKFConfig`.
-        dtype: float64 by default.
+        dtype: float64 by default. A float32 filter keeps its state and the per-RoI work in
+            float32 but sums the information and does the 6x6 algebra in float64.
         device: where the state lives (``.to(device)`` moves it later too).
 
     Buffers (all in ``state_dict``): the state ``twist`` (B,6), ``cov`` (B,6,6) and
     ``reference`` (B,6) (the last posterior twist, which the weighting compares flows with);
     cumulative counts ``skipped_depth`` and ``skipped_flow`` (B,); constants ``focal``
-    ``[fx, fy]``, ``principal`` ``[cx, cy]``, ``jac_coef``, ``jac_index``, ``q_density`` (6,),
+    ``[fx, fy]``, ``principal`` ``[cx, cy]``, ``jac_coef``, ``jac_index``, ``q_density`` (6,) and
+    ``q_matrix`` (its 6x6 diagonal),
     ``init_var`` (6,) and ``consts`` (5,).
 
     Example:
@@ -86,6 +88,7 @@ class VelocityKF(nn.Module):
     jac_coef: Tensor
     jac_index: Tensor
     q_density: Tensor
+    q_matrix: Tensor
     init_var: Tensor
     consts: Tensor
 
@@ -110,6 +113,7 @@ class VelocityKF(nn.Module):
         self.register_buffer(
             "q_density", torch.tensor([cfg.q_linear] * 3 + [cfg.q_angular] * 3, **kw)
         )
+        self.register_buffer("q_matrix", torch.diag(self.q_density))
         var = [cfg.init_std_linear**2] * 3 + [cfg.init_std_angular**2] * 3
         self.register_buffer("init_var", torch.tensor(var, **kw))
         for name, shape, dt in (
@@ -226,9 +230,7 @@ class VelocityKF(nn.Module):
         decay = torch.exp(dt * self.consts[0])  # alpha ** (dt / alpha_dt)
         twist = twist * decay.unsqueeze(-1)
         # P = a² P + Q dt
-        cov = cov * (decay * decay)[:, None, None] + torch.diag_embed(
-            self.q_density * dt.unsqueeze(-1)
-        )
+        cov = cov * (decay * decay)[:, None, None] + dt[:, None, None] * self.q_matrix
         return twist, cov
 
     def update_state(
@@ -255,8 +257,14 @@ class VelocityKF(nn.Module):
             for a bad depth (column 0) and for a bad flow or pixel (column 1).
         """
         cfg = self.config
-        _, flow_info, scale, scale_min, floor = self.consts.unbind()
         H, z, rows_ok, skipped = self._measurement_rows(uv, depth, flow, normal_only, mask)
+        out_dtype = twist.dtype
+        if out_dtype != torch.float64:
+            # Information sums over hundreds of RoIs and the 6x6 algebra lose about four
+            # digits to the conditioning in float32; in float64 they cost nothing extra.
+            H, z, twist, cov, reference = (x.double() for x in (H, z, twist, cov, reference))
+        consts = self.consts if out_dtype == torch.float64 else self.consts.double()
+        _, flow_info, scale, scale_min, floor = consts.unbind()
         HT = H.transpose(-1, -2)
         innovation = z - (H @ twist.unsqueeze(-1)).squeeze(-1)  # (B, 2N)
         innovation_col = innovation.unsqueeze(-1)
@@ -289,7 +297,7 @@ class VelocityKF(nn.Module):
             )
             if i + 1 < passes:
                 residual = z - (H @ post_twist.unsqueeze(-1)).squeeze(-1)
-        return post_twist, post_cov, skipped
+        return post_twist.to(out_dtype), post_cov.to(out_dtype), skipped
 
     def step(
         self,

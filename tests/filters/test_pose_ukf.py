@@ -1,0 +1,342 @@
+"""PoseUKF and PoseTwistUKF: against filterpy's UKF, the exact motion, long runs, gating and
+state handling."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from evtrack.filters import PoseTwistUKF, PoseTwistUKFConfig, PoseUKF, PoseUKFConfig, VelocityKF
+from evtrack.filters.lie import quat_exp
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+from scipy.spatial.transform import Rotation
+
+from evtrack.camera import PinholeCamera
+from evtrack.geometry import integrate_twist, integrate_twist_tq, matrix_to_tq, tq_to_matrix
+
+F64 = torch.float64
+MODES = [pytest.param(False, id="closed_form"), pytest.param(True, id="sigma_points")]
+
+
+def _unit_q(g: torch.Generator, B: int, scale: float = 3.0) -> torch.Tensor:
+    return quat_exp(scale * torch.rand(B, 3, generator=g, dtype=F64) - scale / 2)
+
+
+def _same_rotation(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(torch.minimum((a - b).abs().amax(-1), (a + b).abs().amax(-1)).max())
+
+
+# ---------------------------------------------------------------------------- exactness
+def test_closed_form_equals_sigma_points() -> None:
+    g = torch.Generator().manual_seed(0)
+    B = 8
+    t0, q0 = torch.randn(B, 3, generator=g, dtype=F64), _unit_q(g, B)
+    fast, slow = PoseUKF(B), PoseUKF(B, PoseUKFConfig(sigma_points=True))
+    fast.reset(t=t0, q=q0)
+    slow.reset(t=t0, q=q0)
+    for i in range(60):
+        twist = torch.randn(B, 6, generator=g, dtype=F64) * 2
+        fast.predict(twist, 0.01)
+        slow.predict(twist, 0.01)
+        if i % 5 == 0:
+            t_m = fast.t + 0.02 * torch.randn(B, 3, generator=g, dtype=F64)
+            q_m = fast.q + 0.02 * torch.randn(B, 4, generator=g, dtype=F64)
+            if i == 30:
+                t_m[0] += 5.0  # an outlier, rejected by both
+            assert torch.equal(fast.update(t_m, q_m), slow.update(t_m, q_m))
+    torch.testing.assert_close(fast.t, slow.t, rtol=0, atol=1e-12)
+    assert _same_rotation(fast.q, slow.q) < 1e-12
+    torch.testing.assert_close(fast.cov, slow.cov, rtol=0, atol=1e-12 * fast.cov.abs().max())
+    assert fast.rejected[0] == 1 == slow.rejected[0]
+
+
+@pytest.mark.parametrize("sigma_points", MODES)
+def test_predict_mean_is_the_exact_constant_twist_motion(sigma_points: bool) -> None:
+    g = torch.Generator().manual_seed(1)
+    B = 5
+    t0, q0 = torch.randn(B, 3, generator=g, dtype=F64), _unit_q(g, B)
+    twist = torch.randn(B, 6, generator=g, dtype=F64)
+    ukf = PoseUKF(B, PoseUKFConfig(sigma_points=sigma_points))
+    ukf.reset(t=t0, q=q0)
+    for _ in range(100):
+        ukf.predict(twist, 0.01)
+    t_ref, q_ref = integrate_twist_tq(t0, q0, twist, 1.0)
+    torch.testing.assert_close(ukf.t, t_ref, rtol=0, atol=1e-12)
+    assert _same_rotation(ukf.q, q_ref) < 1e-12
+
+
+# ---------------------------------------------------------------------------- filterpy stand-in
+def _filterpy_pose_ukf(cfg: PoseUKFConfig, x0: np.ndarray) -> UnscentedKalmanFilter:
+    """filterpy's UKF on the Euclidean stand-in state [t, rotation vector]; the motion is
+    computed with evtrack.geometry (kornia) and scipy, independently of evtrack.filters."""
+
+    def fx(x: np.ndarray, dt: float, twist: np.ndarray) -> np.ndarray:
+        q = Rotation.from_rotvec(x[3:]).as_quat()[[3, 0, 1, 2]]
+        T = tq_to_matrix(torch.as_tensor(x[:3])[None], torch.as_tensor(q)[None])
+        t1, q1 = matrix_to_tq(integrate_twist(T, torch.as_tensor(twist)[None], dt))
+        rotvec = Rotation.from_quat(q1[0].numpy()[[1, 2, 3, 0]]).as_rotvec()
+        return np.concatenate([t1[0].numpy(), rotvec])
+
+    points = MerweScaledSigmaPoints(
+        6, alpha=cfg.sigma_alpha, beta=cfg.sigma_beta, kappa=cfg.sigma_kappa
+    )
+    ukf = UnscentedKalmanFilter(dim_x=6, dim_z=6, dt=0.01, hx=lambda x: x, fx=fx, points=points)
+    ukf.x = x0.copy()
+    ukf.P = np.diag([cfg.init_std_translation**2] * 3 + [cfg.init_std_rotation**2] * 3)
+    return ukf
+
+
+@pytest.mark.parametrize("sigma_points", MODES)
+@pytest.mark.parametrize("rotating", [False, True])
+def test_matches_filterpy_ukf_on_euclidean_stand_in(sigma_points: bool, rotating: bool) -> None:
+    # Without rotation the stand-in is exact (the tangent at the identity is Euclidean); with
+    # small rotations the two differ by second-order (BCH) terms only.
+    g = torch.Generator().manual_seed(2)
+    cfg = PoseUKFConfig(
+        sigma_points=sigma_points,
+        init_std_rotation=0.01,
+        meas_std_rotation=0.005,
+        q_rotation=1e-4,
+        gate_chi2=math.inf,
+    )
+    x0 = np.array([0.1, -0.05, 0.8, 0.0, 0.0, 0.0])
+    ref = _filterpy_pose_ukf(cfg, x0)
+    ours = PoseUKF(1, cfg)
+    ours.reset(t=torch.as_tensor(x0[:3])[None], q=torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=F64))
+    R = ours.meas_cov[None].clone()
+    Q = np.diag([cfg.q_translation] * 3 + [cfg.q_rotation] * 3)
+    for i in range(60):
+        twist = 0.2 * torch.randn(1, 6, generator=g, dtype=F64)
+        twist[:, 3:] *= 0.05 if rotating else 0.0
+        ref.Q = Q * 0.01
+        ref.predict(dt=0.01, twist=twist[0].numpy())
+        ours.predict(twist, 0.01)
+        if i % 6 == 5:
+            z = ref.x + np.concatenate(
+                [0.005 * np.random.default_rng(i).standard_normal(3), np.zeros(3)]
+            )
+            if rotating:
+                z[3:] += 0.003 * np.random.default_rng(100 + i).standard_normal(3)
+            # filterpy reuses the propagated points; we redraw them after adding Q, as in the
+            # non-augmented UKF, so redraw filterpy's too.
+            ref.sigmas_f = ref.points_fn.sigma_points(ref.x, ref.P)
+            ref.update(z, R=R[0].numpy())
+            q_m = Rotation.from_rotvec(z[3:]).as_quat()[[3, 0, 1, 2]]
+            ours.update(torch.as_tensor(z[:3])[None], torch.as_tensor(q_m)[None], R)
+    rotvec = Rotation.from_quat(ours.q[0].numpy()[[1, 2, 3, 0]]).as_rotvec()
+    tol_x, tol_p = (1e-6, 1e-3) if rotating else (1e-12, 1e-10)
+    np.testing.assert_allclose(ours.t[0].numpy(), ref.x[:3], rtol=0, atol=tol_x)
+    np.testing.assert_allclose(rotvec, ref.x[3:], rtol=0, atol=tol_x)
+    np.testing.assert_allclose(
+        ours.cov[0].numpy(), ref.P, rtol=tol_p, atol=tol_p * np.abs(ref.P).max()
+    )
+
+
+# ---------------------------------------------------------------------------- long runs
+@pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
+def test_long_run_keeps_unit_quaternion_and_spd_covariance(cls: type) -> None:
+    # 1e5 track-steps: B tracks stepped in lockstep, with varied twists, noise levels (down to
+    # near-singular measurements), outliers and gaps.
+    g = torch.Generator().manual_seed(3)
+    B, steps = (200, 500) if cls is PoseUKF else (100, 1000)
+    filt = cls(B)
+    filt.reset(t=torch.randn(B, 3, generator=g, dtype=F64), q=_unit_q(g, B))
+    meas_scale = torch.logspace(-5, -1, B, dtype=F64)  # m and rad
+    R = torch.diag_embed(meas_scale[:, None].expand(B, 6) ** 2)
+    twist = (
+        torch.randn(B, 6, generator=g, dtype=F64) * torch.linspace(0.1, 20.0, B, dtype=F64)[:, None]
+    )
+    for i in range(steps):
+        if cls is PoseUKF:
+            filt.predict(twist, 1e-3)
+        else:
+            filt.predict(1e-3)
+        if i % 10 == 0:
+            t_m = filt.t + meas_scale[:, None] * torch.randn(B, 3, generator=g, dtype=F64)
+            q_m = filt.q + meas_scale[:, None] * torch.randn(B, 4, generator=g, dtype=F64)
+            t_m[i % B] += 10.0  # an outlier
+            filt.update(t_m, q_m, R, valid=torch.rand(B, generator=g) < 0.9)
+        assert (filt.q.norm(dim=-1) - 1).abs().max() < 1e-12
+        assert torch.equal(filt.cov, filt.cov.transpose(-1, -2))
+        assert (torch.linalg.cholesky_ex(filt.cov).info == 0).all()
+    assert torch.linalg.eigvalsh(filt.cov).min() > 0
+    assert torch.isfinite(filt.t).all()
+    assert (filt.rejected > 0).any()
+
+
+def test_ten_seconds_without_measurements() -> None:
+    # The velocity filter decays its twist to zero; the pose UKF it drives comes to rest, and
+    # nothing becomes NaN; the covariance grows as Q·t.
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    kf = VelocityKF(cam, 2)
+    kf.reset(twist=torch.tensor([[0.5, -0.2, 0.1, 2.0, -1.0, 3.0]] * 2, dtype=F64))
+    ukf = PoseUKF(2)
+    ukf.reset(
+        t=torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=F64),
+        q=torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=F64),
+    )
+    cv = PoseTwistUKF(2, PoseTwistUKFConfig(alpha=0.5))
+    cv.reset(t=ukf.t, q=ukf.q, twist=kf.twist)
+    cov0 = ukf.cov.clone()
+    for i in range(1000):  # 10 ms steps (the decay is per second, whatever the step)
+        ukf.predict(kf.predict(1e-2), 1e-2)
+        cv.predict(1e-2)
+        if i == 499:
+            t_half = ukf.t.clone()
+    for x in (kf.twist, kf.cov, ukf.t, ukf.q, ukf.cov, cv.t, cv.q, cv.twist, cv.cov):
+        assert torch.isfinite(x).all()
+    assert kf.twist.abs().max() < 1e-12 and cv.twist.abs().max() < 1e-12
+    torch.testing.assert_close(ukf.t, t_half, rtol=0, atol=1e-12)  # at rest
+    grown = torch.diagonal(ukf.cov - cov0, dim1=-2, dim2=-1)
+    torch.testing.assert_close(grown, (ukf.q_density * 10.0).expand(2, 6))
+
+
+# ---------------------------------------------------------------------------- gating
+def _started(B: int = 3, **cfg: float) -> PoseUKF:
+    ukf = PoseUKF(B, PoseUKFConfig(**cfg))
+    ukf.reset(
+        t=torch.tensor([[0.0, 0.0, 1.0]] * B, dtype=F64),
+        q=torch.tensor([[1.0, 0, 0, 0]] * B, dtype=F64),
+    )
+    return ukf
+
+
+def test_gating_rejects_outliers_and_reinitialises_after_a_run() -> None:
+    ukf = _started(2, reinit_after=3)
+    good_t = ukf.t + 0.01
+    far_t = ukf.t + torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], dtype=F64)
+    q = ukf.q.clone()
+    used = ukf.update(far_t, q)
+    assert used.tolist() == [False, True] and ukf.rejected.tolist() == [1, 0]
+    assert ukf.t[0].tolist() == [0.0, 0.0, 1.0]  # untouched by the rejected pose
+    ukf.update(far_t, q)
+    assert ukf.rejected_run.tolist() == [2, 0]
+    used = ukf.update(far_t, q)  # third in a row: re-initialise on it
+    assert used.tolist() == [True, True] and ukf.reinitialised.tolist() == [1, 0]
+    torch.testing.assert_close(ukf.t[0], far_t[0])
+    torch.testing.assert_close(ukf.cov[0], ukf.meas_cov)
+    assert ukf.rejected.tolist() == [3, 0] and ukf.rejected_run.tolist() == [0, 0]
+    ukf.update(ukf.t + 0.001, q)
+    assert ukf.rejected_run.tolist() == [0, 0]
+    ukf.update(far_t + 5.0, q)  # both rejected: a new run starts
+    assert ukf.rejected_run.tolist() == [1, 1]
+    ukf.update(good_t + torch.tensor([1.0, 0.0, 0.0], dtype=F64), q)  # near track 0's new state
+    assert ukf.rejected_run.tolist() == [0, 2]
+
+
+def test_gate_threshold_is_the_mahalanobis_distance() -> None:
+    ukf = _started(1, gate_chi2=9.0, init_std_translation=0.1)
+    R = torch.eye(6, dtype=F64)[None] * 1e-4
+    S = ukf.cov[0, 0, 0] + R[0, 0, 0]  # innovation variance along x
+    inside = ukf.t + torch.tensor([[2.99, 0.0, 0.0]], dtype=F64) * S.sqrt()
+    outside = ukf.t + torch.tensor([[3.01, 0.0, 0.0]], dtype=F64) * S.sqrt()
+    probe = _started(1, gate_chi2=9.0, init_std_translation=0.1)
+    assert not probe.update(outside, probe.q, R)[0]
+    assert ukf.update(inside, ukf.q, R)[0]
+
+
+def test_first_pose_initialises_and_missing_poses_are_skipped() -> None:
+    ukf = PoseUKF(3)
+    assert not ukf.initialized.any()
+    t_m = torch.tensor([[5.0, 0, 0], [0, 5.0, 0], [0, 0, 5.0]], dtype=F64)
+    q_m = -_unit_q(torch.Generator().manual_seed(4), 3)
+    t_m[2, 0] = math.nan  # a NaN pose is a missing pose, not a rejected one
+    used = ukf.update(t_m, q_m, valid=torch.tensor([True, False, True]))
+    assert used.tolist() == [True, False, False]
+    assert ukf.initialized.tolist() == [True, False, False]
+    torch.testing.assert_close(ukf.t[0], t_m[0])
+    assert _same_rotation(ukf.q[:1], q_m[:1]) < 1e-15
+    assert ukf.rejected.tolist() == [0, 0, 0]
+    assert torch.isfinite(ukf.t).all() and torch.isfinite(ukf.cov).all()
+
+
+def test_measurement_sign_does_not_matter() -> None:
+    a, b = _started(1), _started(1)
+    q_m = quat_exp(torch.tensor([[0.01, -0.02, 0.005]], dtype=F64))
+    t_m = a.t + 0.01
+    a.update(t_m, q_m)
+    b.update(t_m, -q_m)
+    torch.testing.assert_close(a.t, b.t, rtol=0, atol=1e-15)
+    assert _same_rotation(a.q, b.q) < 1e-15
+
+
+# ---------------------------------------------------------------------------- constant velocity
+def test_twist_in_state_is_learnt_from_poses_and_fuses_twists() -> None:
+    g = torch.Generator().manual_seed(5)
+    B = 4
+    twist = torch.randn(B, 6, generator=g, dtype=F64) * torch.tensor(
+        [0.3] * 3 + [1.5] * 3, dtype=F64
+    )
+    t_true, q_true = torch.randn(B, 3, generator=g, dtype=F64), _unit_q(g, B)
+    cv = PoseTwistUKF(B, PoseTwistUKFConfig(q_linear=1e-3, q_angular=1e-2))  # a steady motion
+    cv.reset(t=t_true, q=q_true)
+    for i in range(400):  # 2 s at 5 ms, a pose every 20 ms
+        cv.predict(5e-3)
+        t_true, q_true = integrate_twist_tq(t_true, q_true, twist, 5e-3)
+        if i % 4 == 3:
+            noise = torch.randn(B, 6, generator=g, dtype=F64) * 1e-3
+            cv.update(t_true + noise[:, :3], q_true + noise[:, 3:].repeat(1, 2)[:, :4] * 0.5)
+    err = (cv.twist - twist).abs()
+    assert err[:, :3].max() < 0.01 and err[:, 3:].max() < 0.03
+    assert cv.rejected.sum() == 0
+    cv.update_twist(twist, torch.eye(6, dtype=F64) * 1e-8)
+    torch.testing.assert_close(cv.twist, twist, rtol=0, atol=1e-3)
+
+
+def test_twist_state_predict_with_certain_twist_is_exact() -> None:
+    g = torch.Generator().manual_seed(6)
+    B = 3
+    t0, q0, twist = (
+        torch.randn(B, 3, generator=g, dtype=F64),
+        _unit_q(g, B),
+        torch.randn(B, 6, generator=g, dtype=F64),
+    )
+    cfg = PoseTwistUKFConfig(
+        init_std_linear=1e-9, init_std_angular=1e-9, q_linear=0.0, q_angular=0.0
+    )
+    cv = PoseTwistUKF(B, cfg)
+    cv.reset(t=t0, q=q0, twist=twist)
+    for _ in range(50):
+        cv.predict(0.02)
+    t_ref, q_ref = integrate_twist_tq(t0, q0, twist, 1.0)
+    torch.testing.assert_close(cv.t, t_ref, rtol=0, atol=1e-9)
+    assert _same_rotation(cv.q, q_ref) < 1e-9
+
+
+# ---------------------------------------------------------------------------- state handling
+@pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
+def test_state_dict_round_trip_reset_and_device(cls: type, device: torch.device) -> None:
+    g = torch.Generator().manual_seed(7)
+    filt = cls(4)
+    filt.reset(t=torch.randn(4, 3, generator=g, dtype=F64), q=_unit_q(g, 4))
+    args = (torch.randn(4, 6, generator=g, dtype=F64), 0.01) if cls is PoseUKF else (0.01,)
+    filt.predict(*args)
+    filt.update(filt.t + 3.0, filt.q)  # rejected: counters move
+    other = cls(1)
+    other.load_state_dict(filt.state_dict())
+    for name, buf in filt.named_buffers():
+        assert torch.equal(buf, getattr(other, name)), name
+    moved = other.to(device)
+    assert moved.t.device.type == device.type
+    moved.predict(*[a.to(device) if isinstance(a, torch.Tensor) else a for a in args])
+    filt.predict(*args)
+    torch.testing.assert_close(moved.t.cpu(), filt.t)
+    filt.reset()
+    assert not filt.initialized.any() and filt.rejected.sum() == 0
+    f32 = cls(2).to(torch.float32)
+    f32.update(torch.zeros(2, 3), torch.tensor([[1.0, 0, 0, 0]] * 2))
+    assert f32.t.dtype == torch.float32 and f32.initialized.all()
+
+
+def test_inputs_are_checked() -> None:
+    ukf = PoseUKF(2)
+    with pytest.raises(ValueError, match="twist must have shape"):
+        ukf.predict(torch.zeros(3, 6), 0.01)
+    with pytest.raises(ValueError, match="q_meas must have shape"):
+        ukf.update(torch.zeros(2, 3), torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="cov_meas must have shape"):
+        ukf.update(torch.zeros(2, 3), torch.ones(2, 4), torch.eye(5))
+    with pytest.raises(ValueError, match="give both t and q"):
+        ukf.reset(t=torch.zeros(2, 3))
