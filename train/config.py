@@ -174,15 +174,22 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str,
 class ObjectConfig:
     """The object to learn.
 
+    The cuboid comes from ``mesh``, else from ``dimensions``, else from the synthetic data
+    engine's object of that ``name`` (a procedural ``box``/``can``/``bottle`` or a YCB name).
+
     Attributes:
         name: object name (stored with the weights; estimators report it).
         mesh: mesh file (glTF, OBJ, PLY, ...); its bounding box gives the cuboid.
+        recenter: with a mesh, the object frame is the mesh's bounding-box-centred frame (the
+            synthetic data engine's convention; poses are reported in it); ``false`` keeps
+            the file's origin.
         dimensions: cuboid dimensions in metres, when there is no mesh.
         center: cuboid centre in the object frame, metres (with ``dimensions``).
     """
 
     name: str
     mesh: str | None = None
+    recenter: bool = True
     dimensions: tuple[float, float, float] | None = None
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -190,10 +197,20 @@ class ObjectConfig:
         if self.mesh is not None:
             if self.dimensions is not None:
                 raise ConfigError("object: give either mesh or dimensions, not both")
-            return Cuboid.from_mesh(self.mesh)
-        if self.dimensions is None:
-            raise ConfigError("object: needs a mesh or cuboid dimensions")
-        return Cuboid(self.dimensions, self.center)
+            box = Cuboid.from_mesh(self.mesh)
+            return Cuboid(box.dimensions) if self.recenter else box
+        if self.dimensions is not None:
+            return Cuboid(self.dimensions, self.center)
+        try:
+            from evtrack.train.sim_source import sim_object_cuboid
+
+            return sim_object_cuboid(self.name)
+        except ImportError as exc:
+            raise ConfigError(f"object {self.name!r}: no mesh or dimensions given, and the "
+                              f"synthetic data engine is unavailable ({exc})") from exc
+        except ConfigError as exc:
+            raise ConfigError(f"object: needs a mesh or cuboid dimensions, or the name of an "
+                              f"engine object ({exc})") from exc
 
 
 @dataclass(frozen=True)

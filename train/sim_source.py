@@ -1,17 +1,253 @@
-"""Source kind ``sim``: samples rendered by the synthetic data engine (``evtrack.sim``).
+"""Source kind ``sim``: single frames rendered by the synthetic data engine (``evtrack.sim``).
 
-Wired at the end of the session once the engine's API is known (see the module body).
+Each sample shows the object (a mesh file, a YCB name or a procedural ``box``/``can``/
+``bottle``, resolved by :func:`evtrack.sim.objects.resolve_object`, in its bounding-box-centred
+frame) at a random pose in front of a randomised scene (background texture, light, static
+distractor objects: :func:`evtrack.sim.scene.build_scene` with ``randomize``), optionally
+motion-blurred by averaging renders along a random constant twist over the exposure (the
+ground-truth pose is the one at mid-exposure, as for the engine's 60 FPS frames), with the
+engine's sensor noise, encoded to 8-bit sRGB.
+
+Consecutive samples share a scene (``samples_per_scene``): building a scene uploads its
+textures to the GPU, which costs far more than rendering, so the source keeps the current
+scene's renderer and is fastest read in order; use ``data.cache_dir`` to render once into
+shards and train from those.
 """
 
 from __future__ import annotations
 
-from evtrack.errors import ConfigError
-from evtrack.train.samples import SourceSpec, register_source
+import os
+from dataclasses import dataclass, fields
 
-__all__: list[str] = []
+import numpy as np
+
+from evtrack.errors import ConfigError
+from evtrack.models.cuboid import Cuboid
+from evtrack.train.samples import PoseSample, SourceSpec, project_keypoints, register_source
+
+__all__ = ["SimSourceOptions", "SimSource", "sim_object_cuboid"]
+
+_CUBOID_TOLERANCE_M = 1e-4  # the config's cuboid and the engine's mesh must agree this well
+
+
+@dataclass(frozen=True)
+class SimSourceOptions:
+    """Options of the ``sim`` source (``data.options`` of a config).
+
+    Attributes:
+        samples_per_scene: consecutive samples sharing one random scene.
+        object_seed: texture seed of procedural objects.
+        focal_at_640: focal length in pixels for a 640-pixel-wide image (scaled to the
+            configured width; 615 is the engine's default camera).
+        z_range: depth range of the object centre, metres.
+        margin: fraction of the image size kept between the object centre and the border.
+        max_distractors: most static distractor objects per scene.
+        blur_probability: probability that a sample is motion-blurred.
+        blur_renders: renders averaged over the exposure of a blurred sample.
+        exposure_s: exposure time, seconds.
+        max_linear_speed: largest object speed during a blurred exposure, m/s.
+        max_angular_speed: largest angular speed during a blurred exposure, rad/s.
+        ambient_range, diffuse_range: per-sample light strengths.
+    """
+
+    samples_per_scene: int = 32
+    object_seed: int = 0
+    focal_at_640: float = 615.0
+    z_range: tuple[float, float] = (0.35, 1.2)
+    margin: float = 0.1
+    max_distractors: int = 4
+    blur_probability: float = 0.5
+    blur_renders: int = 8
+    exposure_s: float = 1.0 / 60.0
+    max_linear_speed: float = 1.5
+    max_angular_speed: float = 8.0
+    ambient_range: tuple[float, float] = (0.15, 0.5)
+    diffuse_range: tuple[float, float] = (0.4, 0.9)
+
+    def __post_init__(self) -> None:
+        lo, hi = self.z_range
+        if not 0 < lo <= hi:
+            raise ConfigError(f"sim source: z_range must be 0 < lo <= hi, got {self.z_range}")
+        if self.samples_per_scene < 1 or self.blur_renders < 1:
+            raise ConfigError("sim source: samples_per_scene and blur_renders must be >= 1")
+        if not 0 <= self.blur_probability <= 1 or not 0 <= self.margin < 0.5:
+            raise ConfigError("sim source: blur_probability in [0, 1], margin in [0, 0.5)")
+
+    @classmethod
+    def from_dict(cls, data: dict | None) -> SimSourceOptions:
+        data = dict(data or {})
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"data.options: unknown sim-source option(s) {unknown}; "
+                              f"known: {sorted(known)}")
+        data = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return cls(**data)
+
+
+def _resolve(spec: str, seed: int):
+    from evtrack.sim.objects import resolve_object
+
+    return resolve_object(spec, seed=seed)
+
+
+def sim_object_cuboid(spec: str, seed: int = 0) -> Cuboid:
+    """The cuboid of an engine object (mesh path, YCB or procedural name) in the engine's
+    object frame (bounding-box centred)."""
+    mesh = _resolve(spec, seed)
+    lo, hi = mesh.vertices.min(0).astype(np.float64), mesh.vertices.max(0).astype(np.float64)
+    return Cuboid(tuple(hi - lo), tuple((hi + lo) / 2))
+
+
+def _exp_twist(twist: np.ndarray, dt: float) -> np.ndarray:
+    """(4, 4) motion of a constant camera-frame twist ``[v, ω]`` over ``dt`` seconds."""
+    import torch
+
+    from evtrack.geometry import integrate_twist
+
+    T = integrate_twist(torch.eye(4, dtype=torch.float64), torch.from_numpy(twist), dt)
+    return T.numpy()
+
+
+class SimSource:
+    """Rendered samples of one object (see the module docstring).
+
+    Args:
+        object_spec: mesh path, YCB name or procedural name.
+        cuboid: the object's cuboid; must match the engine's mesh (bounding-box centred).
+        num_samples, image_size, seed: as for every source.
+        object_name: name recorded with the samples.
+        options: rendering and randomisation options.
+    """
+
+    def __init__(
+        self,
+        object_spec: str,
+        cuboid: Cuboid,
+        num_samples: int,
+        image_size: tuple[int, int],
+        *,
+        object_name: str,
+        seed: int = 0,
+        options: SimSourceOptions | None = None,
+    ) -> None:
+        from evtrack.camera import PinholeCamera
+
+        self.options = options or SimSourceOptions()
+        self.object_spec = object_spec
+        self.object_name = object_name
+        self.num_samples = int(num_samples)
+        self.image_size = (int(image_size[0]), int(image_size[1]))
+        self.seed = int(seed)
+        engine_cuboid = sim_object_cuboid(object_spec, self.options.object_seed)
+        if (np.abs(np.subtract(engine_cuboid.dimensions, cuboid.dimensions)).max()
+                > _CUBOID_TOLERANCE_M
+                or np.abs(np.subtract(engine_cuboid.center, cuboid.center)).max()
+                > _CUBOID_TOLERANCE_M):
+            raise ConfigError(
+                f"object {object_spec!r}: the configured cuboid {cuboid.to_dict()} differs from "
+                f"the engine's mesh {engine_cuboid.to_dict()} (the engine centres meshes on "
+                "their bounding box: keep object.recenter true, or give no dimensions)")
+        self.cuboid = cuboid
+        h, w = self.image_size
+        f = self.options.focal_at_640 * w / 640.0
+        self.camera = PinholeCamera(f, f, (w - 1) / 2, (h - 1) / 2, w, h)
+        self.K = self.camera.K().numpy()
+        o = self.options
+        self.description = (
+            f"{self.num_samples} evtrack.sim renders {w}x{h} of {object_spec!r} (seed {seed}, "
+            f"{o.samples_per_scene} per random scene, up to {o.max_distractors} distractors, "
+            f"z {o.z_range[0]}-{o.z_range[1]} m, blur p={o.blur_probability} up to "
+            f"{o.max_linear_speed} m/s and {o.max_angular_speed} rad/s over {o.exposure_s:.4f} s)"
+        )
+        self._mesh = None
+        self._renderer = None
+        self._scene_index = -1
+        self._pid = -1
+
+    def __len__(self) -> int:
+        return self.num_samples
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()  # GL objects stay in the process that made them
+        state.update(_mesh=None, _renderer=None, _scene_index=-1, _pid=-1)
+        return state
+
+    def close(self) -> None:
+        """Release the current renderer (its GL context)."""
+        if self._renderer is not None and self._pid == os.getpid():
+            self._renderer.release()
+        self._renderer, self._scene_index = None, -1
+
+    def _renderer_for(self, scene_index: int):
+        from evtrack.sim.config import SceneConfig
+        from evtrack.sim.renderer import Renderer
+        from evtrack.sim.scene import build_scene
+
+        if self._pid != os.getpid():  # a (forked) worker: its own mesh and GL context
+            self._renderer, self._mesh, self._scene_index, self._pid = None, None, -1, os.getpid()
+        if self._mesh is None:
+            self._mesh = _resolve(self.object_spec, self.options.object_seed)
+        if scene_index != self._scene_index:
+            self.close()
+            rng = np.random.default_rng([self.seed, scene_index])
+            scene = build_scene(
+                SceneConfig(randomize=True, max_distractors=self.options.max_distractors),
+                self.camera, rng)
+            renderer = Renderer(self.camera)
+            scene.apply(renderer)
+            renderer.set_object(self._mesh)
+            self._renderer, self._scene_index = renderer, scene_index
+        return self._renderer
+
+    def _random_pose(self, rng: np.random.Generator) -> np.ndarray:
+        from evtrack.sim.trajectory import random_rotation
+
+        h, w = self.image_size
+        o = self.options
+        z = rng.uniform(*o.z_range)
+        u = rng.uniform(o.margin * w, (1 - o.margin) * w)
+        v = rng.uniform(o.margin * h, (1 - o.margin) * h)
+        T = np.eye(4)
+        T[:3, :3] = random_rotation(rng)
+        T[:3, 3] = np.linalg.solve(self.K, np.array([u, v, 1.0])) * z - T[:3, :3] @ np.asarray(
+            self.cuboid.center)
+        return T
+
+    def __getitem__(self, index: int) -> PoseSample:
+        from evtrack.sim.config import FrameConfig
+        from evtrack.sim.frames import add_rgb_noise, linear_to_srgb
+
+        if not 0 <= index < self.num_samples:
+            raise IndexError(f"sample {index} out of range 0..{self.num_samples - 1}")
+        o = self.options
+        renderer = self._renderer_for(index // o.samples_per_scene)
+        rng = np.random.default_rng([self.seed, index // o.samples_per_scene, index])
+        light = rng.standard_normal(3)
+        light[2] = -abs(light[2]) - 0.3  # from the camera's side
+        renderer.set_light(light, rng.uniform(*o.ambient_range), rng.uniform(*o.diffuse_range))
+        pose = self._random_pose(rng)
+        if rng.random() < o.blur_probability:
+            direction = rng.standard_normal(6)
+            twist = np.concatenate([
+                direction[:3] / np.linalg.norm(direction[:3]) * rng.uniform(0, o.max_linear_speed),
+                direction[3:] / np.linalg.norm(direction[3:]) * rng.uniform(0, o.max_angular_speed),
+            ])
+            offsets = ((np.arange(o.blur_renders) + 0.5) / o.blur_renders - 0.5) * o.exposure_s
+            linear = np.mean([renderer.render(_exp_twist(twist, dt) @ pose).rgb
+                              for dt in offsets], axis=0)
+        else:
+            linear = renderer.render(pose).rgb
+        image = linear_to_srgb(add_rgb_noise(linear.astype(np.float32), rng, FrameConfig()))
+        poses = pose[None]
+        return PoseSample(image=image, K=self.K.copy(), poses=poses,
+                          keypoints=project_keypoints(self.cuboid, poses, self.K))
 
 
 @register_source("sim")
-def _sim_factory(spec: SourceSpec):
-    raise ConfigError("data.source 'sim' needs the synthetic data engine (evtrack.sim), "
-                      "which does not provide a renderer yet; use source 'cuboid' or 'shards'")
+def _sim_factory(spec: SourceSpec) -> SimSource:
+    return SimSource(
+        spec.mesh or spec.object_name, spec.cuboid, spec.num_samples, spec.image_size,
+        object_name=spec.object_name, seed=spec.seed,
+        options=SimSourceOptions.from_dict(spec.options),
+    )

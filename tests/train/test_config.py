@@ -16,7 +16,7 @@ MINIMAL = {"object": {"name": "box", "dimensions": [0.1, 0.1, 0.1]}}
 
 def test_there_are_configs_for_the_demo_and_the_four_ycb_objects():
     names = {p.stem for p in CONFIGS}
-    assert "pose_demo_box" in names
+    assert {"pose_demo_box", "pose_cuboid_box"} <= names
     assert {"pose_ycb_003_cracker_box", "pose_ycb_005_tomato_soup_can",
             "pose_ycb_006_mustard_bottle", "pose_ycb_010_potted_meat_can"} <= names
 
@@ -32,7 +32,9 @@ def test_ycb_config_cuboid_comes_from_the_mesh(ycb_dir, monkeypatch):
     repo = Path(__file__).resolve().parents[2]
     monkeypatch.chdir(repo)  # mesh paths are relative to the repository root
     cfg = TrainConfig.from_yaml(repo / "configs" / "pose_ycb_003_cracker_box.yaml")
-    dims = sorted(cfg.object.cuboid().dimensions)
+    cuboid = cfg.object.cuboid()
+    assert cuboid.center == (0.0, 0.0, 0.0)  # the engine's bounding-box-centred frame
+    dims = sorted(cuboid.dimensions)
     assert dims == pytest.approx([0.0718, 0.164, 0.2134], abs=2e-3)
 
 

@@ -1,0 +1,151 @@
+"""Latency of the pose networks: torch eager vs onnxruntime, side by side in one process.
+
+For each model: parameters, FLOPs (torch.utils.flop_counter; 1 multiply-add = 2 FLOPs) at
+640x480 and 320x240, and the median / 90th-percentile latency of one frame (batch 1) on the CPU
+with a fixed number of threads (default 2), for torch eager and for onnxruntime on the same
+exported graph. Also the decoding + PnP cost on ideal maps of one object at 640x480, and the
+same on a GPU when one is available (torch CUDA; onnxruntime CUDA when its provider is there).
+Weights are random: latency does not depend on their values.
+
+Target (issue 6): onnxruntime CPU <= 40 ms per 640x480 frame.
+
+    python benchmarks/bench_pose_speed.py [--models dope_lite_small dope_lite_base]
+        [--threads 2] [--repeats 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from evtrack.models import (
+    Cuboid,
+    WeightsRecord,
+    count_flops,
+    count_parameters,
+    create,
+    decode_poses,
+    export_onnx,
+)
+
+SIZES = ((480, 640), (240, 320))
+TARGET_MS = 40.0
+DEFAULT_MODELS = ("dope_lite_small", "dope_lite_base", "dope_lite_large")
+
+
+def timeit(fn, repeats: int, warmup: int = 3) -> tuple[float, float]:
+    """Median and 90th percentile of ``fn()`` in milliseconds."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - t) * 1e3)
+    times.sort()
+    return statistics.median(times), times[min(len(times) - 1, int(0.9 * len(times)))]
+
+
+def ort_session(path: Path, provider: str, threads: int):
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    return ort.InferenceSession(str(path), opts, providers=[provider])
+
+
+def ideal_maps(h: int, w: int) -> tuple[np.ndarray, np.ndarray, Cuboid, np.ndarray]:
+    """Belief/affinity maps of one box at a known pose (what a good network outputs)."""
+    cub = Cuboid((0.1, 0.16, 0.07))
+    K = np.array([[520.0, 0, (w - 1) / 2], [0, 520.0, (h - 1) / 2], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.36, 0.48, -0.8], [-0.8, 0.6, 0.0], [0.48, 0.64, 0.6]])
+    T[:3, 3] = (0.02, -0.01, 0.6)
+    uv = cub.project(T, K)
+    gy, gx = np.mgrid[0:h // 8, 0:w // 8]
+    px, py = gx * 8 + 3.5, gy * 8 + 3.5
+    belief = np.stack([np.exp(-((px - u) ** 2 + (py - v) ** 2) / 128.0) for u, v in uv])
+    affinity = np.zeros((16, h // 8, w // 8))
+    for k in range(8):
+        d = (uv[8] - uv[k]) / np.linalg.norm(uv[8] - uv[k])
+        disc = np.hypot(px - uv[k, 0], py - uv[k, 1]) < 12
+        affinity[2 * k][disc], affinity[2 * k + 1][disc] = d
+    return belief.astype(np.float32), affinity.astype(np.float32), cub, K
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS))
+    parser.add_argument("--threads", type=int, default=2, help="CPU threads (torch and ORT)")
+    parser.add_argument("--repeats", type=int, default=30)
+    args = parser.parse_args()
+
+    import onnxruntime as ort
+
+    torch.set_num_threads(args.threads)
+    cuda = torch.cuda.is_available()
+    ort_cuda = "CUDAExecutionProvider" in ort.get_available_providers()
+    print(f"torch {torch.__version__}, onnxruntime {ort.__version__}, CPU threads "
+          f"{args.threads}, repeats {args.repeats}, CUDA: {cuda} (onnxruntime CUDA: {ort_cuda})")
+    print()
+    header = (f"{'model':<16} {'params':>8} {'GFLOPs':>7} {'input':>8} {'device':>6} "
+              f"{'torch eager ms':>16} {'onnxruntime ms':>16} {'speed-up':>8}  target")
+    print(header)
+    print("-" * len(header))
+    rng = np.random.default_rng(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.models:
+            torch.manual_seed(0)
+            net = create(name).eval()
+            params = count_parameters(net)
+            record = WeightsRecord(arch=name, object_name="bench", cuboid=Cuboid((0.1,) * 3))
+            path = export_onnx(net, Path(tmp) / f"{name}.onnx", record=record)
+            sess = ort_session(path, "CPUExecutionProvider", args.threads)
+            for h, w in SIZES:
+                gflops = count_flops(net, h, w) / 1e9
+                x = rng.standard_normal((1, 3, h, w)).astype(np.float32)
+                xt = torch.from_numpy(x)
+                with torch.inference_mode():
+                    t_med, t_p90 = timeit(lambda: net(xt), args.repeats)  # noqa: B023
+                o_med, o_p90 = timeit(lambda: sess.run(None, {"image": x}), args.repeats)  # noqa: B023
+                ok = "" if (h, w) != SIZES[0] else ("met" if o_med <= TARGET_MS else "MISSED")
+                print(f"{name:<16} {params / 1e6:>7.2f}M {gflops:>7.2f} {w:>4}x{h:<3} "
+                      f"{'cpu':>6} {t_med:>7.1f} (p90 {t_p90:>5.1f}) {o_med:>7.1f} (p90 "
+                      f"{o_p90:>5.1f}) {t_med / o_med:>7.1f}x  {ok}")
+                if cuda:
+                    gnet = net.to("cuda")
+                    xg = xt.to("cuda")
+
+                    def run_gpu():
+                        with torch.inference_mode():
+                            gnet(xg)  # noqa: B023
+                        torch.cuda.synchronize()
+
+                    g_med, g_p90 = timeit(run_gpu, args.repeats)
+                    og = "-"
+                    if ort_cuda:
+                        gs = ort_session(path, "CUDAExecutionProvider", args.threads)
+                        og_med, og_p90 = timeit(lambda: gs.run(None, {"image": x}),  # noqa: B023
+                                                args.repeats)
+                        og = f"{og_med:>7.1f} (p90 {og_p90:>5.1f})"
+                    print(f"{name:<16} {'':>8} {'':>7} {w:>4}x{h:<3} {'cuda':>6} "
+                          f"{g_med:>7.1f} (p90 {g_p90:>5.1f}) {og:>16}")
+                    net = gnet.to("cpu")
+    print()
+    for h, w in SIZES:
+        belief, affinity, cub, K = ideal_maps(h, w)
+        med, p90 = timeit(lambda: decode_poses(belief, affinity, cub, K),  # noqa: B023
+                          args.repeats)
+        print(f"decode + PnP (one instance, ideal maps) at {w}x{h}: {med:.2f} ms "
+              f"(p90 {p90:.2f})")
+
+
+if __name__ == "__main__":
+    main()
