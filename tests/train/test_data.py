@@ -73,3 +73,26 @@ def test_data_module_renders_the_cache_once(tmp_path):
                                       seed=9, cache_dir=str(tmp_path / "cache")), "box", CUBOID)
     other.prepare_data()  # another seed: another fingerprint, another folder
     assert len(list((tmp_path / "cache").iterdir())) == 3
+
+
+def test_lightning_advances_the_sampler_epoch():
+    import lightning as L
+
+    from evtrack.train import TrainConfig, build_module
+
+    cfg = TrainConfig.from_dict({
+        "object": {"name": "box", "dimensions": [0.1, 0.16, 0.07]},
+        "model": {"name": "dope_lite_tiny"},
+        "data": {"train_samples": 4, "val_samples": 0, "image_size": [48, 64], "batch_size": 2},
+    })
+    module, dm = build_module(cfg)
+    seen = []
+
+    class Spy(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            seen.append(trainer.train_dataloader.sampler.epoch)
+
+    L.Trainer(max_epochs=3, accelerator="cpu", logger=False, enable_checkpointing=False,
+              enable_progress_bar=False, enable_model_summary=False, callbacks=[Spy()],
+              use_distributed_sampler=False).fit(module, dm)
+    assert seen == [0, 0, 1, 1, 2, 2]  # so each epoch's augmentation differs
