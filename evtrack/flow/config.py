@@ -1,0 +1,276 @@
+"""Configuration of the triplet-matching optical flow (:class:`FlowConfig`).
+
+Every parameter has a documented default; :meth:`FlowConfig.from_dict` and
+:meth:`FlowConfig.from_yaml` load a (partial) mapping and reject unknown or ill-typed fields
+with a :class:`~evtrack.errors.ConfigError` that names the field.
+
+The exact matching rule the parameters feed (stated once here, implemented in
+:mod:`evtrack.flow.candidates` and re-implemented independently in the tests):
+
+Burst filter first: with ``refractory_us > 0`` an event whose (pixel, polarity) had any
+event (kept or not) in the last ``refractory_us`` µs (``t - t_prev <= refractory_us``) is
+skipped: it is neither matched nor stored in the history. Then, for an event ``e_k`` with
+polarity ``p_k`` and every displacement ``d`` of the search set
+(all integer offsets with Chebyshev norm ``1..radius``, see :func:`search_offsets`), let
+``H_j`` be the last ``history`` events of polarity ``p_k`` at pixel ``x_k - d`` and ``H_i``
+those at ``x_k - 2d``, as seen just before ``e_k`` (events earlier in the stream, including
+earlier events with the same timestamp). Every pair ``e_j in H_j``, ``e_i in H_i`` with
+
+* ``t_k - t_j >= 1`` and ``t_j - t_i >= 1`` (µs; time strictly increases along the triplet),
+* ``|(t_k - t_j) - (t_j - t_i)| * 1000 <= tolerance_us * 1000 + tolerance_permille * (t_k - t_i)``
+  (constant velocity within an absolute plus a relative tolerance; integer arithmetic),
+* ``min_speed <= |x_k - x_i| / (t_k - t_i) <= max_speed`` (px/s; applied as integer bounds
+  on ``t_k - t_i`` that reproduce this float64 test exactly, see :func:`dt_bounds_us`)
+
+gives the candidate flow ``(x_k - x_i) / (t_k - t_i) = 2 d / (t_k - t_i)`` in px/s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from evtrack.errors import ConfigError
+
+__all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S"]
+
+US_PER_S = 1_000_000
+"""Microseconds per second (timestamps are µs, flows px/s)."""
+
+_MAX_DT_US = 1 << 27
+"""Largest time difference (µs, ~134 s) the integer ring buffer resolves; speed bounds must
+keep every candidate's ``t_k - t_i`` below it."""
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """Parameters of :class:`~evtrack.flow.TripletFlow`.
+
+    Attributes:
+        sensor_size: ``(width, height)`` in pixels; ``None`` takes it from the first events.
+        radius: search radius r in pixels: displacements ``d`` are all integer offsets on the
+            square rings 1..r (``(2r+1)^2 - 1`` of them), so ``e_i`` lies up to ``2r`` px away.
+        history: K, how many most recent events per pixel and polarity are kept and tried
+            as ``e_j`` / ``e_i`` (K*K pairs per displacement).
+        refractory_us: burst filter, µs: an event whose (pixel, polarity) had any event in
+            the last ``refractory_us`` is skipped (not searched, not stored). A moving edge
+            fires a burst of events per pixel; keeping only the onsets makes the history hold
+            edge arrival times, which the triplet timing test needs. 0 disables the filter.
+        tolerance_us: absolute part of the constant-velocity tolerance ξ, in µs.
+        tolerance_rel: relative part of ξ, as a fraction of ``t_k - t_i``; used at per-mille
+            resolution (``round(1000 * tolerance_rel)``).
+        min_speed: smallest plausible speed in px/s (> 0); slower candidates are dropped.
+        max_speed: largest plausible speed in px/s; faster candidates are dropped.
+        roi_size: side of the square regions of interest, in pixels (the last row/column of
+            RoIs is cut by the sensor border).
+        window_us: length of the registration time windows in µs; windows are aligned on
+            absolute time (window ``w`` covers ``[w * window_us, (w + 1) * window_us)``).
+        min_support: a RoI window is reported only when at least this many of its events
+            have a candidate.
+        max_events_per_roi: cap on the events whose candidates enter the registration cost
+            of one RoI window (the data term of Eq. 3). Above it, the events with the
+            smallest hash of their stream index are kept: deterministic, independent of
+            chunking, and without bias towards early or late events.
+        max_hypotheses: cap on the candidate flows tried as the solution F' of one RoI
+            window; above it, the candidates with the smallest hash are tried.
+        aperture_ratio: a RoI flow is flagged as normal flow when the scatter of the unit
+            vectors from the solution to the candidates has eigenvalue ratio
+            ``lambda_min / lambda_max`` below this value (the candidates lie on one line).
+        chunk_size: events handed to the batched search at once (bounds the sorting work).
+        block_size: events whose lookups are evaluated as one tensor operation; peak tensor
+            sizes are ``block_size * (number of displacements) * (history + pass_repeats)``.
+            ``None``: 16384 on CPU, 262144 on CUDA.
+        pass_repeats: L, how many events of one pixel a conflict-free pass may hold. The
+            ring buffer keeps ``history + pass_repeats`` slots per pixel and polarity; larger
+            values mean fewer sequential passes but wider lookups.
+        pair_budget: largest number of (hypothesis, candidate) distances the registration
+            evaluates at once (bounds its memory).
+        device: torch device of the history and of all computation.
+    """
+
+    sensor_size: tuple[int, int] | None = None
+    radius: int = 3
+    history: int = 2
+    refractory_us: int = 500
+    tolerance_us: int = 20
+    tolerance_rel: float = 0.1
+    min_speed: float = 20.0
+    max_speed: float = 20_000.0
+    roi_size: int = 32
+    window_us: int = 2_000
+    min_support: int = 5
+    max_events_per_roi: int = 64
+    max_hypotheses: int = 48
+    aperture_ratio: float = 0.05
+    chunk_size: int = 200_000
+    block_size: int | None = None
+    pass_repeats: int = 4
+    pair_budget: int = 4_000_000
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        def need(cond: bool, name: str, problem: str) -> None:
+            if not cond:
+                raise ConfigError(f"flow config field '{name}': {problem}")
+
+        if self.sensor_size is not None:
+            size = tuple(int(v) for v in self.sensor_size)
+            need(len(size) == 2 and min(size) > 0, "sensor_size",
+                 f"expected (width, height) > 0, got {self.sensor_size}")
+            object.__setattr__(self, "sensor_size", size)
+        for name in ("radius", "history", "roi_size", "window_us", "chunk_size",
+                     "pass_repeats", "pair_budget", "max_events_per_roi", "max_hypotheses"):
+            value = getattr(self, name)
+            need(isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= 1,
+                 name, f"expected an integer >= 1, got {value!r}")
+        need(self.block_size is None or (isinstance(self.block_size, int) and self.block_size >= 1),
+             "block_size", f"expected None or an integer >= 1, got {self.block_size!r}")
+        need(isinstance(self.refractory_us, int) and self.refractory_us >= 0, "refractory_us",
+             f"expected an integer >= 0 (µs), got {self.refractory_us!r}")
+        need(isinstance(self.tolerance_us, int) and self.tolerance_us >= 0, "tolerance_us",
+             f"expected an integer >= 0 (µs), got {self.tolerance_us!r}")
+        need(isinstance(self.min_support, int) and self.min_support >= 1, "min_support",
+             f"expected an integer >= 1, got {self.min_support!r}")
+        need(0.0 <= float(self.tolerance_rel) < 1.0, "tolerance_rel",
+             f"expected a fraction in [0, 1), got {self.tolerance_rel!r}")
+        need(float(self.min_speed) > 0.0, "min_speed", f"must be > 0 px/s, got {self.min_speed}")
+        need(float(self.max_speed) > float(self.min_speed), "max_speed",
+             f"must exceed min_speed ({self.min_speed}), got {self.max_speed}")
+        need(0.0 <= float(self.aperture_ratio) <= 1.0, "aperture_ratio",
+             f"expected a value in [0, 1], got {self.aperture_ratio}")
+        longest = 2.0 * math.hypot(self.radius, self.radius) * US_PER_S / float(self.min_speed)
+        need(longest < _MAX_DT_US, "min_speed",
+             f"{self.min_speed} px/s allows triplets spanning {longest / 1e6:.0f} s; the "
+             f"history resolves at most {_MAX_DT_US / 1e6:.0f} s")
+
+    # ------------------------------------------------------------------ derived values
+    @property
+    def tolerance_permille(self) -> int:
+        """The relative tolerance in per-mille, as used by the integer test."""
+        return int(round(1000.0 * float(self.tolerance_rel)))
+
+    @property
+    def slots(self) -> int:
+        """Ring-buffer slots per pixel and polarity: ``history + pass_repeats``."""
+        return self.history + self.pass_repeats
+
+    def resolved_block_size(self, device_type: str) -> int:
+        """:attr:`block_size`, or its device-dependent default."""
+        if self.block_size is not None:
+            return int(self.block_size)
+        return 262_144 if device_type == "cuda" else 16_384
+
+    def replace(self, **changes: Any) -> FlowConfig:
+        """A copy with some fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    # ------------------------------------------------------------------ loading
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> FlowConfig:
+        """Build from a mapping; missing fields keep their defaults, unknown ones are errors."""
+        data = dict(data or {})
+        known = {f.name for f in dataclasses.fields(cls) if f.init}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"flow config: unknown field(s) {unknown}; known: {sorted(known)}")
+        types = {"radius": int, "history": int, "tolerance_us": int, "refractory_us": int,
+                 "roi_size": int,
+                 "window_us": int, "min_support": int, "max_events_per_roi": int,
+                 "max_hypotheses": int, "chunk_size": int, "pass_repeats": int,
+                 "pair_budget": int, "tolerance_rel": float, "min_speed": float,
+                 "max_speed": float, "aperture_ratio": float}
+        for name, kind in types.items():
+            if name in data:
+                value = data[name]
+                if isinstance(value, bool) or not isinstance(value, int | float):
+                    raise ConfigError(f"flow config field '{name}': expected a number, "
+                                      f"got {value!r}")
+                if kind is int and float(value) != int(value):
+                    raise ConfigError(f"flow config field '{name}': expected an integer, "
+                                      f"got {value!r}")
+                data[name] = kind(value)
+        if data.get("sensor_size") is not None:
+            data["sensor_size"] = tuple(data["sensor_size"])
+        if "device" in data:
+            data["device"] = str(data["device"])
+        return cls(**data)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> FlowConfig:
+        """Load from a YAML file: either the fields at top level or under a ``flow:`` key."""
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"{path}: cannot read flow config ({exc})") from exc
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__}")
+        if "flow" in data and isinstance(data["flow"], dict):
+            data = data["flow"]
+        try:
+            return cls.from_dict(data)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from exc
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields as plain Python values (YAML-serialisable)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
+        if out["sensor_size"] is not None:
+            out["sensor_size"] = list(out["sensor_size"])
+        return out
+
+
+def search_offsets(radius: int) -> np.ndarray:
+    """The displacements ``d`` searched, in their canonical order.
+
+    Args:
+        radius: r >= 1.
+
+    Returns:
+        (D, 2) int64 array of ``(dx, dy)``: every integer offset with Chebyshev norm in
+        ``1..r``, ordered by ring, then ``dy``, then ``dx``. ``D = (2r+1)^2 - 1``.
+    """
+    rows = [(max(abs(dx), abs(dy)), dy, dx)
+            for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)
+            if (dx, dy) != (0, 0)]
+    rows.sort()
+    return np.array([(dx, dy) for _, dy, dx in rows], dtype=np.int64).reshape(-1, 2)
+
+
+def _speed_ok(dist_px: float, dt_us: int, lo: float, hi: float) -> bool:
+    speed = dist_px * US_PER_S / dt_us
+    return lo <= speed <= hi
+
+
+def dt_bounds_us(offsets: np.ndarray, min_speed: float, max_speed: float) -> np.ndarray:
+    """Integer bounds on ``t_k - t_i`` equivalent to the speed test of each displacement.
+
+    The speed of a candidate from displacement ``d`` is ``|2d| * 1e6 / (t_k - t_i)`` px/s,
+    evaluated in float64 as ``math.hypot(2dx, 2dy) * 1e6 / dt``. Because it decreases with
+    ``dt``, ``min_speed <= speed <= max_speed`` holds exactly for ``lo <= dt <= hi``; the
+    bounds are found from the closed form and corrected by evaluating that same test.
+
+    Returns:
+        (D, 2) int64 array ``[lo, hi]`` in µs (``lo >= 1``; ``lo > hi`` when none fits).
+    """
+    out = np.zeros((len(offsets), 2), dtype=np.int64)
+    for n, (dx, dy) in enumerate(np.asarray(offsets).tolist()):
+        dist = math.hypot(2 * dx, 2 * dy)
+        lo = max(1, math.ceil(dist * US_PER_S / max_speed) - 2)
+        while dist * US_PER_S / lo > max_speed:
+            lo += 1
+        hi = max(lo, math.floor(dist * US_PER_S / min_speed) + 2)
+        while hi > lo and not _speed_ok(dist, hi, min_speed, max_speed):
+            hi -= 1
+        if not _speed_ok(dist, lo, min_speed, max_speed):
+            lo, hi = 1, 0
+        out[n] = (lo, hi)
+    return out

@@ -1,0 +1,302 @@
+"""``TripletFlow``: event optical flow by triplet matching and RoI registration.
+
+Section III-A of the method paper, after Shiba et al. 2022: per-event triplet candidates
+(:mod:`evtrack.flow.candidates`) registered into one flow per region of interest and time
+window (:mod:`evtrack.flow.registration`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from evtrack.errors import EventsError
+from evtrack.events import Events
+from evtrack.flow.candidates import Candidates, CandidateSearch
+from evtrack.flow.config import FlowConfig
+from evtrack.flow.registration import (
+    COST_SCALE,
+    hash32,
+    register_groups,
+    select_smallest,
+)
+from evtrack.flow.result import FlowResult
+
+__all__ = ["TripletFlow"]
+
+_ORD_BITS = 20
+_INT64_MAX = torch.iinfo(torch.int64).max
+
+
+@dataclass
+class _Pending:
+    """Candidates and group tallies of RoI windows not yet complete."""
+
+    gkey: Tensor  # (M,) group key of each candidate
+    seq: Tensor  # (M,) stream index of its event
+    ordinal: Tensor  # (M,) candidate ordinal within its event
+    flow: Tensor  # (M, 2)
+    g_keys: Tensor  # (G,) groups seen
+    g_events: Tensor  # (G,) events per group
+    g_support: Tensor  # (G,) events with a candidate per group
+    ev_gkey: Tensor  # (E,) group key of each pending event (per-event mode only)
+
+
+class TripletFlow(nn.Module):
+    """Event optical flow: triplet candidates registered per RoI and time window.
+
+    Args:
+        config: a :class:`FlowConfig`; keyword arguments override its fields.
+        return_event_flow: also return a flow per event (its candidate nearest to its RoI's
+            registered flow). Candidates of open windows are then kept in full until the
+            window closes (memory grows with the events of one window).
+        **overrides: :class:`FlowConfig` fields.
+
+    Use ``flow(events)`` on a whole recording (it resets first and flushes at the end), or
+    ``update(events)`` repeatedly on consecutive batches of a stream plus a final
+    ``flush()``: the concatenated results equal one call on the concatenated events.
+
+    Example:
+        >>> from evtrack.flow.scenes import translating_texture
+        >>> ev, _ = translating_texture((64, 48), velocity=(500.0, 0.0), duration_us=40_000)
+        >>> res = TripletFlow(roi_size=32, window_us=10_000)(ev)
+        >>> res.flow.shape[1]
+        2
+    """
+
+    def __init__(self, config: FlowConfig | None = None, *, return_event_flow: bool = False,
+                 **overrides: object) -> None:
+        super().__init__()
+        config = config if config is not None else FlowConfig()
+        if overrides:
+            config = config.replace(**overrides)
+        self.config = config
+        self.return_event_flow = bool(return_event_flow)
+        self.device = torch.device(config.device)
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget the history, the pending windows and the stream position."""
+        self._sensor = self.config.sensor_size
+        self._search = (CandidateSearch(self.config, self.device)
+                        if self._sensor is not None else None)
+        self._last_t: int | None = None
+        self._emitted = 0
+        self._pending = self._empty_pending()
+
+    def to(self, device: str | torch.device) -> TripletFlow:  # type: ignore[override]
+        """Move the state to ``device`` (the history is kept)."""
+        device = torch.device(device)
+        if device == self.device:
+            return self
+        self.config = self.config.replace(device=str(device))
+        old_search = self._search
+        self.device = device
+        if old_search is not None:
+            new = CandidateSearch(self.config, device)
+            new.history.ring = old_search.history.ring.to(device)
+            new.history.head = old_search.history.head.to(device)
+            new.history.t_base = old_search.history.t_base
+            new.history.seq_base = old_search.history.seq_base
+            new.next_seq = old_search.next_seq
+            self._search = new
+        p = self._pending
+        self._pending = _Pending(*(getattr(p, f).to(device) for f in _Pending.__annotations__))
+        return self
+
+    def _empty_pending(self) -> _Pending:
+        z = torch.zeros(0, dtype=torch.int64, device=self.device)
+        return _Pending(z, z, z, torch.zeros(0, 2, device=self.device), z, z, z, z)
+
+    @property
+    def num_rois(self) -> tuple[int, int]:
+        """RoI grid size ``(columns, rows)``."""
+        if self._sensor is None:
+            raise EventsError("the sensor size is not known yet (no events seen, none set)")
+        s = self.config.roi_size
+        return math.ceil(self._sensor[0] / s), math.ceil(self._sensor[1] / s)
+
+    def roi_centres(self) -> Tensor:
+        """(num_rois, 2) float32 centres in px of every RoI (row-major), clipped RoIs too."""
+        cols, rows = self.num_rois
+        s = self.config.roi_size
+        w, h = self._sensor
+        rx = torch.arange(cols, dtype=torch.float32)
+        ry = torch.arange(rows, dtype=torch.float32)
+        cx = (rx * s + torch.clamp(rx * s + s, max=w) - 1) / 2
+        cy = (ry * s + torch.clamp(ry * s + s, max=h) - 1) / 2
+        gy, gx = torch.meshgrid(cy, cx, indexing="ij")
+        return torch.stack([gx.reshape(-1), gy.reshape(-1)], 1)
+
+    # ------------------------------------------------------------------ public calls
+    def forward(self, events: Events) -> FlowResult:
+        """Flow of a complete stream: ``reset()``, ``update(events)``, ``flush()``."""
+        self.reset()
+        first = self.update(events)
+        return FlowResult.cat([first, self.flush()])
+
+    def update(self, events: Events) -> FlowResult:
+        """Add the next events of the stream; return the RoI windows they complete.
+
+        Raises:
+            EventsError: unsorted events, events before the previous batch, events outside
+                the sensor, or bad polarity.
+        """
+        self._check(events)
+        parts = [FlowResult.empty(self.device, self._emitted, self.return_event_flow)]
+        size = self.config.chunk_size
+        for start in range(0, len(events), size):
+            parts.append(self._process(events[start:start + size]))
+        return FlowResult.cat(parts)
+
+    def flush(self) -> FlowResult:
+        """Report every pending RoI window (call at the end of the stream)."""
+        if self._search is None:
+            return FlowResult.empty(self.device, self._emitted, self.return_event_flow)
+        return self._finalise(_INT64_MAX)
+
+    # ------------------------------------------------------------------ internals
+    def _check(self, events: Events) -> None:
+        if not isinstance(events, Events):
+            raise EventsError(f"TripletFlow expects an Events container, got "
+                              f"{type(events).__name__}")
+        size = events.sensor_size
+        if self._sensor is None:
+            if size is None:
+                raise EventsError("the sensor size is unknown: set FlowConfig.sensor_size or "
+                                  "give events with sensor_size")
+            self._sensor = tuple(size)
+            self.config = self.config.replace(sensor_size=self._sensor)
+            self._search = CandidateSearch(self.config, self.device)
+        elif size is not None and tuple(size) != tuple(self._sensor):
+            raise EventsError(f"events of sensor size {tuple(size)} given to a flow set up "
+                              f"for {tuple(self._sensor)}")
+        if not len(events):
+            return
+        report = Events(events.x, events.y, events.t, events.p, self._sensor).validate()
+        if not report.ok:
+            raise EventsError(f"flow input: {report}")
+        if self._last_t is not None and events.t_start < self._last_t:
+            raise EventsError(f"flow input: events start at t={events.t_start} µs, before the "
+                              f"last event of the previous batch (t={self._last_t} µs)")
+        self._last_t = events.t_end
+
+    def _group_keys(self, x: Tensor, y: Tensor, t: Tensor) -> Tensor:
+        cols, rows = self.num_rois
+        s = self.config.roi_size
+        window = torch.div(t, self.config.window_us, rounding_mode="floor")
+        roi = torch.div(y, s, rounding_mode="floor") * cols + torch.div(x, s,
+                                                                       rounding_mode="floor")
+        return window * (cols * rows) + roi
+
+    def _process(self, ev: Events) -> FlowResult:
+        dev = self.device
+        x = ev.x.to(dev, torch.int64)
+        y = ev.y.to(dev, torch.int64)
+        t = ev.t.to(dev, torch.int64)
+        seq0 = self._search.next_seq
+        cands = self._search(x, y, t, ev.p.to(dev))
+        gkey = self._group_keys(x, y, t)
+        self._add_pending(gkey, cands, seq0)
+        cols, rows = self.num_rois
+        w_open = int(torch.div(t[-1], self.config.window_us, rounding_mode="floor"))
+        return self._finalise(w_open * cols * rows)
+
+    def _add_pending(self, gkey: Tensor, cands: Candidates, seq0: int) -> None:
+        p = self._pending
+        k = self.config.history
+        c_g = gkey[cands.event - seq0]
+        ordinal = (cands.offset * k + cands.age_j) * k + cands.age_i
+        first_of_event = torch.ones(len(cands), dtype=torch.bool, device=self.device)
+        if len(cands) > 1:
+            first_of_event[1:] = cands.event[1:] != cands.event[:-1]
+        g_all = torch.cat([p.g_keys, gkey, c_g[first_of_event]])
+        ones_ev = torch.ones_like(gkey)
+        ones_sup = torch.ones_like(c_g[first_of_event])
+        n_ev = torch.cat([p.g_events, ones_ev, torch.zeros_like(ones_sup)])
+        n_sup = torch.cat([p.g_support, torch.zeros_like(ones_ev), ones_sup])
+        keys, inv = torch.unique(g_all, return_inverse=True)
+        g_events = torch.zeros_like(keys).index_add_(0, inv, n_ev)
+        g_support = torch.zeros_like(keys).index_add_(0, inv, n_sup)
+        self._pending = _Pending(
+            gkey=torch.cat([p.gkey, c_g]), seq=torch.cat([p.seq, cands.event]),
+            ordinal=torch.cat([p.ordinal, ordinal]), flow=torch.cat([p.flow, cands.flow]),
+            g_keys=keys, g_events=g_events, g_support=g_support,
+            ev_gkey=torch.cat([p.ev_gkey, gkey]) if self.return_event_flow else p.ev_gkey)
+
+    def _finalise(self, open_key: int) -> FlowResult:
+        """Register the pending groups with key < ``open_key`` and keep the rest pending."""
+        cfg = self.config
+        p = self._pending
+        done_g = p.g_keys < open_key
+        done_c = p.gkey < open_key
+        keys = p.g_keys[done_g]
+        n_done_events = int((p.ev_gkey < open_key).sum()) if self.return_event_flow else 0
+        c_local = torch.searchsorted(keys, p.gkey[done_c])
+        reg = register_groups(c_local, p.seq[done_c], p.ordinal[done_c], p.flow[done_c],
+                              keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
+                              cfg.aperture_ratio, cfg.pair_budget)
+        support = p.g_support[done_g]
+        reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0])
+        result = self._rows(keys, reported, reg, support, p.g_events[done_g])
+        if self.return_event_flow:
+            result.event_flow = self._event_flows(
+                c_local, p.seq[done_c], p.ordinal[done_c], p.flow[done_c],
+                torch.where(reported[:, None], reg.full_flow, torch.nan), n_done_events)
+        result.event_start = self._emitted
+        self._emitted += n_done_events
+        keep_c = ~done_c
+        g, s = p.gkey[keep_c], p.seq[keep_c]
+        if not self.return_event_flow and g.numel():
+            # prune the open windows to the events the registration can ever use
+            first = torch.ones_like(s, dtype=torch.bool)
+            first[1:] = s[1:] != s[:-1]
+            run = torch.cumsum(first.to(torch.int64), 0) - 1
+            run_keep = select_smallest(g[first], hash32(s[first]), cfg.max_events_per_roi)
+            keep_idx = torch.nonzero(keep_c).reshape(-1)[run_keep[run]]
+        else:
+            keep_idx = torch.nonzero(keep_c).reshape(-1)
+        self._pending = _Pending(
+            gkey=p.gkey[keep_idx], seq=p.seq[keep_idx], ordinal=p.ordinal[keep_idx],
+            flow=p.flow[keep_idx], g_keys=p.g_keys[~done_g], g_events=p.g_events[~done_g],
+            g_support=p.g_support[~done_g], ev_gkey=p.ev_gkey[n_done_events:])
+        return result
+
+    def _rows(self, keys: Tensor, reported: Tensor, reg, support: Tensor,
+              n_events: Tensor) -> FlowResult:
+        cols, rows = self.num_rois
+        n_roi = cols * rows
+        k = keys[reported]
+        window = torch.div(k, n_roi, rounding_mode="floor")
+        roi = k - window * n_roi
+        centres = self.roi_centres().to(self.device)
+        w_us = self.config.window_us
+        return FlowResult(
+            xy=centres[roi], t=window * w_us + w_us // 2, flow=reg.flow[reported],
+            support=support[reported], cost=reg.cost[reported], normal=reg.normal[reported],
+            normal_dir=reg.normal_dir[reported], full_flow=reg.full_flow[reported],
+            n_events=n_events[reported], roi=roi, window=window)
+
+    def _event_flows(self, c_local: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor,
+                     group_flow: Tensor, n_events: int) -> Tensor:
+        out = torch.full((n_events, 2), float("nan"), dtype=torch.float32, device=self.device)
+        if seq.numel() == 0:
+            return out
+        target = group_flow[c_local]
+        valid = ~torch.isnan(target[:, 0])
+        dist = (flow - target).norm(dim=1)
+        q = torch.round(torch.nan_to_num(dist, nan=0.0).to(torch.float64) * COST_SCALE)
+        combo = (q.to(torch.int64) << _ORD_BITS) | ordinal
+        slot = seq - self._emitted
+        best = torch.full((n_events,), _INT64_MAX, dtype=torch.int64, device=self.device)
+        best.scatter_reduce_(0, slot[valid], combo[valid], "amin")
+        chosen = valid & (combo == best[slot])
+        out[slot[chosen]] = flow[chosen]
+        return out
+
+    def extra_repr(self) -> str:
+        return str(self.config)
