@@ -40,7 +40,7 @@ from evtrack.sim.frames import (
 from evtrack.sim.groundtruth import event_flow, pixel_speeds, speed_percentiles
 from evtrack.sim.objects import ObjectMesh
 from evtrack.sim.renderer import Renderer
-from evtrack.sim.scene import build_scene
+from evtrack.sim.scene import Scene, build_scene
 from evtrack.sim.trajectory import Trajectory, random_trajectory
 
 __all__ = [
@@ -49,6 +49,8 @@ __all__ = [
     "render_times_us",
     "MESH_FILE",
     "preset_config",
+    "sequence_scene",
+    "sequence_trajectory",
 ]
 
 MESH_FILE = "object.glb"
@@ -117,6 +119,19 @@ def _seeds(seed: int) -> dict[str, np.random.SeedSequence]:
     return dict(zip(names, np.random.SeedSequence(int(seed)).spawn(len(names)), strict=True))
 
 
+def sequence_scene(config: SimConfig) -> Scene:
+    """The static scene :func:`simulate` uses for ``config`` (drawn from its seed)."""
+    seeds = _seeds(config.seed)
+    return build_scene(config.scene, config.camera.camera(), np.random.default_rng(seeds["scene"]))
+
+
+def sequence_trajectory(config: SimConfig, obj: ObjectMesh) -> Trajectory:
+    """The random trajectory :func:`simulate` uses for ``config`` and ``obj``."""
+    seeds = _seeds(config.seed)
+    return random_trajectory(config.duration, config.camera.camera(), obj.radius,
+                             config.trajectory, seed=seeds["trajectory"])
+
+
 def simulate(
     obj: ObjectMesh,
     config: SimConfig,
@@ -151,9 +166,8 @@ def simulate(
     seeds = _seeds(config.seed)
     duration_us = int(round(config.duration * 1e6))
     if trajectory is None:
-        trajectory = random_trajectory(config.duration, cam, obj.radius, config.trajectory,
-                                       seed=seeds["trajectory"])
-    scene = build_scene(config.scene, cam, np.random.default_rng(seeds["scene"]))
+        trajectory = sequence_trajectory(config, obj)
+    scene = sequence_scene(config)
     base_times = render_times_us(config.duration, config.render.render_hz)
     windows = exposure_windows(base_times, config.frames.rgb_hz, config.frames.exposure,
                                duration_us)

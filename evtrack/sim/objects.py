@@ -365,7 +365,9 @@ def make_bottle(height: float = 0.19, semi_axes: tuple[float, float] = (0.048, 0
     arc = np.concatenate([[0.0], np.cumsum(seg_len)]) / seg_len.sum()
     tex_h, tex_w = _TEXTURE_SIZE, 2 * _TEXTURE_SIZE
     img = np.empty((tex_h, tex_w, 3), np.uint8)
-    img[:] = textures.random_color(rng)
+    body_color = textures.random_color(rng)
+    img[:] = body_color
+    textures.hatch(img, body_color)
     rows = ((1.0 - arc) * (tex_h - 1)).astype(int)  # v = arc, image row 0 is v = 1
     body0, body1 = rows[4], rows[3]  # the label spans the straight body
     img[body0:body1 + 1] = cv2.resize(textures.label_band(rng, tex_w, max(body1 - body0 + 1, 8)),

@@ -17,6 +17,7 @@ __all__ = [
     "label_band",
     "background_texture",
     "checker_texture",
+    "hatch",
 ]
 
 _LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789"
@@ -36,6 +37,18 @@ def random_color(rng: np.random.Generator, saturated: bool = True) -> tuple[int,
 def _contrasting(color: tuple[int, int, int]) -> tuple[int, int, int]:
     lum = 0.299 * color[0] + 0.587 * color[1] + 0.114 * color[2]
     return (245, 245, 240) if lum < 128 else (20, 20, 25)
+
+
+def hatch(img: np.ndarray, base: tuple[int, int, int], spacing: int | None = None) -> None:
+    """Draw a fine diagonal hatching in a darker shade of ``base`` over ``img`` (in place).
+
+    Printed packaging is rarely flat; the hatching gives every area edges, hence events.
+    """
+    h, w = img.shape[:2]
+    shade = tuple(int(v) for v in np.clip(np.array(base) * 0.7, 0, 255))
+    spacing = spacing or max(6, w // 90)
+    for k in range(-h, w + h, spacing):
+        cv2.line(img, (k, 0), (k + h, h), shade, max(1, spacing // 3), cv2.LINE_AA)
 
 
 def _word(rng: np.random.Generator, lo: int, hi: int) -> str:
@@ -73,6 +86,7 @@ def printed_panel(rng: np.random.Generator, width: int, height: int,
     accent = random_color(rng)
     img = np.empty((height, width, 3), np.uint8)
     img[:] = base
+    hatch(img, base)
     # diagonal or horizontal stripes
     for _ in range(int(rng.integers(2, 5))):
         y = int(rng.integers(0, height))
@@ -119,10 +133,13 @@ def label_band(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
     base = random_color(rng)
     img = np.empty((height, width, 3), np.uint8)
     img[:] = base
+    hatch(img, base)
     # horizontal bands at top and bottom
     for frac0, frac1 in ((0.0, rng.uniform(0.08, 0.18)), (rng.uniform(0.82, 0.92), 1.0)):
-        cv2.rectangle(img, (0, int(frac0 * height)), (width, int(frac1 * height)),
-                      random_color(rng), -1)
+        band = img[int(frac0 * height):int(frac1 * height)]
+        color = random_color(rng)
+        band[:] = color
+        hatch(band, color, spacing=max(6, width // 60))
     # brand word repeated around
     repeats = int(rng.integers(2, 4))
     cell = width // repeats

@@ -240,7 +240,8 @@ def _next_waypoint(rng, prev_p, prev_r, camera, radius, cfg):
 
 
 def random_trajectory(duration: float, camera: PinholeCamera, object_radius: float,
-                      config: TrajectoryConfig | None = None, seed: int = 0) -> Trajectory:
+                      config: TrajectoryConfig | None = None,
+                      seed: int | np.random.SeedSequence = 0) -> Trajectory:
     """A random smooth trajectory covering ``[0, duration]`` seconds.
 
     The object's centre stays at ``z`` in ``config.z_range`` and projects inside the image

@@ -1,0 +1,58 @@
+"""``evtrack simulate`` and ``evtrack simulate-benchmark`` on tiny overrides."""
+
+from __future__ import annotations
+
+import yaml
+
+from evtrack import Sequence
+from evtrack.cli import main
+
+
+def test_simulate_command(tmp_path, capsys) -> None:
+    out = tmp_path / "seq"
+    args = ["simulate", "--object", "bottle", "--speed", "faster", "--duration", "0.04",
+            "--seed", "2", "--width", "64", "--height", "48", "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "events" in printed and "median" in printed
+    seq = Sequence.load(out)
+    assert seq.meta.event_camera.size == (64, 48) and seq.num_rgb == 2
+    assert seq.meta.extra["config"]["trajectory"]["preset"] == "faster"
+    assert seq.meta.extra["seed"] == 2
+    # the folder exists now: refused without --overwrite, with a clean message
+    assert main(args) == 1
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(args + ["--overwrite"]) == 0
+
+
+def test_simulate_errors(tmp_path, capsys) -> None:
+    base = ["simulate", "--duration", "0.02", "--width", "32", "--out", str(tmp_path / "x")]
+    assert main(base + ["--object", "teapot"]) == 1
+    assert "unknown object 'teapot'" in capsys.readouterr().err
+    assert main(base + ["--object", str(tmp_path / "missing.glb")]) == 1
+    assert "mesh file not found" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("events:\n  threshold_on: -1\n")
+    assert main(base + ["--object", "can", "--config", str(bad)]) == 1
+    assert "threshold_on must be positive" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_simulate_benchmark_command(tmp_path, ycb_dir, capsys) -> None:
+    out = tmp_path / "bench"
+    args = ["simulate-benchmark", "--out", str(out), "--duration", "0.03", "--width", "64",
+            "--height", "48", "--objects", "005_tomato_soup_can", "--ycb-dir", str(ycb_dir),
+            "--quiet"]
+    assert main(args) == 0
+    names = sorted(p.name for p in out.iterdir() if p.is_dir())
+    assert names == ["005_tomato_soup_can_faster", "005_tomato_soup_can_regular"]
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    rows = summary["sequences"]
+    assert rows["005_tomato_soup_can_regular"]["seed"] != rows["005_tomato_soup_can_faster"]["seed"]
+    assert set(summary["pixel_speed_px_s"]) == {"regular", "faster"}
+    assert (out / "velocity_cdf.png").read_bytes()[:4] == b"\x89PNG"
+    seq = Sequence.load(out / "005_tomato_soup_can_faster")
+    assert seq.meta.object_name == "005_tomato_soup_can" and len(seq.events) > 0
+    assert "005_tomato_soup_can_regular" in capsys.readouterr().out
+    assert main(args) == 1  # exists
+    assert main(["simulate-benchmark", "--out", str(out), "--objects", "teapot"]) == 1

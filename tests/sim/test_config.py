@@ -1,0 +1,63 @@
+"""Simulation configs: defaults, YAML files, and errors that name the field."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from evtrack.errors import ConfigError
+from evtrack.sim.config import SimConfig, TrajectoryConfig, load_config
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+@pytest.mark.parametrize("name", ["sim_regular.yaml", "sim_faster.yaml", "sim_training.yaml"])
+def test_shipped_configs_load(name: str) -> None:
+    cfg = load_config(CONFIGS / name)
+    assert cfg.camera.width == 640 and cfg.render.render_hz == 500.0
+    assert SimConfig.from_dict(cfg.to_dict()) == cfg
+
+
+def test_presets() -> None:
+    assert load_config(CONFIGS / "sim_faster.yaml").trajectory.preset == "faster"
+    reg, fast = TrajectoryConfig(preset="regular"), TrajectoryConfig(preset="faster")
+    assert fast.linear_speed > reg.linear_speed and fast.angular_speed > reg.angular_speed
+    assert TrajectoryConfig(preset="faster", linear_speed=0.1).linear_speed == 0.1
+
+
+def test_defaults_and_camera() -> None:
+    cfg = SimConfig()
+    cam = cfg.camera.camera()
+    assert (cam.cx, cam.cy) == (319.5, 239.5) and cam.size == (640, 480)
+    small = cfg.camera.resized(64, 48).camera()
+    assert small.fx == pytest.approx(61.5) and (small.cx, small.cy) == (31.5, 23.5)
+
+
+@pytest.mark.parametrize("data, match", [
+    ({"durration": 1.0}, r"unknown field\(s\) \['durration'\]"),
+    ({"events": {"threshold_on": "high"}}, r"events.threshold_on: expected a number"),
+    ({"events": {"threshold_on": -0.1}}, r"events.threshold_on must be positive"),
+    ({"trajectory": {"preset": "slow"}}, r"trajectory.preset must be one of"),
+    ({"scene": {"light_direction": [1, 2]}}, r"scene.light_direction: expected a list of 3"),
+    ({"render": {"adaptive": "yes"}}, r"render.adaptive: expected true/false"),
+    ({"camera": 5}, r"camera: expected a mapping"),
+    ({"duration": 0}, r"duration must be positive"),
+    ({"render": {"render_hz": 30.0}}, r"render_hz .* must be at least frames.rgb_hz"),
+])
+def test_errors_name_the_field(data, match) -> None:
+    with pytest.raises(ConfigError, match=match):
+        SimConfig.from_dict(data, source="x.yaml")
+
+
+def test_load_errors(tmp_path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "none.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("duration: [1,\n")
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_config(bad)
+    ok = tmp_path / "ok.yaml"
+    ok.write_text("duration: 0.5\ntrajectory:\n  preset: faster\n")
+    cfg = load_config(ok)
+    assert cfg.duration == 0.5 and cfg.trajectory.linear_speed == 0.8
