@@ -8,6 +8,7 @@ implements :meth:`PoseEstimator.run_network` on a normalised float32 batch.
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -66,7 +67,7 @@ def _check_rgb(rgb: object) -> np.ndarray:
     return rgb
 
 
-class PoseEstimator:
+class PoseEstimator(abc.ABC):
     """Base class: image -> list of :class:`PoseDetection`, most confident first.
 
     Args:
@@ -105,9 +106,9 @@ class PoseEstimator:
         self.input_scale = float(input_scale)
 
     # ------------------------------------------------------------------ backend
+    @abc.abstractmethod
     def run_network(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, 3, H, W) float32 -> belief (B, 9, H/8, W/8), affinity (B, 16, H/8, W/8)."""
-        raise NotImplementedError(f"{type(self).__name__} must implement run_network")
 
     # ------------------------------------------------------------------ shared pipeline
     def _intrinsics(

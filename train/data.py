@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import lightning as L
 import numpy as np
@@ -23,6 +23,9 @@ from evtrack.train.augment import AugmentConfig, Compose
 from evtrack.train.samples import SampleSource, SourceSpec, build_source
 from evtrack.train.shards import INDEX_NAME, ShardSource, fingerprint, write_shards
 from evtrack.train.targets import TargetConfig, make_targets
+
+if TYPE_CHECKING:
+    from evtrack.train.config import DataConfig
 
 __all__ = ["PoseDataset", "EpochSampler", "PoseDataModule"]
 
@@ -131,7 +134,7 @@ class PoseDataModule(L.LightningDataModule):
 
     def __init__(
         self,
-        config: Any,
+        config: DataConfig,
         object_name: str,
         cuboid: Cuboid,
         mesh: str | None = None,
