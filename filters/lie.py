@@ -16,6 +16,7 @@ onnxruntime does not implement in float64. These kernels are pinned to kornia in
 from __future__ import annotations
 
 import torch
+from evtrack.filters.linalg import use_portable
 from torch import Tensor
 
 __all__ = [
@@ -32,15 +33,16 @@ __all__ = [
 
 # |v|/|q| below which log uses its series 2/w (error ~|v|^2/3, below float64 resolution).
 _LOG_SMALL = 1e-8
-# θ² below which the SE(3) left-Jacobian coefficients use their series (truncation < 1e-14).
-_SE3_SERIES_SQ = 1e-2
+# θ below which exp uses its limits (θ³ must not underflow; sin(θ/2)/θ = 1/2 to the last bit).
+_TINY_ANGLE = 1e-20
 
 
 def atan2_precise(y: Tensor, x: Tensor) -> Tensor:
     """``atan2(y, x)`` for ``y >= 0, x >= 0``, at full precision in float64 too.
 
-    onnxruntime has no float64 ``Atan``; so in float64 the angle is taken in float32 and refined
-    by one Newton step with float64 ``sin``/``cos`` (error ~c³/6 for a float32 error c ~ 1e-7).
+    onnxruntime has no float64 ``Atan``; so while exporting, a float64 angle is taken in float32
+    and refined by one Newton step with float64 ``sin``/``cos`` (error ~c³/6 for a float32
+    error c ~ 1e-7). In eager mode this is ``torch.atan2``.
 
     Args:
         y, x: (*) non-negative (the first quadrant, as in :func:`quat_log`).
@@ -48,7 +50,7 @@ def atan2_precise(y: Tensor, x: Tensor) -> Tensor:
     Returns:
         (*) radians in ``[0, π/2]``.
     """
-    if y.dtype != torch.float64:
+    if y.dtype != torch.float64 or not use_portable():
         return torch.atan2(y, x)
     a = torch.atan2(y.float(), x.float()).to(y.dtype)
     r = torch.sqrt(x * x + y * y).clamp_min(torch.finfo(y.dtype).tiny)
@@ -84,13 +86,18 @@ def quat_rotate(q: Tensor, p: Tensor) -> Tensor:
 
 def quat_exp(phi: Tensor) -> Tensor:
     """Rotation vector (*,3) rad -> unit quaternion (*,4) wxyz."""
-    theta_sq = (phi * phi).sum(-1, keepdim=True)
-    nonzero = theta_sq > 0
-    theta = torch.sqrt(torch.where(nonzero, theta_sq, torch.ones_like(theta_sq)))
+    return _exp_parts(phi)[0]
+
+
+def _exp_parts(phi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``exp(φ)`` and the pieces :func:`se3_exp` reuses: ``θ``, ``sin(θ/2)/θ``, ``θ`` made safe
+    to divide by, even cubed (1 below ``_TINY_ANGLE``, where ``sin(θ/2)/θ`` is 1/2 exactly)."""
+    theta = torch.sqrt((phi * phi).sum(-1, keepdim=True))
     half = 0.5 * theta
-    k = torch.where(nonzero, torch.sin(half) / theta, torch.full_like(theta, 0.5))
-    w = torch.where(nonzero, torch.cos(half), torch.ones_like(theta))
-    return torch.cat([w, k * phi], dim=-1)
+    nonzero = theta > _TINY_ANGLE
+    theta_safe = torch.where(nonzero, theta, 1.0)
+    k = torch.where(nonzero, torch.sin(half) / theta_safe, 0.5)  # sin(θ/2)/θ, 1/2 at θ = 0
+    return torch.cat([torch.cos(half), k * phi], dim=-1), theta, k, theta_safe
 
 
 def quat_log(q: Tensor) -> Tensor:
@@ -115,23 +122,16 @@ def se3_exp(xi: Tensor) -> tuple[Tensor, Tensor]:
 
     Returns:
         ``q_Δ`` (*,4) and ``p_Δ`` (*,3) with ``P' = R(q_Δ) P + p_Δ`` the exact solution of
-        ``Ṗ = v_o + ω × P`` after ``dt``; ``p_Δ = V(φ) ρ`` with the SO(3) left Jacobian ``V``.
+        ``Ṗ = v_o + ω × P`` after ``dt``; ``p_Δ = V(φ) ρ`` with the SO(3) left Jacobian
+        ``V = I + a [φ]× + b [φ]×²``, ``a = (1 − cos θ)/θ² = 2 (sin(θ/2)/θ)²`` and
+        ``b = (θ − sin θ)/θ³``. ``b`` loses relative precision as ``θ → 0`` but multiplies a
+        term of size ``θ² |ρ|``, so ``p_Δ`` keeps full precision (``b`` is unused below
+        ``_TINY_ANGLE``).
     """
     rho, phi = xi[..., :3], xi[..., 3:]
-    q = quat_exp(phi)
-    th2 = (phi * phi).sum(-1, keepdim=True)
-    series = th2 < _SE3_SERIES_SQ
-    th2_safe = torch.where(series, torch.ones_like(th2), th2)
-    th = torch.sqrt(th2_safe)
-    a_closed = (1.0 - torch.cos(th)) / th2_safe
-    b_closed = (th - torch.sin(th)) / (th2_safe * th)
-    # Taylor series of (1 - cos θ)/θ² and (θ - sin θ)/θ³ through θ⁶, in nested form whose
-    # constants are exact in float32 (exported graphs store Python floats as float32):
-    # 1/2 - θ²/24 + θ⁴/720 - θ⁶/40320  and  (1 - θ²/20 + θ⁴/840 - θ⁶/60480) / 6.
-    a_series = 0.5 - th2 / 24.0 * (1.0 - th2 / 30.0 * (1.0 - th2 / 56.0))
-    b_series = (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))) / 6.0
-    a = torch.where(series, a_series, a_closed)
-    b = torch.where(series, b_series, b_closed)
+    q, theta, k, theta_safe = _exp_parts(phi)
+    a = 2.0 * k * k
+    b = (theta - torch.sin(theta)) / (theta_safe * theta_safe * theta_safe)
     c1 = torch.linalg.cross(phi, rho, dim=-1)
     c2 = torch.linalg.cross(phi, c1, dim=-1)
     return q, rho + a * c1 + b * c2

@@ -35,8 +35,13 @@ def portable_linalg(enabled: bool = True) -> Iterator[None]:
 
 
 def use_portable() -> bool:
-    """True while exporting (ONNX or ``torch.export``) or inside :func:`portable_linalg`."""
-    return _FORCE_PORTABLE[0] or torch.onnx.is_in_onnx_export() or torch.compiler.is_exporting()
+    """True while exporting or tracing (``torch.onnx.export`` with either exporter,
+    ``torch.export``, ``torch.jit.trace``) or inside :func:`portable_linalg`."""
+    return (
+        _FORCE_PORTABLE[0]
+        or torch.compiler.is_exporting()
+        or torch._C._get_tracing_state() is not None
+    )
 
 
 def symmetrize(A: Tensor) -> Tensor:

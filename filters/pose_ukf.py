@@ -28,6 +28,7 @@ import math
 from typing import Any
 
 import torch
+from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig
 from evtrack.filters.lie import pose_boxminus, pose_boxplus, quat_mul, quat_rotate, se3_exp
 from evtrack.filters.linalg import spd_inverse, symmetrize
@@ -37,7 +38,7 @@ from torch import Tensor, nn
 __all__ = ["PoseUKF", "PoseTwistUKF"]
 
 
-class _PoseFilter(nn.Module):
+class _PoseFilter(CompilableSteps, nn.Module):
     """Shared state, reset, pose update and gating of the pose UKFs (tangent size ``n``)."""
 
     t: Tensor
@@ -163,7 +164,7 @@ class _PoseFilter(nn.Module):
         valid = _checked(valid, (B,), "valid", {"device": kw["device"]}, copy=False)
         t, q, extra, P = self._state()
         t, q, extra, P, self.initialized, self.rejected_run, used, rejected, reinit = (
-            self.update_pose_state(
+            self.step_function("update_pose_state")(
                 t, q, extra, P, self.initialized, self.rejected_run, t_meas, q_meas, R, valid
             )
         )
@@ -196,17 +197,12 @@ class _PoseFilter(nn.Module):
             the last three (B,) int64 flags of this update.
         """
         cfg = self.config
-        ok = (
-            valid
-            & torch.isfinite(t_meas).all(-1)
-            & torch.isfinite(q_meas).all(-1)
-            & torch.isfinite(cov_meas).flatten(1).all(-1)
-        )
-        t_meas = torch.where(ok.unsqueeze(-1), t_meas, t)
-        q_meas = torch.where(ok.unsqueeze(-1), q_meas, q)
+        # A pose is missing where not valid or not finite; nothing below selects from its
+        # (possibly NaN) values then, so they need no masking.
+        finite = torch.isfinite(t_meas.sum(-1) + q_meas.sum(-1) + cov_meas.sum((-2, -1)))
+        ok = valid & finite
         q_meas = q_meas / torch.linalg.vector_norm(q_meas, dim=-1, keepdim=True)
-        R = torch.where(ok[:, None, None], cov_meas, self.meas_cov)
-
+        R = cov_meas
         if cfg.sigma_points:
             offs = sigma_offsets(cov, self.gamma)  # (B,S,n)
             ts, qs = pose_boxplus(t.unsqueeze(1), q.unsqueeze(1), offs[..., :6])
@@ -218,36 +214,32 @@ class _PoseFilter(nn.Module):
         else:
             # h(x) = pose: symmetric sigma points give z̄ = x̄ and Zᵢ ⊟ z̄ = offsets, hence:
             zt, zq = t, q
-            S = cov[:, :6, :6] + R
-            Pxz = cov[:, :, :6]
+            Pxz = cov if self.n == 6 else cov[:, :, :6]
+            S = (cov if self.n == 6 else cov[:, :6, :6]) + R
         S_inv = spd_inverse(S)
-        nu = pose_boxminus(t_meas, q_meas, zt, zq).unsqueeze(-1)  # (B,6,1)
+        nu = pose_boxminus(t_meas, q_meas, zt, zq)  # (B,6)
+        S_inv_nu = S_inv @ nu.unsqueeze(-1)
+        d2 = (nu.unsqueeze(-2) @ S_inv_nu).reshape(-1)  # νᵀ S⁻¹ ν
+        delta = (Pxz @ S_inv_nu).squeeze(-1)  # K ν with K = Pxz S⁻¹
         K = Pxz @ S_inv
-        d2 = (nu.transpose(-1, -2) @ (S_inv @ nu)).reshape(-1)
-        delta = (K @ nu).squeeze(-1)
-        t_up, q_up = pose_boxplus(t, q, delta[:, :6])
-        extra_up = extra + delta[:, 6:]
         cov_up = symmetrize(cov - K @ Pxz.transpose(-1, -2))  # P − K S Kᵀ
+        t_up, q_up = pose_boxplus(t, q, delta if self.n == 6 else delta[:, :6])
+        extra_up = extra + delta[:, 6:]
 
         fresh = ~initialized
         accept = ok & (fresh | (d2 <= self.gate))
         reject = ok & ~accept
-        reinit = reject & (rejected_run + 1 >= cfg.reinit_after)
+        reinit = reject & (rejected_run >= cfg.reinit_after - 1)
         take = ok & fresh | reinit
         fuse = accept & ~fresh
-        cov_take = _reinit_cov(cov, R)
-        t_new = torch.where(take.unsqueeze(-1), t_meas, torch.where(fuse.unsqueeze(-1), t_up, t))
-        q_new = torch.where(take.unsqueeze(-1), q_meas, torch.where(fuse.unsqueeze(-1), q_up, q))
+        take1, fuse1 = take.unsqueeze(-1), fuse.unsqueeze(-1)
+        take2, fuse2 = take1.unsqueeze(-1), fuse1.unsqueeze(-1)
+        t_new = torch.where(take1, t_meas, torch.where(fuse1, t_up, t))
+        q_new = torch.where(take1, q_meas, torch.where(fuse1, q_up, q))
         q_new = q_new / torch.linalg.vector_norm(q_new, dim=-1, keepdim=True)
-        extra_new = torch.where(fuse.unsqueeze(-1), extra_up, extra)
-        cov_new = torch.where(
-            take[:, None, None], cov_take, torch.where(fuse[:, None, None], cov_up, cov)
-        )
-        run = torch.where(
-            reject & ~reinit,
-            rejected_run + 1,
-            torch.where(ok, torch.zeros_like(rejected_run), rejected_run),
-        )
+        extra_new = torch.where(fuse1, extra_up, extra)
+        cov_new = torch.where(take2, _reinit_cov(cov, R), torch.where(fuse2, cov_up, cov))
+        run = torch.where(reject & ~reinit, rejected_run + 1, torch.where(ok, 0, rejected_run))
         used = fuse | take
         return (
             t_new,
@@ -323,6 +315,8 @@ class PoseUKF(_PoseFilter):
         [[0.05, 0.0, 1.0]]
     """
 
+    _STEP_NAMES = ("predict_state", "update_pose_state", "step")
+
     def __init__(
         self,
         batch_size: int = 1,
@@ -360,7 +354,9 @@ class PoseUKF(_PoseFilter):
             {"dtype": self.t.dtype, "device": self.t.device},
             copy=False,
         )
-        self.t, self.q, self.cov = self.predict_state(self.t, self.q, self.cov, twist, self._dt(dt))
+        self.t, self.q, self.cov = self.step_function("predict_state")(
+            self.t, self.q, self.cov, twist, self._dt(dt)
+        )
         return self.t, self.q
 
     def predict_state(
@@ -373,12 +369,14 @@ class PoseUKF(_PoseFilter):
         # Every sigma point moves by the same rigid motion, which acts on the tangent linearly:
         # δt' = R_Δ δt, δθ' = R_Δ δθ. The unscented transform is exact: P' = A P Aᵀ + Q dt.
         qd, pd = se3_exp(twist * dt.unsqueeze(-1))
-        t = quat_rotate(qd, t) + pd
+        # One rotation gives R_Δ t and R_Δ's columns R_Δ eᵢ (the rows of R_Δᵀ).
+        points = torch.cat([self.eye3.expand(t.shape[0], 3, 3), t.unsqueeze(1)], dim=1)
+        moved = quat_rotate(qd.unsqueeze(1), points)
+        t = moved[:, 3] + pd
         q = quat_mul(qd, q)
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-        Rd = quat_rotate(qd.unsqueeze(1), self.eye3).transpose(-1, -2)  # columns R e_i
-        A = (self.eye2_blocks * Rd[:, None, :, None, :]).reshape(-1, 6, 6)  # diag(R_Δ, R_Δ)
-        cov = symmetrize(A @ cov @ A.transpose(-1, -2)) + dt[:, None, None] * self.q_matrix
+        At = (self.eye2_blocks * moved[:, None, :3, None, :]).reshape(-1, 6, 6)  # diag(R_Δ, R_Δ)ᵀ
+        cov = symmetrize(At.transpose(-1, -2) @ cov @ At) + dt[:, None, None] * self.q_matrix
         return t, q, cov
 
     def forward(
@@ -440,6 +438,8 @@ class PoseTwistUKF(_PoseFilter):
     Buffers: those of :class:`PoseUKF` plus ``twist`` (B,6); ``cov`` is (B,12,12).
     """
 
+    _STEP_NAMES = ("predict_state", "update_pose_state", "update_twist_state", "step")
+
     twist: Tensor
     decay_rate: Tensor
     twist_meas_cov: Tensor
@@ -494,7 +494,7 @@ class PoseTwistUKF(_PoseFilter):
 
     def predict(self, dt: float | Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Constant-velocity predict over ``dt`` s; returns ``(t, q, twist)``."""
-        self.t, self.q, self.twist, self.cov = self.predict_state(
+        self.t, self.q, self.twist, self.cov = self.step_function("predict_state")(
             self.t, self.q, self.twist, self.cov, self._dt(dt)
         )
         return self.t, self.q, self.twist
@@ -521,7 +521,7 @@ class PoseTwistUKF(_PoseFilter):
         if valid is None:
             valid = torch.ones(B, dtype=torch.bool, device=kw["device"])
         valid = _checked(valid, (B,), "valid", {"device": kw["device"]}, copy=False)
-        self.t, self.q, self.twist, self.cov = self.update_twist_state(
+        self.t, self.q, self.twist, self.cov = self.step_function("update_twist_state")(
             self.t, self.q, self.twist, self.cov, z, R, valid
         )
 

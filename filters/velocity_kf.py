@@ -38,6 +38,7 @@ import math
 from typing import Any
 
 import torch
+from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.interaction import undistort_flow
 from evtrack.filters.linalg import spd_inverse
@@ -49,7 +50,7 @@ from evtrack.camera import PinholeCamera
 __all__ = ["VelocityKF"]
 
 
-class VelocityKF(nn.Module):
+class VelocityKF(CompilableSteps, nn.Module):
     """Batched 6-DoF velocity Kalman filter from event optical flow (paper III-B).
 
     Args:
@@ -65,7 +66,7 @@ class VelocityKF(nn.Module):
     Buffers (all in ``state_dict``): the state ``twist`` (B,6), ``cov`` (B,6,6) and
     ``reference`` (B,6) (the last posterior twist, which the weighting compares flows with);
     cumulative counts ``skipped_depth`` and ``skipped_flow`` (B,); constants ``focal``
-    ``[fx, fy]``, ``principal`` ``[cx, cy]``, ``jac_coef``, ``jac_index``, ``q_density`` (6,) and
+    ``[fx, fy]``, ``principal`` ``[cx, cy]``, ``q_density`` (6,) and
     ``q_matrix`` (its 6x6 diagonal),
     ``init_var`` (6,) and ``consts`` (5,).
 
@@ -78,6 +79,8 @@ class VelocityKF(nn.Module):
         torch.Size([2, 6])
     """
 
+    _STEP_NAMES = ("predict_state", "update_state", "step")
+
     twist: Tensor
     cov: Tensor
     reference: Tensor
@@ -85,8 +88,6 @@ class VelocityKF(nn.Module):
     skipped_flow: Tensor
     focal: Tensor
     principal: Tensor
-    jac_coef: Tensor
-    jac_index: Tensor
     q_density: Tensor
     q_matrix: Tensor
     init_var: Tensor
@@ -107,9 +108,6 @@ class VelocityKF(nn.Module):
         kw: dict[str, Any] = {"dtype": dtype, "device": device}
         self.register_buffer("focal", torch.tensor([camera.fx, camera.fy], **kw))
         self.register_buffer("principal", torch.tensor([camera.cx, camera.cy], **kw))
-        coef = [s * camera.fx for s in _J_SIGN[:6]] + [s * camera.fy for s in _J_SIGN[6:]]
-        self.register_buffer("jac_coef", torch.tensor(coef, **kw))
-        self.register_buffer("jac_index", torch.tensor(_J_INDEX, device=device))
         self.register_buffer(
             "q_density", torch.tensor([cfg.q_linear] * 3 + [cfg.q_angular] * 3, **kw)
         )
@@ -174,7 +172,9 @@ class VelocityKF(nn.Module):
     # ------------------------------------------------------------------ stateful steps
     def predict(self, dt: float | Tensor) -> Tensor:
         """Decay the twist over ``dt`` seconds (float or (B,)); returns the prediction (B,6)."""
-        self.twist, self.cov = self.predict_state(self.twist, self.cov, self._dt(dt))
+        self.twist, self.cov = self.step_function("predict_state")(
+            self.twist, self.cov, self._dt(dt)
+        )
         return self.twist
 
     def update(
@@ -198,7 +198,7 @@ class VelocityKF(nn.Module):
         uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
             uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
-        V, P, skipped = self.update_state(
+        V, P, skipped = self.step_function("update_state")(
             self.twist, self.cov, self.reference, uv, depth, flow, normal_only, mask
         )
         self.twist, self.cov, self.reference = V, P, V
@@ -323,43 +323,42 @@ class VelocityKF(nn.Module):
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Rows ``H`` (B,2N,6), values ``z`` (B,2N), row validity (B,2N), skip counts (B,2).
 
-        Written for few tensor ops (the batch-1 latency is bound by per-op dispatch): the 12
-        interaction-matrix entries are gathered from 9 polynomial features of ``(x, y, 1/Z)``.
+        A row ``(a, b)·J`` of the interaction matrix (``J`` in interaction.py), with
+        ``a = e_u fx``, ``b = e_v fy`` for a unit direction ``e`` and ``p = a x + b y``, is
+        ``[a/Z, b/Z, −p/Z, −(y p + b), a + x p, b x − a y]``: a few elementwise ops per RoI,
+        for the along (``e = n``) and across (``e = n⊥``) rows at once.
         """
         B, N = depth.shape
         depth_ok = mask & (depth > 0) & (depth < torch.inf)  # False for NaN too
-        finite = torch.isfinite(uv + flow).all(-1)
+        both = uv + flow
+        finite = torch.isfinite(both[..., 0] + both[..., 1])
         flow0 = torch.where(finite.unsqueeze(-1), flow, 0.0)
-        mag = torch.linalg.vector_norm(flow0, dim=-1)
+        fu, fv = flow0.unbind(-1)
+        mag = torch.sqrt(fu * fu + fv * fv)
         moving = mag > 0
-        if self.config.normal_flow:
-            normal: Tensor | None = normal_only
-            valid = (
-                depth_ok & finite & (moving | ~normal_only)
-            )  # a zero normal flow has no direction
+        if self.config.normal_flow:  # a zero normal flow has no direction
+            valid = depth_ok & finite & (moving | ~normal_only)
         else:
-            normal = None
             valid = depth_ok & finite
         counts = torch.stack([mask, depth_ok, valid], dim=-1).sum(-2)
         skipped = counts[:, :2] - counts[:, 1:]
 
         principal = self.principal
         xy = (torch.where(valid.unsqueeze(-1), uv, principal) - principal) / self.focal
-        x, y = xy.unbind(-1)
-        iz = 1.0 / torch.where(valid, depth, 1.0)
-        feats = torch.stack(
-            [iz, x * iz, y * iz, x * y, 1.0 + x * x, 1.0 + y * y, x, y, torch.zeros_like(x)], dim=-1
-        )
-        J = (feats.index_select(-1, self.jac_index) * self.jac_coef).unflatten(-1, (2, 1, 6))
+        x, y = xy.unsqueeze(-2).unbind(-1)  # (B,N,1) each
+        iz = (1.0 / torch.where(valid, depth, 1.0)).unsqueeze(-1)
         # Flow-aligned frame: along n = F/|F|, across n⊥; the image axes for a zero full flow.
-        n = flow0 / torch.where(moving, mag, 1.0).unsqueeze(-1)
-        nx = torch.where(moving, n[..., 0], 1.0)
-        ny = n[..., 1]
-        frame = torch.stack([nx, -ny, ny, nx], dim=-1).unflatten(-1, (2, 2, 1))  # [u|v][row]
-        # rows (along, across) = frame[u] J_u + frame[v] J_v, each (B,N,2,6)
-        H = frame[..., 0, :, :] * J[..., 0, :, :] + frame[..., 1, :, :] * J[..., 1, :, :]
+        inv_mag = 1.0 / torch.where(moving, mag, 1.0)
+        nx = torch.where(moving, fu * inv_mag, 1.0)
+        ny = fv * inv_mag
+        fx, fy = self.focal.unbind()
+        a = torch.stack([nx, -ny], dim=-1) * fx  # (B,N,2): along, across
+        b = torch.stack([ny, nx], dim=-1) * fy
+        p = a * x + b * y
+        H = torch.stack([a * iz, b * iz, -(p * iz), -(y * p + b), a + x * p, b * x - a * y], -1)
         z = torch.stack([torch.where(valid, mag, 0.0), torch.zeros_like(mag)], dim=-1)
-        rows_ok = torch.stack([valid, valid if normal is None else valid & ~normal], dim=-1)
+        across_ok = valid & ~normal_only if self.config.normal_flow else valid
+        rows_ok = torch.stack([valid, across_ok], dim=-1)
         return H.reshape(B, 2 * N, 6), z.reshape(B, 2 * N), rows_ok.reshape(B, 2 * N), skipped
 
     # ------------------------------------------------------------------ input handling
@@ -413,10 +412,3 @@ def _checked(t: Tensor, shape: tuple[int, ...], name: str, kw: dict[str, Any]) -
     if tuple(t.shape) != shape:
         raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
     return t.to(**kw).clone()
-
-
-# The interaction matrix (interaction.py) as signed, scaled picks from the features
-# φ = [1/Z, x/Z, y/Z, xy, 1 + x², 1 + y², x, y, 0]:
-#   J_u/fx = [1/Z, 0, -x/Z, -xy, 1 + x², -y],   J_v/fy = [0, 1/Z, -y/Z, -(1 + y²), xy, x].
-_J_INDEX = [0, 8, 1, 3, 4, 7, 8, 0, 2, 5, 3, 6]
-_J_SIGN = [1.0, 1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0]
