@@ -78,6 +78,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="only these YCB objects (default: all four)")
     b.add_argument("--presets", nargs="+", choices=("regular", "faster"), default=None,
                    help="only these presets (default: both)")
+    b.add_argument("--velocity-only", action="store_true",
+                   help="only write the pixel-velocity report (velocity_cdf.png, summary.yaml) "
+                        "from the trajectories, without rendering (seconds instead of minutes)")
     _add_common(b)
     b.set_defaults(func=run_benchmark)
 
@@ -139,7 +142,11 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 
 def run_benchmark(args: argparse.Namespace) -> int:
-    from evtrack.sim.benchmark_set import benchmark_entries, make_benchmark_set
+    from evtrack.sim.benchmark_set import (
+        benchmark_entries,
+        make_benchmark_set,
+        velocity_report,
+    )
 
     cfg = build_config(args)
     _check_device(cfg.events.device)
@@ -152,6 +159,14 @@ def run_benchmark(args: argparse.Namespace) -> int:
         entries = [e for e in entries if e[0] in args.objects or e[0][4:] in args.objects]
     if args.presets:
         entries = [e for e in entries if e[1] in args.presets]
+    if args.velocity_only:
+        summary = velocity_report(args.out, cfg, ycb_dir=args.ycb_dir, entries=entries)
+        for name, row in summary["sequences"].items():
+            s = row["pixel_speed_px_s"]
+            print(f"{name:32s} median {s['p50']:7.0f}  p90 {s['p90']:7.0f}  "
+                  f"p99 {s['p99']:7.0f} px/s")
+        print(f"wrote {args.out}/velocity_cdf.png and {args.out}/summary.yaml")
+        return 0
     try:
         summary = make_benchmark_set(args.out, cfg, ycb_dir=args.ycb_dir, entries=entries,
                                      overwrite=args.overwrite, progress=not args.quiet)

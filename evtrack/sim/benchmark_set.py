@@ -14,11 +14,18 @@ import numpy as np
 import yaml
 
 from evtrack.sim.config import SimConfig
-from evtrack.sim.engine import preset_config, simulate
+from evtrack.sim.engine import (
+    preset_config,
+    render_times_us,
+    sequence_trajectory,
+    simulate,
+    speed_samples,
+)
 from evtrack.sim.groundtruth import plot_speed_cdf, speed_percentiles
 from evtrack.sim.objects import YCB_OBJECTS, resolve_object
 
-__all__ = ["BENCHMARK_SEEDS", "benchmark_entries", "make_benchmark_set", "PRESETS"]
+__all__ = ["BENCHMARK_SEEDS", "benchmark_entries", "make_benchmark_set", "velocity_report",
+           "PRESETS"]
 
 PRESETS = ("regular", "faster")
 
@@ -33,6 +40,35 @@ BENCHMARK_SEEDS: dict[tuple[str, str], int] = {
 def benchmark_entries() -> list[tuple[str, str, int]]:
     """The benchmark set: ``(YCB object, preset, seed)``, 4 objects x 2 presets."""
     return [(name, preset, seed) for (name, preset), seed in BENCHMARK_SEEDS.items()]
+
+
+def _prepare(out_dir: Path, entries, overwrite: bool) -> list[Path]:
+    folders = [out_dir / f"{name}_{preset}" for name, preset, _ in entries]
+    existing = [str(f) for f in folders if f.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"sequence folders exist: {existing}; pass overwrite=True")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return folders
+
+
+def _report(out_dir: Path, summary: dict[str, Any], samples: dict[str, list[np.ndarray]]
+            ) -> dict[str, Any]:
+    """Add pixel-speed percentiles per preset, write velocity_cdf.png and summary.yaml."""
+    from evtrack.utils import atomic_write_text
+
+    merged = {p: np.concatenate(v) for p, v in samples.items() if v}
+    summary["pixel_speed_px_s"] = {p: speed_percentiles(v) for p, v in merged.items()}
+    plot_speed_cdf({f"{p} (median {np.median(v):.0f} px/s)": v for p, v in merged.items()},
+                   out_dir / "velocity_cdf.png",
+                   title="Pixel velocity of the objects, benchmark set")
+    atomic_write_text(out_dir / "summary.yaml", yaml.safe_dump(summary, sort_keys=False))
+    return summary
+
+
+def _entry_config(base: SimConfig, preset: str, seed: int) -> SimConfig:
+    import dataclasses
+
+    return dataclasses.replace(preset_config(base, preset), seed=seed)
 
 
 def make_benchmark_set(
@@ -57,35 +93,56 @@ def make_benchmark_set(
     Returns:
         the summary written to ``summary.yaml``.
     """
-    import dataclasses
-
     out_dir = Path(out_dir)
     base = config or SimConfig()
     entries = benchmark_entries() if entries is None else entries
-    folders = [out_dir / f"{name}_{preset}" for name, preset, _ in entries]
-    existing = [str(f) for f in folders if f.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"sequence folders exist: {existing}; pass overwrite=True")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    folders = _prepare(out_dir, entries, overwrite)
     objects = {}
     samples: dict[str, list[np.ndarray]] = {p: [] for p in PRESETS}
     summary: dict[str, Any] = {"sequences": {}}
     for (name, preset, seed), folder in zip(entries, folders, strict=True):
         if name not in objects:
             objects[name] = resolve_object(name, ycb_dir=ycb_dir)
-        cfg = dataclasses.replace(preset_config(base, preset), seed=seed)
+        cfg = _entry_config(base, preset, seed)
         stats = simulate(objects[name], cfg, folder, overwrite=overwrite, progress=progress)
         samples.setdefault(preset, []).append(stats.pixel_speed_samples)
         summary["sequences"][folder.name] = {
             "object": name, "preset": preset, "seed": seed, **stats.summary(),
             "seconds": round(stats.timings["total"], 2),
         }
-    merged = {p: np.concatenate(v) for p, v in samples.items() if v}
-    summary["pixel_speed_px_s"] = {p: speed_percentiles(v) for p, v in merged.items()}
-    plot_speed_cdf({f"{p} (median {np.median(v):.0f} px/s)": v for p, v in merged.items()},
-                   out_dir / "velocity_cdf.png",
-                   title="Pixel velocity of the objects, benchmark set")
-    from evtrack.utils import atomic_write_text
+    return _report(out_dir, summary, samples)
 
-    atomic_write_text(out_dir / "summary.yaml", yaml.safe_dump(summary, sort_keys=False))
-    return summary
+
+def velocity_report(
+    out_dir: str | Path,
+    config: SimConfig | None = None,
+    *,
+    ycb_dir: str | Path | None = None,
+    entries: list[tuple[str, str, int]] | None = None,
+) -> dict[str, Any]:
+    """The pixel-speed report of the benchmark set without rendering anything.
+
+    The pixel speeds depend only on the trajectories, the meshes and the render times, so the
+    report equals the one :func:`make_benchmark_set` writes (``velocity_cdf.png`` and
+    ``summary.yaml`` in ``out_dir``), in seconds instead of minutes.
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    base = config or SimConfig()
+    entries = benchmark_entries() if entries is None else entries
+    samples: dict[str, list[np.ndarray]] = {p: [] for p in PRESETS}
+    summary: dict[str, Any] = {"sequences": {}}
+    objects = {}
+    for name, preset, seed in entries:
+        if name not in objects:
+            objects[name] = resolve_object(name, ycb_dir=ycb_dir)
+        cfg = _entry_config(base, preset, seed)
+        obj = objects[name]
+        times = render_times_us(cfg.duration, cfg.render.render_hz)
+        s = speed_samples(obj, sequence_trajectory(cfg, obj), times, cfg.camera.camera(),
+                          cfg.ground_truth.velocity_samples)
+        samples.setdefault(preset, []).append(s)
+        summary["sequences"][f"{name}_{preset}"] = {
+            "object": name, "preset": preset, "seed": seed,
+            "pixel_speed_px_s": speed_percentiles(s)}
+    return _report(out_dir, summary, samples)

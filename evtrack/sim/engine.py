@@ -51,6 +51,7 @@ __all__ = [
     "preset_config",
     "sequence_scene",
     "sequence_trajectory",
+    "speed_samples",
 ]
 
 MESH_FILE = "object.glb"
@@ -219,7 +220,7 @@ def simulate(
                 depth = np.abs(w)
                 mask = w > 0
             if base_index is not None:
-                frames(base_index, t_us, raw[..., :3], depth)
+                frames(base_index, t_us, raw, depth)
             with timer("events"):
                 log = log_intensity(torch.from_numpy(raw[..., :3]).to(esim.device),
                                     ev_cfg.log_eps)
@@ -260,13 +261,13 @@ def simulate(
                 if pending_n >= _FLUSH_EVENTS:
                     flush(writer)
 
-        def frames(k: int, t_us: int, rgb: np.ndarray, depth: np.ndarray) -> None:
+        def frames(k: int, t_us: int, raw: np.ndarray, depth: np.ndarray) -> None:
             with timer("frames"):
                 w = frame_of_render.get(k)
                 if w is not None:
-                    acc.add(rgb)
+                    acc.add(raw)  # the whole RGBA buffer: contiguous, fast; alpha unused
                     if k == w.last:
-                        noisy = add_rgb_noise(acc.mean(), rgb_rng, config.frames)
+                        noisy = add_rgb_noise(acc.mean()[..., :3], rgb_rng, config.frames)
                         writer.add_rgb(w.t_us, linear_to_srgb(noisy))
                         acc.reset()
                         stats.num_rgb += 1
@@ -295,7 +296,7 @@ def simulate(
                 if config.ground_truth.event_flow:
                     flow = (np.concatenate(flows) if flows else np.zeros((0, 2), np.float32))
                 writer.set_ground_truth(GroundTruth(t_us, poses, t_us, twists, flow))
-                samples = _speed_samples(obj, trajectory, t_us, cam,
+                samples = speed_samples(obj, trajectory, t_us, cam,
                                          config.ground_truth.velocity_samples)
             stats.num_renders = len(pose_times)
             stats.pixel_speed = speed_percentiles(samples)
@@ -324,10 +325,12 @@ def _too_big(a: _RenderState, b: _RenderState, depth_jump: float, limit: float) 
     return bool(change.numel()) and float(change.max()) > limit
 
 
-def _speed_samples(obj: ObjectMesh, trajectory: Trajectory, t_us: np.ndarray, cam,
-                   count: int) -> np.ndarray:
+def speed_samples(obj: ObjectMesh, trajectory: Trajectory, t_us: np.ndarray, camera,
+                  count: int) -> np.ndarray:
+    """Mean pixel speed (px/s) of ``count`` evenly picked mesh vertices at each time (µs)."""
     idx = np.linspace(0, len(obj.vertices) - 1, min(count, len(obj.vertices))).astype(int)
-    return pixel_speeds(trajectory, t_us * 1e-6, obj.vertices[idx].astype(np.float64), cam)
+    return pixel_speeds(trajectory, np.asarray(t_us) * 1e-6,
+                        obj.vertices[idx].astype(np.float64), camera)
 
 
 def _extra(config: SimConfig, obj: ObjectMesh, trajectory: Trajectory, scene,

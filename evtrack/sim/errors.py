@@ -7,7 +7,7 @@ from evtrack.errors import EvtrackError
 __all__ = ["MeshFileError", "RendererUnavailableError", "GL_SYSTEM_PACKAGES"]
 
 #: Debian/Ubuntu packages that provide headless OpenGL through EGL (Mesa llvmpipe on CPU).
-GL_SYSTEM_PACKAGES = ("libegl1", "libgl1-mesa-dri", "libgbm1")
+GL_SYSTEM_PACKAGES = ("libegl1", "libgl1", "libgl1-mesa-dri", "libgbm1")
 
 
 class MeshFileError(EvtrackError, OSError):

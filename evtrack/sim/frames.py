@@ -35,11 +35,25 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """Linear RGB (any shape) -> 8-bit sRGB uint8; values are clipped to [0, 1] first."""
-    x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
+def _srgb_encode(x: np.ndarray) -> np.ndarray:
     s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
     return np.round(s * 255.0).astype(np.uint8)
+
+
+_LUT_SIZE = 65536
+_SRGB_LUT = _srgb_encode(np.linspace(0.0, 1.0, _LUT_SIZE))
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """Linear RGB (any shape) -> 8-bit sRGB uint8; values are clipped to [0, 1] first.
+
+    Through a 65536-entry table (the encoding rounded at ``x`` quantised to 1/65535): it
+    agrees with the exact formula except within 0.03 of a code boundary, and is exact on
+    every decoded 8-bit value.
+    """
+    x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
+    idx = (x * np.float32(_LUT_SIZE - 1) + np.float32(0.5)).astype(np.uint16)
+    return _SRGB_LUT[idx]
 
 
 def luminance(rgb: np.ndarray) -> np.ndarray:
@@ -104,7 +118,8 @@ class ExposureAccumulator:
         self.count = 0
 
     def add(self, frame: np.ndarray) -> None:
-        """Add one linear render (H, W, 3)."""
+        """Add one linear render (H, W, C), e.g. RGB, or RGBA with an ignored channel (a
+        contiguous RGBA buffer adds ~25x faster than its strided RGB view)."""
         if self._sum is None:
             self._sum = np.zeros(frame.shape, np.float32)
         elif frame.shape != self._sum.shape:
@@ -113,7 +128,7 @@ class ExposureAccumulator:
         self.count += 1
 
     def mean(self) -> np.ndarray:
-        """(H, W, 3) float32 mean of the renders added so far."""
+        """(H, W, C) float32 mean of the renders added so far."""
         if self._sum is None:
             raise ValueError("no render was added to this exposure")
         return self._sum / np.float32(self.count)
@@ -157,12 +172,12 @@ def stereo_shadow_mask(depth: np.ndarray, fx: float, baseline: float) -> np.ndar
     """
     h, w = depth.shape
     valid = depth > 0
-    z = np.where(valid, depth, np.inf)
-    s = np.arange(w, dtype=np.float64)[None, :] - fx * baseline / z
+    z = np.where(valid, depth, np.float32(np.inf)).astype(np.float32)
+    s = np.arange(w, dtype=np.float32)[None, :] - np.float32(fx * baseline) / z
     s[~valid] = np.inf
     # min over columns strictly to the right, computed right to left
     right_min = np.minimum.accumulate(s[:, ::-1], axis=1)[:, ::-1]
-    right_min = np.concatenate([right_min[:, 1:], np.full((h, 1), np.inf)], axis=1)
+    right_min = np.concatenate([right_min[:, 1:], np.full((h, 1), np.inf, np.float32)], axis=1)
     return valid & (right_min <= s)
 
 

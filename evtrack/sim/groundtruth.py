@@ -81,7 +81,12 @@ def event_flow(x: np.ndarray, y: np.ndarray, t_us: np.ndarray,
     if not on.any():
         return out
     # events share few distinct timestamps: evaluate the twist once per timestamp
-    t_unique, inverse = np.unique(np.asarray(t_us, np.int64)[on], return_inverse=True)
+    t_on = np.asarray(t_us, np.int64)[on]
+    if len(t_on) > 1 and (t_on[1:] >= t_on[:-1]).all():  # sorted: no need to sort again
+        first = np.concatenate([[True], t_on[1:] != t_on[:-1]])
+        t_unique, inverse = t_on[first], np.cumsum(first) - 1
+    else:
+        t_unique, inverse = np.unique(t_on, return_inverse=True)
     twists = trajectory.twist(t_unique * 1e-6)[inverse]
     uv = np.stack([x[on], y[on]], -1).astype(np.float64)
     out[on] = point_flow(uv, z[on], twists, camera).astype(np.float32)

@@ -56,3 +56,15 @@ def test_simulate_benchmark_command(tmp_path, ycb_dir, capsys) -> None:
     assert "005_tomato_soup_can_regular" in capsys.readouterr().out
     assert main(args) == 1  # exists
     assert main(["simulate-benchmark", "--out", str(out), "--objects", "teapot"]) == 1
+
+
+def test_velocity_report_without_rendering(tmp_path, ycb_dir, capsys) -> None:
+    out = tmp_path / "velocity"
+    assert main(["simulate-benchmark", "--out", str(out), "--velocity-only", "--duration", "0.5",
+                 "--ycb-dir", str(ycb_dir), "--objects", "010_potted_meat_can"]) == 0
+    summary = yaml.safe_load((out / "summary.yaml").read_text())
+    speeds = summary["pixel_speed_px_s"]
+    assert speeds["faster"]["p50"] > speeds["regular"]["p50"] > 0
+    assert (out / "velocity_cdf.png").is_file()
+    assert not any(p.is_dir() for p in out.iterdir())  # nothing rendered
+    assert "010_potted_meat_can_faster" in capsys.readouterr().out

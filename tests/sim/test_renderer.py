@@ -168,5 +168,6 @@ def test_missing_gl_names_the_system_packages(monkeypatch) -> None:
         raise RuntimeError("eglGetDisplay failed")
 
     monkeypatch.setattr(moderngl, "create_standalone_context", fail)
-    with pytest.raises(RendererUnavailableError, match="libegl1 libgl1-mesa-dri libgbm1"):
+    apt = "apt-get install -y libegl1 libgl1 libgl1-mesa-dri libgbm1"
+    with pytest.raises(RendererUnavailableError, match=apt):
         Renderer(CAM)
