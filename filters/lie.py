@@ -92,7 +92,7 @@ def quat_exp(phi: Tensor) -> Tensor:
 def _exp_parts(phi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """``exp(φ)`` and the pieces :func:`se3_exp` reuses: ``θ``, ``sin(θ/2)/θ``, ``θ`` made safe
     to divide by, even cubed (1 below ``_TINY_ANGLE``, where ``sin(θ/2)/θ`` is 1/2 exactly)."""
-    theta = torch.sqrt((phi * phi).sum(-1, keepdim=True))
+    theta = torch.linalg.vector_norm(phi, dim=-1, keepdim=True)
     half = 0.5 * theta
     nonzero = theta > _TINY_ANGLE
     theta_safe = torch.where(nonzero, theta, 1.0)
@@ -105,13 +105,13 @@ def quat_log(q: Tensor) -> Tensor:
 
     ``q`` and ``-q`` give the same result (the double cover is resolved by taking ``w >= 0``).
     """
-    q = torch.where(q[..., :1] < 0, -q, q)
     w, v = q[..., :1], q[..., 1:]
-    s = torch.sqrt((v * v).sum(-1, keepdim=True))
+    s = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    aw = w.abs()  # the w >= 0 representative of ±q gives the shortest rotation
     small = s < _LOG_SMALL
-    s_safe = torch.where(small, torch.ones_like(s), s)
-    ratio = torch.where(small, 2.0 / w, 2.0 * atan2_precise(s_safe, w) / s_safe)
-    return ratio * v
+    s_safe = torch.where(small, 1.0, s)
+    ratio = torch.where(small, 2.0 / aw, 2.0 * atan2_precise(s_safe, aw) / s_safe)
+    return torch.where(w < 0, -ratio, ratio) * v
 
 
 def se3_exp(xi: Tensor) -> tuple[Tensor, Tensor]:

@@ -70,12 +70,12 @@ def laplacian_weights(
     Returns:
         (*, K) weights; multiply a row's information (divide its noise variance) by them.
     """
-    med, count = masked_lower_median(residuals, valid)
-    dev = (residuals - med.unsqueeze(-1)).abs()
+    med = _lower_median_nan(residuals, valid)  # NaN for a track without valid rows
+    dev = (residuals - med).abs()
     if scale is None:
         if previous is None:
             total = torch.where(valid, dev, 0.0).sum(-1, keepdim=True)
-            b = total / count.unsqueeze(-1).clamp(min=1)
+            b = total / valid.sum(-1, keepdim=True).clamp(min=1)
         else:  # previous is 0 on invalid rows
             total = (previous * dev).sum(-1, keepdim=True)
             b = total / previous.sum(-1, keepdim=True).clamp(min=torch.finfo(dev.dtype).tiny)
@@ -85,4 +85,12 @@ def laplacian_weights(
     # ρ = max(e/(2b), floor) / max(1/(2b), floor) with e = exp(-|r - M|/b), i.e.
     # ρ = max(e, min(2b·floor, 1)): the same value in three ops.
     rho = torch.maximum(torch.exp(dev / -b), (2.0 * b * floor).clamp(max=1.0))
-    return torch.where(valid, rho, 0.0)
+    return torch.where(valid, rho, 0.0)  # also drops the NaN of tracks without valid rows
+
+
+def _lower_median_nan(values: Tensor, valid: Tensor) -> Tensor:
+    """(*, K) -> (*, 1) lower median of the valid entries, NaN where there is none."""
+    if use_portable():
+        med, count = masked_lower_median(values, valid)
+        return torch.where(count > 0, med, torch.nan).unsqueeze(-1)
+    return torch.nanmedian(torch.where(valid, values, torch.nan), dim=-1, keepdim=True).values
