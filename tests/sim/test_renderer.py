@@ -105,7 +105,7 @@ def test_depth_matches_raycast_procedural() -> None:
 
 def test_depth_matches_raycast_ycb(ycb_dir) -> None:
     mesh = load_mesh(ycb_dir / "006_mustard_bottle" / "006_mustard_bottle_textured.gltf")
-    assert _depth_vs_raycast(mesh, _pose([1.9, 0.8, -0.4], [0.0, 0.0, 0.45])) > 200
+    assert _depth_vs_raycast(mesh, _pose([1.9, 0.8, -0.4], [0.0, 0.0, 0.45]), samples=150) > 120
 
 
 def test_texture_lookup_orientation() -> None:
