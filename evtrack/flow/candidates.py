@@ -4,9 +4,11 @@ The matching rule is stated in :mod:`evtrack.flow.config`. This module evaluates
 chunk of events with tensor operations only, and still lets every event see exactly the
 events before it, including earlier events of the same chunk:
 
-0. With ``refractory_us > 0``, only burst onsets take part: an event whose cell (pixel and
-   polarity) had any event in the last ``refractory_us`` µs is skipped (neither searched nor
-   stored); its stream index still counts.
+0. With ``refractory_us > 0``, only burst onsets take part: an event is skipped (neither
+   searched nor stored; its stream index still counts) when the previous event of its pixel
+   (kept or not, either polarity) has the same polarity and is at most ``refractory_us``
+   older. A moving edge makes each pixel fire a burst of same-polarity events; the onsets
+   (first event after a polarity change or a pause) move rigidly with the pattern.
 1. The chunk is cut into *passes*: maximal runs of consecutive events in which no
    (pixel, polarity) cell receives more than ``pass_repeats`` events. The cut points come
    from one stable sort by cell (the ``pass_repeats``-th previous event of each event's cell)
@@ -28,7 +30,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -158,20 +159,21 @@ class CandidateSearch:
                                     self.device)
         self.block_size = config.resolved_block_size(self.device.type)
         offsets = search_offsets(config.radius)
-        both = np.concatenate([offsets, 2 * offsets])
-        unique, inverse = np.unique(both, axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        d = len(offsets)
         dev = self.device
         self.offsets = torch.as_tensor(offsets, device=dev)
-        self.lookup_dx = torch.as_tensor(unique[:, 0], device=dev)
-        self.lookup_dy = torch.as_tensor(unique[:, 1], device=dev)
-        self.lookup_cell = self.lookup_dy * self.width + self.lookup_dx
-        self.j_of_d = torch.as_tensor(inverse[:d], device=dev)
-        self.i_of_d = torch.as_tensor(inverse[d:], device=dev)
+        # cell-id offsets of the e_j (x - d) and e_i (x - 2d) pixels
+        self.j_cell = self.offsets[:, 1] * self.width + self.offsets[:, 0]
+        self.i_cell = 2 * self.j_cell
         bounds = dt_bounds_us(offsets, config.min_speed, config.max_speed)
-        self.dt_lo = torch.as_tensor(bounds[:, 0], device=dev)[:, None, None]
-        self.dt_hi = torch.as_tensor(bounds[:, 1], device=dev)[:, None, None]
+        self.dt_lo32 = torch.as_tensor(bounds[:, 0], dtype=torch.int32, device=dev)
+        self.dt_hi32 = torch.as_tensor(bounds[:, 1], dtype=torch.int32, device=dev)
+        # e_j precedes e_i's match: t_k - t_j < t_k - t_i <= hi
+        self.dt_hi_j = self.dt_hi32[None, :, None]
+        self.hi_max = int(bounds[:, 1].max()) if len(bounds) else 0
+        self.err_cap = self.hi_max + 1
+        largest = max(1000 * self.err_cap, int(config.tolerance_us) * 1000
+                      + config.tolerance_permille * self.hi_max)
+        self.tol_dtype = torch.int32 if largest < (1 << 31) - 1 else torch.int64
         # 2 d * 1e6, the numerator of the candidate flow (px * µs / s).
         self.flow_num = (2.0 * US_PER_S) * self.offsets.to(torch.float32)
         self.tol_abs = int(config.tolerance_us) * 1000
@@ -182,8 +184,9 @@ class CandidateSearch:
         """Forget every event seen."""
         self.history = EventHistory(self.config.sensor_size, self.config.history,
                                     self.config.pass_repeats, self.device)
-        self.last_t = torch.full((self.history.cells,), NEVER_US, dtype=torch.int64,
-                                 device=self.device)
+        pixels = self.width * self.height
+        self.last_t = torch.full((pixels,), NEVER_US, dtype=torch.int64, device=self.device)
+        self.last_p = torch.zeros(pixels, dtype=torch.int8, device=self.device)
         self.next_seq = 0
 
     # ------------------------------------------------------------------ driver
@@ -233,7 +236,7 @@ class CandidateSearch:
         seq = torch.arange(self.next_seq, self.next_seq + n, device=self.device)
         cell = hist.cell_index(x, y, p)
         if self.config.refractory_us > 0:
-            onset = self._onsets(cell, t)
+            onset = self._onsets(x, y, t, p)
             x, y, t, seq, cell = x[onset], y[onset], t[onset], seq[onset], cell[onset]
         self.next_seq += n
         if t.numel() == 0:
@@ -257,23 +260,30 @@ class CandidateSearch:
                                          seq[b0:b1]))
         return Candidates.cat(parts)
 
-    def _onsets(self, cell: Tensor, t: Tensor) -> Tensor:
-        """Which events start a burst: no event of the same cell in the last refractory_us.
+    def _onsets(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Tensor:
+        """Which events start a burst (see the module docstring, step 0).
 
-        Every event (kept or not) counts as the cell's previous event; ``last_t`` carries the
-        cell's latest timestamp across chunks.
+        An event is an onset unless the previous event of the same pixel (kept or not, either
+        polarity) has the same polarity and is at most ``refractory_us`` older. ``last_t`` and
+        ``last_p`` carry each pixel's latest event across chunks.
         """
-        n = cell.shape[0]
-        sorted_cell, order = torch.sort(cell, stable=True)
+        n = t.shape[0]
+        pixel = y * self.width + x
+        sorted_pix, order = torch.sort(pixel, stable=True)
         t_sorted = t[order]
-        prev = self.last_t.index_select(0, sorted_cell)
-        same = sorted_cell[1:] == sorted_cell[:-1]
-        prev[1:] = torch.where(same, t_sorted[:-1], prev[1:])
-        onset = torch.empty(n, dtype=torch.bool, device=cell.device)
-        onset[order] = (t_sorted - prev) > self.config.refractory_us
-        last = torch.ones(n, dtype=torch.bool, device=cell.device)
+        p_sorted = p[order].to(torch.int8)
+        prev_t = self.last_t.index_select(0, sorted_pix)
+        prev_p = self.last_p.index_select(0, sorted_pix)
+        same = sorted_pix[1:] == sorted_pix[:-1]
+        prev_t[1:] = torch.where(same, t_sorted[:-1], prev_t[1:])
+        prev_p[1:] = torch.where(same, p_sorted[:-1], prev_p[1:])
+        burst = (prev_p == p_sorted) & ((t_sorted - prev_t) <= self.config.refractory_us)
+        onset = torch.empty(n, dtype=torch.bool, device=t.device)
+        onset[order] = ~burst
+        last = torch.ones(n, dtype=torch.bool, device=t.device)
         last[:-1] = ~same
-        self.last_t.index_put_((sorted_cell[last],), t_sorted[last])
+        self.last_t.index_put_((sorted_pix[last],), t_sorted[last])
+        self.last_p.index_put_((sorted_pix[last],), p_sorted[last])
         return onset
 
     @staticmethod
@@ -293,31 +303,42 @@ class CandidateSearch:
                ) -> Candidates:
         hist = self.history
         b = x.shape[0]
-        qx = x[:, None] - self.lookup_dx
-        qy = y[:, None] - self.lookup_dy
-        inside = (qx >= 0) & (qx < self.width) & (qy >= 0) & (qy < self.height)
-        qcell = torch.where(inside, cell[:, None] - self.lookup_cell, cell[:, None])
-        u = qcell.shape[1]
-        seen = hist.lookup(qcell.reshape(-1), keys[:, None].expand(b, u).reshape(-1))
-        seen = seen.view(b, u, -1)
-        t_seen = hist.key_time(seen)
-        t_k = hist.key_time(keys)[:, None, None, None]
-        # (b, D, K) for e_j and e_i; a lookup outside the sensor never matches because the
-        # e_i pixel (2d) is outside whenever the e_j pixel (d) is.
-        inside_i = inside[:, self.i_of_d][:, :, None, None]
-        t_j = t_seen[:, self.j_of_d][:, :, :, None]
-        t_i = t_seen[:, self.i_of_d][:, :, None, :]
-        dt_kj = t_k - t_j
+        d = self.offsets.shape[0]
+        # the e_i pixel x - 2d must be inside (then so is the e_j pixel x - d)
+        ix = x[:, None] - 2 * self.offsets[:, 0]
+        iy = y[:, None] - 2 * self.offsets[:, 1]
+        inside = (ix >= 0) & (ix < self.width) & (iy >= 0) & (iy < self.height)
+        # stage 1, e_j: lookups at x - d for every displacement, (b, D, K)
+        j_cell = torch.where(inside, cell[:, None] - self.j_cell, cell[:, None])
+        seen_j = hist.lookup(j_cell.reshape(-1), keys[:, None].expand(b, d).reshape(-1))
+        seen_j = seen_j.view(b, d, -1)
+        # relative times fit int32: |t| < T_LIMIT = 2^29, empty slots at -2^29
+        t_k = hist.key_time(keys).to(torch.int32)
+        dt_kj = t_k[:, None, None] - hist.key_time(seen_j).to(torch.int32)
+        ok_j = (dt_kj >= 1) & (dt_kj < self.dt_hi_j) & inside[:, :, None]
+        ev, off = ok_j.any(2).nonzero(as_tuple=True)
+        if ev.numel() == 0:
+            return Candidates.empty(self.device)
+        # stage 2, e_i: lookups at x - 2d for the surviving (event, displacement) rows only
+        seen_i = hist.lookup(cell[ev] - self.i_cell[off], keys[ev])
+        t_i = hist.key_time(seen_i).to(torch.int32)[:, None, :]
+        dt_kj = dt_kj[ev, off][:, :, None]
+        t_j = t_k[ev][:, None, None] - dt_kj
+        dt_ki = t_k[ev][:, None, None] - t_i
         dt_ji = t_j - t_i
-        dt_ki = t_k - t_i
-        ok = (dt_kj >= 1) & (dt_ji >= 1) & inside_i
-        ok &= (dt_ki >= self.dt_lo) & (dt_ki <= self.dt_hi)
-        ok &= (dt_kj - dt_ji).abs() * 1000 <= self.tol_abs + self.tol_rel * dt_ki
-        ev, off, aj, ai = ok.nonzero(as_tuple=True)
-        dt = dt_ki[ev, off, 0, ai]
-        k_j = seen[ev, self.j_of_d[off], aj]
-        k_i = seen[ev, self.i_of_d[off], ai]
-        flow = self.flow_num[off] / dt.to(torch.float32)[:, None]
-        return Candidates(event=seq[ev], offset=off, age_j=aj, age_i=ai,
+        lo = self.dt_lo32[off][:, None, None]
+        hi = self.dt_hi32[off][:, None, None]
+        ok = ok_j[ev, off][:, :, None] & (dt_ji >= 1) & (dt_ki >= lo) & (dt_ki <= hi)
+        # exact integer tolerance test; operands are clamped so that the products fit
+        dt_c = dt_ki.clamp(0, self.hi_max).to(self.tol_dtype)
+        err = (dt_kj - dt_ji).abs().clamp_max(self.err_cap).to(self.tol_dtype)
+        ok &= err * 1000 <= self.tol_abs + self.tol_rel * dt_c
+        row, aj, ai = ok.nonzero(as_tuple=True)
+        ev_c, off_c = ev[row], off[row]
+        dt = dt_ki[row, 0, ai].to(torch.int64)
+        k_j = seen_j[ev_c, off_c, aj]
+        k_i = seen_i[row, ai]
+        flow = self.flow_num[off_c] / dt.to(torch.float32)[:, None]
+        return Candidates(event=seq[ev_c], offset=off_c, age_j=aj, age_i=ai,
                           seq_j=hist.key_seq(k_j), seq_i=hist.key_seq(k_i), dt_us=dt,
                           flow=flow)

@@ -7,9 +7,9 @@ with a :class:`~evtrack.errors.ConfigError` that names the field.
 The exact matching rule the parameters feed (stated once here, implemented in
 :mod:`evtrack.flow.candidates` and re-implemented independently in the tests):
 
-Burst filter first: with ``refractory_us > 0`` an event whose (pixel, polarity) had any
-event (kept or not) in the last ``refractory_us`` µs (``t - t_prev <= refractory_us``) is
-skipped: it is neither matched nor stored in the history. Then, for an event ``e_k`` with
+Burst filter first: with ``refractory_us > 0`` an event is skipped (neither matched nor
+stored in the history) when the previous event of the same pixel (kept or not, either
+polarity) has the same polarity and ``t - t_prev <= refractory_us``. Then, for an event ``e_k`` with
 polarity ``p_k`` and every displacement ``d`` of the search set
 (all integer offsets with Chebyshev norm ``1..radius``, see :func:`search_offsets`), let
 ``H_j`` be the last ``history`` events of polarity ``p_k`` at pixel ``x_k - d`` and ``H_i``
@@ -58,10 +58,11 @@ class FlowConfig:
             square rings 1..r (``(2r+1)^2 - 1`` of them), so ``e_i`` lies up to ``2r`` px away.
         history: K, how many most recent events per pixel and polarity are kept and tried
             as ``e_j`` / ``e_i`` (K*K pairs per displacement).
-        refractory_us: burst filter, µs: an event whose (pixel, polarity) had any event in
-            the last ``refractory_us`` is skipped (not searched, not stored). A moving edge
-            fires a burst of events per pixel; keeping only the onsets makes the history hold
-            edge arrival times, which the triplet timing test needs. 0 disables the filter.
+        refractory_us: burst filter, µs: an event is skipped (not searched, not stored) when
+            the previous event of its pixel has the same polarity and is at most this old
+            (chained through skipped events). A moving edge fires a burst of same-polarity
+            events per pixel; keeping the onsets makes the history hold edge arrival times,
+            which the triplet timing test needs. 0 disables the filter.
         tolerance_us: absolute part of the constant-velocity tolerance ξ, in µs.
         tolerance_rel: relative part of ξ, as a fraction of ``t_k - t_i``; used at per-mille
             resolution (``round(1000 * tolerance_rel)``).
@@ -79,9 +80,14 @@ class FlowConfig:
             chunking, and without bias towards early or late events.
         max_hypotheses: cap on the candidate flows tried as the solution F' of one RoI
             window; above it, the candidates with the smallest hash are tried.
-        aperture_ratio: a RoI flow is flagged as normal flow when the scatter of the unit
-            vectors from the solution to the candidates has eigenvalue ratio
-            ``lambda_min / lambda_max`` below this value (the candidates lie on one line).
+        aperture_ratio: a RoI flow is flagged as normal flow when the scatter of its events'
+            constraint-line normals has eigenvalue ratio ``lambda_min / lambda_max`` below
+            this value (all lines share one normal), see :mod:`evtrack.flow.registration`.
+        refine: replace the Eq. 3 solution (one candidate, direction quantised to the integer
+            displacements) by the robust intersection of the events' constraint lines.
+        line_gate: an event's constraint line is taken through its two candidates nearest to
+            the Eq. 3 solution F, both within ``line_gate * |F|`` of it.
+        refine_iters: IRLS iterations of the refinement.
         chunk_size: events handed to the batched search at once (bounds the sorting work).
         block_size: events whose lookups are evaluated as one tensor operation; peak tensor
             sizes are ``block_size * (number of displacements) * (history + pass_repeats)``.
@@ -97,7 +103,7 @@ class FlowConfig:
     sensor_size: tuple[int, int] | None = None
     radius: int = 3
     history: int = 2
-    refractory_us: int = 500
+    refractory_us: int = 2_000
     tolerance_us: int = 20
     tolerance_rel: float = 0.1
     min_speed: float = 20.0
@@ -108,6 +114,9 @@ class FlowConfig:
     max_events_per_roi: int = 64
     max_hypotheses: int = 48
     aperture_ratio: float = 0.05
+    refine: bool = True
+    line_gate: float = 0.35
+    refine_iters: int = 5
     chunk_size: int = 200_000
     block_size: int | None = None
     pass_repeats: int = 4
@@ -125,7 +134,8 @@ class FlowConfig:
                  f"expected (width, height) > 0, got {self.sensor_size}")
             object.__setattr__(self, "sensor_size", size)
         for name in ("radius", "history", "roi_size", "window_us", "chunk_size",
-                     "pass_repeats", "pair_budget", "max_events_per_roi", "max_hypotheses"):
+                     "pass_repeats", "pair_budget", "max_events_per_roi", "max_hypotheses",
+                     "refine_iters"):
             value = getattr(self, name)
             need(isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= 1,
                  name, f"expected an integer >= 1, got {value!r}")
@@ -142,6 +152,8 @@ class FlowConfig:
         need(float(self.min_speed) > 0.0, "min_speed", f"must be > 0 px/s, got {self.min_speed}")
         need(float(self.max_speed) > float(self.min_speed), "max_speed",
              f"must exceed min_speed ({self.min_speed}), got {self.max_speed}")
+        need(isinstance(self.refine, bool), "refine", f"expected true/false, got {self.refine!r}")
+        need(float(self.line_gate) > 0.0, "line_gate", f"must be > 0, got {self.line_gate}")
         need(0.0 <= float(self.aperture_ratio) <= 1.0, "aperture_ratio",
              f"expected a value in [0, 1], got {self.aperture_ratio}")
         longest = 2.0 * math.hypot(self.radius, self.radius) * US_PER_S / float(self.min_speed)
@@ -184,7 +196,8 @@ class FlowConfig:
                  "window_us": int, "min_support": int, "max_events_per_roi": int,
                  "max_hypotheses": int, "chunk_size": int, "pass_repeats": int,
                  "pair_budget": int, "tolerance_rel": float, "min_speed": float,
-                 "max_speed": float, "aperture_ratio": float}
+                 "max_speed": float, "aperture_ratio": float, "line_gate": float,
+                 "refine_iters": int}
         for name, kind in types.items():
             if name in data:
                 value = data[name]

@@ -19,12 +19,21 @@ Evaluated batched over many groups, exactly and deterministically:
   (stream index, candidate ordinal)). Hash selection is deterministic, independent of how
   the stream was chunked, and spreads the kept events over the whole window.
 
-Aperture test: with ``u_c`` the unit vectors from ``F`` to the kept candidates (those farther
-than ``APERTURE_EPS`` relative), the 2x2 scatter ``S = sum_c u_c u_c^T`` has eigenvalues
-``l_min <= l_max``. Candidates of an edge all lie on its constraint line ``n . F = s``, which
-passes through ``F``, so ``S`` is rank one; a textured region has several constraint lines
-through ``F``. The flow is flagged *normal* when ``l_min / l_max < aperture_ratio``; it is
-then reported as the normal flow ``(F . n) n``, with ``n`` the eigenvector of ``l_min``.
+Constraint lines, aperture test and refinement. All candidates of one event lie on the
+event's constraint line ``n . F = s`` (a local edge with unit normal ``n`` moving at normal
+speed ``s`` matches along any displacement ``d`` with ``n . d > 0``, giving ``s d / (n . d)``).
+Each event whose two candidates nearest to ``F`` come from non-parallel displacements and lie
+within ``line_gate * |F|`` of it gives its line. With the IRLS weights ``w_i`` of the robust
+fit below, the 2x2 scatter ``A = sum_i w_i n_i n_i^T`` has eigenvalues ``l_min <= l_max``:
+
+* **aperture**: ``l_min / l_max < aperture_ratio`` (all lines share one normal: an edge). The
+  flow is then reported as normal flow ``s_hat * e`` along the dominant normal ``e`` (the
+  eigenvector of ``l_max``), ``s_hat = e . b / l_max`` with ``b = sum_i w_i s_i n_i``;
+* **refinement** (``refine``): otherwise the flow is the robust intersection of the lines,
+  ``argmin_F sum_i |n_i . F - s_i|`` by IRLS started at the Eq. 3 solution. Eq. 3 alone picks
+  one candidate, whose direction is quantised to the integer displacements (up to ~9° off for
+  radius 3); the intersection removes that quantisation. ``full_flow`` keeps the Eq. 3
+  solution.
 """
 
 from __future__ import annotations
@@ -34,13 +43,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["Registration", "register_groups", "hash32", "COST_SCALE", "APERTURE_EPS",
-           "select_smallest"]
+__all__ = ["Registration", "register_groups", "hash32", "COST_SCALE", "select_smallest"]
 
 COST_SCALE = 16.0
 """Distances are rounded to 1/COST_SCALE px/s before the exact int64 sums."""
-APERTURE_EPS = 1e-3
-"""Candidates closer to F than this fraction of ``max(|F|, 1 px/s)`` carry no direction."""
+_PARALLEL_EPS = 1e-3
+_IRLS_DELTA = 0.01
 _GOLDEN = 2654435761
 _RANK_BITS = 20
 
@@ -87,6 +95,7 @@ class Registration:
         ratio: (G,) float32 eigenvalue ratio of the aperture test (1 when undefined).
         normal: (G,) bool aperture flag.
         normal_dir: (G, 2) float32 unit normal ``n`` where ``normal``, else NaN.
+        lines: (G,) int64 events that gave a constraint line.
     """
 
     flow: Tensor
@@ -96,6 +105,7 @@ class Registration:
     ratio: Tensor
     normal: Tensor
     normal_dir: Tensor
+    lines: Tensor
 
 
 def _runs(values: Tensor) -> tuple[Tensor, Tensor]:
@@ -109,7 +119,8 @@ def _runs(values: Tensor) -> tuple[Tensor, Tensor]:
 
 def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n_groups: int,
                     max_events: int, max_hypotheses: int, aperture_ratio: float,
-                    pair_budget: int) -> Registration:
+                    pair_budget: int, refine: bool = True, line_gate: float = 0.35,
+                    refine_iters: int = 5) -> Registration:
     """Solve Eq. 3 for ``n_groups`` groups at once.
 
     Args:
@@ -122,6 +133,10 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
         max_events, max_hypotheses: the caps of the data term and of the tried solutions.
         aperture_ratio: threshold of the aperture test.
         pair_budget: most (hypothesis, candidate) distances evaluated at once.
+        refine: replace F by the robust intersection of the events' constraint lines.
+        line_gate: an event's line uses its two candidates nearest to F, both within
+            ``line_gate * |F|`` of it.
+        refine_iters: IRLS iterations of the refinement.
 
     Returns:
         The :class:`Registration` of every group.
@@ -134,7 +149,8 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                        used_events=torch.zeros(g_count, dtype=torch.int64, device=dev),
                        ratio=torch.ones(g_count, device=dev),
                        normal=torch.zeros(g_count, dtype=torch.bool, device=dev),
-                       normal_dir=nan2.clone())
+                       normal_dir=nan2.clone(),
+                       lines=torch.zeros(g_count, dtype=torch.int64, device=dev))
     if group.numel() == 0 or g_count == 0:
         return out
     # --- data term: cap the events per group by the hash of their stream index
@@ -188,31 +204,101 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     out.full_flow = full
     out.cost = torch.where(has, best_cost.to(torch.float64) / COST_SCALE
                            / ev_per_group.clamp_min(1), torch.nan).to(torch.float32)
-    # --- aperture test on the kept candidates
-    diff = c_flow - full[c_group]
-    dist = diff.norm(dim=1)
-    scale = full[c_group].norm(dim=1).clamp_min(1.0)
-    informative = dist > APERTURE_EPS * scale
-    u = torch.where(informative[:, None], diff / dist.clamp_min(1e-30)[:, None],
-                    torch.zeros_like(diff)).to(torch.float64)
-    s = torch.zeros(g_count, 3, dtype=torch.float64, device=dev)
-    s.index_add_(0, c_group, torch.stack([u[:, 0] * u[:, 0], u[:, 0] * u[:, 1],
-                                          u[:, 1] * u[:, 1]], 1))
-    a, b, c = s[:, 0], s[:, 1], s[:, 2]
-    half_tr = 0.5 * (a + c)
-    rad = torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
-    l_max, l_min = half_tr + rad, half_tr - rad
-    ratio = torch.where(l_max > 0, (l_min / l_max.clamp_min(1e-300)).clamp_min(0.0),
-                        torch.ones_like(l_max))
-    normal = has & (ratio < aperture_ratio)
-    theta = 0.5 * torch.atan2(2 * b, a - c) + 0.5 * torch.pi  # minor axis
-    n_dir = torch.stack([torch.cos(theta), torch.sin(theta)], 1).to(torch.float32)
-    proj = (full * n_dir).sum(1, keepdim=True) * n_dir
+    # --- constraint lines, aperture test and refinement
+    lines = _event_lines(c_group, c_run, c_flow, full, n_ev_total, ev_group, line_gate)
+    fit = _fit_lines(lines, full, g_count, refine_iters)
+    ratio = fit["ratio"]
+    normal = has & (fit["count"] >= 2) & (ratio < aperture_ratio)
+    n_dir = fit["major"]
+    refined = torch.where((has & (fit["count"] >= 2))[:, None], fit["flow"], full) \
+        if refine else full
+    proj = (refined * n_dir).sum(1, keepdim=True) * n_dir
+    normal_speed = fit["normal_speed"][:, None] * n_dir
     out.ratio = ratio.to(torch.float32)
+    out.lines = fit["count"]
     out.normal = normal
     out.normal_dir = torch.where(normal[:, None], n_dir, nan2)
-    out.flow = torch.where(normal[:, None], proj, full)
+    out.flow = torch.where(normal[:, None], normal_speed if refine else proj, refined)
     return out
+
+
+def _event_lines(c_group: Tensor, c_run: Tensor, c_flow: Tensor, full: Tensor, n_events: int,
+                 ev_group: Tensor, gate: float) -> dict[str, Tensor]:
+    """One constraint line ``n . F = s`` per event, through its two candidates nearest to F.
+
+    The two candidates must come from non-parallel displacements and lie within
+    ``gate * max(|F|, 1)`` of the group's flow F; events without such a pair give no line.
+    """
+    dev = c_flow.device
+    m = c_flow.shape[0]
+    f0 = full[c_group]
+    dist = (c_flow - f0).norm(dim=1)
+    q = torch.round(torch.nan_to_num(dist, nan=1e18).to(torch.float64) * COST_SCALE)
+    idx = torch.arange(m, device=dev)
+    combo = (q.clamp_max(2.0 ** 30).to(torch.int64) << 32) | idx
+    big = torch.iinfo(torch.int64).max
+    best1 = torch.full((n_events,), big, dtype=torch.int64, device=dev)
+    best1.scatter_reduce_(0, c_run, combo, "amin")
+    i1 = best1 & 0xFFFFFFFF
+    f1 = c_flow[i1[c_run]]
+    cross = (c_flow[:, 0] * f1[:, 1] - c_flow[:, 1] * f1[:, 0]).abs()
+    nonpar = cross > _PARALLEL_EPS * c_flow.norm(dim=1) * f1.norm(dim=1)
+    best2 = torch.full((n_events,), big, dtype=torch.int64, device=dev)
+    best2.scatter_reduce_(0, c_run[nonpar], combo[nonpar], "amin")
+    has2 = best2 != big
+    i2 = torch.where(has2, best2 & 0xFFFFFFFF, i1)
+    limit = gate * full[ev_group].norm(dim=1).clamp_min(1.0)
+    ok = has2 & (dist[i1] <= limit) & (dist[i2] <= limit)
+    a, b = c_flow[i1], c_flow[i2]
+    tangent = a - b
+    length = tangent.norm(dim=1).clamp_min(1e-30)
+    normal = torch.stack([-tangent[:, 1], tangent[:, 0]], 1) / length[:, None]
+    offset = (normal * a).sum(1)
+    flip = torch.where(offset < 0, -1.0, 1.0)
+    return {"normal": (normal * flip[:, None])[ok], "offset": (offset * flip)[ok],
+            "group": ev_group[ok]}
+
+
+def _fit_lines(lines: dict[str, Tensor], start: Tensor, g_count: int, iters: int
+               ) -> dict[str, Tensor]:
+    """Robust (IRLS, L1-like) intersection of each group's constraint lines.
+
+    Minimises ``sum_i |n_i . F - s_i|`` from ``start``; where the normals span one direction
+    only (eigenvalue ratio below the caller's threshold), only the normal speed is defined.
+    """
+    dev = start.device
+    n, s, g = (lines["normal"].to(torch.float64), lines["offset"].to(torch.float64),
+               lines["group"])
+    count = torch.bincount(g, minlength=g_count)
+    flow = torch.nan_to_num(start.to(torch.float64))
+    delta = _IRLS_DELTA * flow.norm(dim=1).clamp_min(1.0)
+    nn_ = torch.stack([n[:, 0] * n[:, 0], n[:, 0] * n[:, 1], n[:, 1] * n[:, 1]], 1)
+    ratio = torch.ones(g_count, dtype=torch.float64, device=dev)
+    major = torch.zeros(g_count, 2, dtype=torch.float64, device=dev)
+    normal_speed = torch.zeros(g_count, dtype=torch.float64, device=dev)
+    for _ in range(max(1, iters)):
+        r = (n * flow[g]).sum(1) - s
+        w = 1.0 / torch.maximum(r.abs(), delta[g])
+        a_m = torch.zeros(g_count, 3, dtype=torch.float64, device=dev)
+        a_m.index_add_(0, g, w[:, None] * nn_)
+        rhs = torch.zeros(g_count, 2, dtype=torch.float64, device=dev)
+        rhs.index_add_(0, g, (w * s)[:, None] * n)
+        a, b, c = a_m[:, 0], a_m[:, 1], a_m[:, 2]
+        half_tr = 0.5 * (a + c)
+        rad = torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
+        l_max, l_min = half_tr + rad, half_tr - rad
+        ratio = torch.where(l_max > 0, (l_min / l_max.clamp_min(1e-300)).clamp_min(0.0),
+                            torch.ones_like(l_max))
+        theta = 0.5 * torch.atan2(2 * b, a - c)
+        major = torch.stack([torch.cos(theta), torch.sin(theta)], 1)
+        normal_speed = (major * rhs).sum(1) / l_max.clamp_min(1e-300)
+        det = a * c - b * b
+        solvable = (count >= 2) & (det > 1e-12 * l_max.clamp_min(1e-300) ** 2)
+        full = torch.stack([c * rhs[:, 0] - b * rhs[:, 1], a * rhs[:, 1] - b * rhs[:, 0]], 1)
+        full = full / torch.where(det.abs() > 0, det, torch.ones_like(det))[:, None]
+        flow = torch.where(solvable[:, None], full, flow)
+    return {"flow": flow.to(torch.float32), "ratio": ratio, "count": count,
+            "major": major.to(torch.float32), "normal_speed": normal_speed.to(torch.float32)}
 
 
 def _hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Tensor,

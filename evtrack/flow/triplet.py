@@ -103,6 +103,7 @@ class TripletFlow(nn.Module):
             new.history.t_base = old_search.history.t_base
             new.history.seq_base = old_search.history.seq_base
             new.next_seq = old_search.next_seq
+            new.last_t = old_search.last_t.to(device)
             self._search = new
         p = self._pending
         self._pending = _Pending(*(getattr(p, f).to(device) for f in _Pending.__annotations__))
@@ -239,7 +240,8 @@ class TripletFlow(nn.Module):
         c_local = torch.searchsorted(keys, p.gkey[done_c])
         reg = register_groups(c_local, p.seq[done_c], p.ordinal[done_c], p.flow[done_c],
                               keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
-                              cfg.aperture_ratio, cfg.pair_budget)
+                              cfg.aperture_ratio, cfg.pair_budget, cfg.refine, cfg.line_gate,
+                              cfg.refine_iters)
         support = p.g_support[done_g]
         reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0])
         result = self._rows(keys, reported, reg, support, p.g_events[done_g])

@@ -41,9 +41,10 @@ def reference_candidates(x, y, t, p, sensor_size, *, radius, history, refractory
         k = state["next"]
         state["next"] = k + 1
         c = 0 if pk > 0 else 1
-        previous = last.get((c, yk, xk))
-        last[(c, yk, xk)] = tk
-        if refractory_us > 0 and previous is not None and tk - previous <= refractory_us:
+        previous = last.get((yk, xk))  # previous event of the pixel, either polarity
+        last[(yk, xk)] = (tk, pk)
+        if (refractory_us > 0 and previous is not None and previous[1] == pk
+                and tk - previous[0] <= refractory_us):
             continue  # inside the burst of an earlier event: skipped, not stored
         for oi, (dx, dy) in enumerate(offsets):
             xj, yj, xi, yi = xk - dx, yk - dy, xk - 2 * dx, yk - 2 * dy
