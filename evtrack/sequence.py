@@ -595,6 +595,23 @@ class SequenceWriter:
             raise ValueError(f"{what} frame at {t_us} µs comes before the previous one "
                              f"({times[-1]} µs)")
 
+    def file_path(self, relpath: str | Path) -> Path:
+        """Where to write an extra file (e.g. the object's mesh) so it lands with the folder.
+
+        ``relpath`` is relative to the sequence folder; the returned path lies inside the
+        temporary folder, which becomes the sequence only when every write succeeded.
+        """
+        if self._tmp is None:
+            raise RuntimeError("file_path() is only available inside the writer's with-block")
+        rel = Path(relpath)
+        if rel.is_absolute() or ".." in rel.parts or not rel.parts:
+            raise ValueError(f"extra file path must be relative inside the folder, got {relpath}")
+        if rel.parts[0] in (META_FILE, EVENTS_FILE, GT_FILE, "rgb", "depth"):
+            raise ValueError(f"{relpath} is reserved by the sequence format")
+        target = self._tmp / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        return target
+
     def set_ground_truth(self, gt: GroundTruth) -> None:
         """Attach ground truth (written on close)."""
         self._gt = gt

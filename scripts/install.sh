@@ -22,7 +22,7 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
 fi
 "$PY" -m pip install -q -e ".[dev]"
 
-APT_PACKAGES="libegl1 libgl1-mesa-dri libgbm1"
+APT_PACKAGES="libegl1 libgl1 libgl1-mesa-dri libgbm1"
 if ! "$PY" -c "import moderngl; moderngl.create_standalone_context(backend='egl').release()" \
         >/dev/null 2>&1; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then

@@ -16,7 +16,6 @@ object's mesh in the object frame the poses use.
 
 from __future__ import annotations
 
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -302,8 +301,8 @@ def simulate(
             stats.pixel_speed = speed_percentiles(samples)
             stats.pixel_speed_samples = samples
             meta.extra = _extra(config, obj, trajectory, scene, stats)
-        with timer("write"):
-            _write_mesh(obj, out_dir)
+            with timer("write"):
+                obj.export(writer.file_path(MESH_FILE))
     finally:
         torch.set_num_threads(threads_before)
         renderer.release()
@@ -357,14 +356,6 @@ def _extra(config: SimConfig, obj: ObjectMesh, trajectory: Trajectory, scene,
                       "the object",
         "stats": stats.summary(),
     }
-
-
-def _write_mesh(obj: ObjectMesh, folder: Path) -> None:
-    try:
-        obj.export(folder / MESH_FILE)
-    except BaseException:
-        shutil.rmtree(folder, ignore_errors=True)  # never leave a sequence without its mesh
-        raise
 
 
 def preset_config(base: SimConfig, preset: str) -> SimConfig:

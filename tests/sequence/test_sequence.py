@@ -160,3 +160,19 @@ def test_summary(tmp_path, sequence_factory):
     sequence_factory().save(tmp_path / "seq")
     s = Sequence.load(tmp_path / "seq").summary()
     assert s["events"] == 2000 and s["rgb frames"] == 3 and "poses" in s["ground truth"]
+
+
+def test_extra_files_land_with_the_folder(tmp_path, sequence_factory):
+    seq = sequence_factory()
+    with SequenceWriter(tmp_path / "seq", seq.meta) as w:
+        w.add_events(seq.events)
+        w.file_path("object.glb").write_bytes(b"mesh")
+        assert not (tmp_path / "seq").exists()
+    assert (tmp_path / "seq" / "object.glb").read_bytes() == b"mesh"
+    with pytest.raises(ValueError, match="reserved"), SequenceWriter(tmp_path / "s2",
+                                                                      seq.meta) as w:
+        w.file_path("meta.yaml")
+    with pytest.raises(ValueError, match="relative"), SequenceWriter(tmp_path / "s3",
+                                                                      seq.meta) as w:
+        w.file_path("../escape.txt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
