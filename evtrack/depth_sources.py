@@ -1,0 +1,217 @@
+"""Depth at the RoI flows: from the RGB-D sensor or rendered from the object's mesh.
+
+Both sources keep a depth map in the event camera's pixel grid (metres, NaN = missing) and
+answer :meth:`DepthSource.lookup`: the depth of each RoI is the median of the valid depths in a
+square patch around its centre, keeping only depths inside the object's predicted depth range
+(``z_range`` from :class:`evtrack.silhouette.Silhouette`, widened by a tolerance). That range
+test removes background and occluder pixels, and the pixels the fast-moving object has left
+since the depth frame was taken. A RoI whose patch keeps no depth gets NaN; the tracker then
+uses its fallback (the predicted depth of the object's origin) and counts it.
+
+* :class:`SensorDepth`: the RGB-D camera's depth frames. When the RGB-D and event cameras
+  differ (intrinsics or ``T_event_rgb``), each frame is carried into the event camera: every
+  valid pixel is back-projected with the RGB camera, moved by ``T_event_rgb``, projected with
+  the event camera and z-buffered (nearest surface wins); pixels that receive no point stay
+  missing (the patch median bridges such holes).
+* :class:`ModelDepth`: the mesh rendered at the predicted pose (OpenGL via
+  :class:`evtrack.sim.renderer.Renderer`, headless EGL), at a reduced resolution and rate; no
+  depth camera is needed after initialisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError
+
+__all__ = ["DepthSource", "SensorDepth", "ModelDepth", "patch_offsets", "roi_depth"]
+
+_CENTRE = np.zeros((1, 2), np.int64)
+
+
+def patch_offsets(radius: int, stride: int) -> np.ndarray:
+    """(M, 2) int offsets ``(dx, dy)`` of a square patch of half-size ``radius`` sampled every
+    ``stride`` pixels (always containing ``(0, 0)``)."""
+    steps = np.arange(0, radius + 1, max(1, stride))
+    axis = np.unique(np.concatenate([-steps, steps]))
+    gx, gy = np.meshgrid(axis, axis)
+    return np.stack([gx.ravel(), gy.ravel()], 1).astype(np.int64)
+
+
+def roi_depth(depth_map: np.ndarray, uv: np.ndarray, offsets: np.ndarray,
+              z_range: tuple[float, float] | None = None) -> np.ndarray:
+    """Median valid depth around each point.
+
+    Args:
+        depth_map: (H, W) float metres, NaN or <= 0 where missing.
+        uv: (N, 2) pixel coordinates in the map's grid (rounded to the nearest pixel).
+        offsets: (M, 2) patch offsets (:func:`patch_offsets`).
+        z_range: keep only depths in ``[lo, hi]`` (metres); ``None`` keeps all valid depths.
+
+    Returns:
+        (N,) float64 metres, NaN where the patch holds no valid depth.
+    """
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    if len(uv) == 0:
+        return np.zeros(0)
+    h, w = depth_map.shape
+    centre = np.rint(uv).astype(np.int64)
+    pts = centre[:, None, :] + offsets[None]
+    inside = (pts[..., 0] >= 0) & (pts[..., 0] < w) & (pts[..., 1] >= 0) & (pts[..., 1] < h)
+    px = np.clip(pts[..., 0], 0, w - 1)
+    py = np.clip(pts[..., 1], 0, h - 1)
+    z = depth_map[py, px].astype(np.float64)
+    ok = inside & np.isfinite(z) & (z > 0)
+    if z_range is not None:
+        ok &= (z >= z_range[0]) & (z <= z_range[1])
+    z = np.where(ok, z, np.nan)
+    out = np.full(len(uv), np.nan)
+    has = ok.any(1)
+    if has.any():
+        out[has] = np.nanmedian(z[has], axis=1)
+    return out
+
+
+class DepthSource:
+    """Base class: a depth map in the event camera's pixel grid and its lookup."""
+
+    def __init__(self, camera: PinholeCamera, radius: int, stride: int) -> None:
+        self.camera = camera
+        self.offsets = patch_offsets(radius, stride)
+        self.map: np.ndarray | None = None
+        self.t_us: int | None = None
+        self.scale = 1.0
+
+    @property
+    def ready(self) -> bool:
+        return self.map is not None
+
+    def lookup(self, uv: np.ndarray, z_range: tuple[float, float] | None = None,
+               patch: bool = True) -> np.ndarray:
+        """(N, 2) pixels -> (N,) depths in metres (NaN: none; no map: all NaN).
+
+        ``patch=False`` reads the single nearest pixel instead of the patch median.
+        """
+        if self.map is None:
+            return np.full(len(uv), np.nan)
+        uv = np.asarray(uv, np.float64)
+        if self.scale != 1.0:
+            uv = (uv + 0.5) * self.scale - 0.5
+        return roi_depth(self.map, uv, self.offsets if patch else _CENTRE, z_range)
+
+
+class SensorDepth(DepthSource):
+    """Depth frames of the RGB-D camera, carried into the event camera when they differ.
+
+    Args:
+        event_camera: the event camera (the RoIs' pixel grid).
+        rgb_camera: the RGB-D camera the depth is registered to; ``None``: the event camera.
+        T_event_rgb: (4, 4) maps RGB-camera points into the event camera (identity default).
+        radius, stride: the lookup patch (pixels of the event camera).
+    """
+
+    def __init__(self, event_camera: PinholeCamera, rgb_camera: PinholeCamera | None = None,
+                 T_event_rgb: torch.Tensor | np.ndarray | None = None, radius: int = 16,
+                 stride: int = 2) -> None:
+        super().__init__(event_camera, radius, stride)
+        self.rgb_camera = rgb_camera if rgb_camera is not None else event_camera
+        T = np.eye(4) if T_event_rgb is None else np.asarray(T_event_rgb, np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all():
+            raise ConfigError(f"T_event_rgb must be a finite (4, 4) matrix, got shape {T.shape}")
+        self.T_event_rgb = T
+        self.same_camera = (self.rgb_camera == event_camera) and np.allclose(T, np.eye(4))
+
+    def set_frame(self, t_us: int, depth: np.ndarray) -> None:
+        """Take a depth frame: (H, W) metres of the RGB-D camera; NaN, 0 or negative = missing.
+
+        Raises:
+            ValueError: a frame whose size is not the RGB-D camera's.
+        """
+        d = np.asarray(depth, np.float32)
+        expected = (self.rgb_camera.height, self.rgb_camera.width)
+        if d.shape != expected:
+            raise ValueError(f"depth frame at t={t_us} µs is {d.shape[1]}x{d.shape[0]}, the "
+                             f"RGB-D camera is {expected[1]}x{expected[0]}")
+        d = np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
+        self.map = d if self.same_camera else self._to_event_camera(d)
+        self.t_us = int(t_us)
+
+    def _to_event_camera(self, d: np.ndarray) -> np.ndarray:
+        ev, rgb = self.camera, self.rgb_camera
+        v, u = np.nonzero(np.isfinite(d))
+        out = np.full((ev.height, ev.width), np.nan, np.float32)
+        if len(u) == 0:
+            return out
+        uv = torch.from_numpy(np.stack([u, v], 1).astype(np.float64))
+        P = rgb.unproject(uv, torch.from_numpy(d[v, u].astype(np.float64)))
+        T = torch.from_numpy(self.T_event_rgb)
+        P = P @ T[:3, :3].T + T[:3, 3]
+        front = P[:, 2] > 0
+        P = P[front]
+        uv_ev = torch.round(ev.project(P)).to(torch.int64)
+        inside = ((uv_ev[:, 0] >= 0) & (uv_ev[:, 0] < ev.width) & (uv_ev[:, 1] >= 0)
+                  & (uv_ev[:, 1] < ev.height))
+        flat = uv_ev[inside, 1] * ev.width + uv_ev[inside, 0]
+        zbuf = torch.full((ev.height * ev.width,), torch.inf, dtype=torch.float64)
+        zbuf.scatter_reduce_(0, flat, P[inside, 2], reduce="amin")
+        zbuf[torch.isinf(zbuf)] = torch.nan
+        return zbuf.reshape(ev.height, ev.width).numpy().astype(np.float32)
+
+
+class ModelDepth(DepthSource):
+    """Depth rendered from the object's mesh at the predicted pose (headless OpenGL).
+
+    Args:
+        mesh: the textured object (:class:`evtrack.sim.objects.ObjectMesh`) in the pose's
+            object frame.
+        camera: the event camera; with distortion, RoI pixels are undistorted before the lookup.
+        scale: render at this fraction of the event camera's resolution.
+        interval_us: re-render at most this often (µs); :meth:`update` returns whether it did.
+        radius, stride: the lookup patch (event-camera pixels; scaled with the map).
+
+    Raises:
+        RendererUnavailableError: no headless OpenGL (EGL) on this machine.
+    """
+
+    def __init__(self, mesh, camera: PinholeCamera, scale: float = 0.5,
+                 interval_us: int = 5000, radius: int = 16, stride: int = 2) -> None:
+        from evtrack.sim.renderer import Renderer
+
+        small = PinholeCamera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width,
+                              camera.height).scaled(scale)
+        r = max(0, int(round(radius * scale)))
+        s = max(1, int(round(stride * scale)))
+        super().__init__(camera, r, s)
+        self.scale = small.width / camera.width
+        self.render_camera = small
+        self.interval_us = int(interval_us)
+        self.renders = 0
+        self.renderer = Renderer(small)
+        self.renderer.set_object(mesh)
+
+    def update(self, t_us: int, pose: np.ndarray | torch.Tensor) -> bool:
+        """Re-render at ``pose`` if the map is older than ``interval_us`` (or absent)."""
+        if self.t_us is not None and t_us - self.t_us < self.interval_us:
+            return False
+        raw = self.renderer.render_raw(np.asarray(pose, np.float64))
+        z = raw[..., 3]
+        self.map = np.where(z > 0, z, np.nan).astype(np.float32)
+        self.t_us = int(t_us)
+        self.renders += 1
+        return True
+
+    def invalidate(self) -> None:
+        """Forget the map (the next :meth:`update` renders)."""
+        self.map, self.t_us = None, None
+
+    def lookup(self, uv: np.ndarray, z_range: tuple[float, float] | None = None,
+               patch: bool = True) -> np.ndarray:
+        uv = np.asarray(uv, np.float64)
+        if self.camera.dist is not None and len(uv):
+            uv = self.camera.undistort_points(torch.from_numpy(uv)).numpy()
+        return super().lookup(uv, z_range, patch)
+
+    def release(self) -> None:
+        self.renderer.release()

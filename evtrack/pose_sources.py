@@ -1,0 +1,186 @@
+"""Pose sources: what gives :class:`evtrack.Tracker` its low-rate absolute poses.
+
+A pose source is called on an RGB frame and returns at most one :class:`PoseMeasurement` in the
+event camera frame::
+
+    measurement = source(t_us, rgb, depth)      # PoseMeasurement | None
+
+* :class:`NetworkPoseSource` wraps a pose network estimator (:mod:`evtrack.models`:
+  ``TorchPoseEstimator``, ``OnnxPoseEstimator``): the most confident detection, carried from
+  the RGB camera into the event camera with ``T_event_rgb``.
+* :class:`OraclePoseSource` is **not an estimator**: it returns the ground-truth pose of a
+  simulated sequence with synthetic noise, outliers and dropouts. It exists to test the tracker
+  and to measure the filtering side independently of any network; results obtained with it say
+  nothing about a real pose network.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+from torch import Tensor
+
+from evtrack.errors import ConfigError
+
+__all__ = [
+    "PoseMeasurement",
+    "PoseSource",
+    "NetworkPoseSource",
+    "OraclePoseSource",
+]
+
+
+@dataclass
+class PoseMeasurement:
+    """One absolute pose.
+
+    Attributes:
+        t_us: time of the image it was computed from (µs).
+        pose: (4, 4) float64 object-to-event-camera transform.
+        cov: (6, 6) float64 covariance of ``[δt (m), δθ (rad)]``, or ``None`` for the filter's
+            default measurement noise.
+        confidence: the detector's confidence (1 when unknown).
+    """
+
+    t_us: int
+    pose: Tensor
+    cov: Tensor | None = None
+    confidence: float = 1.0
+
+    def __post_init__(self) -> None:
+        self.t_us = int(self.t_us)
+        self.pose = torch.as_tensor(self.pose, dtype=torch.float64)
+        if self.pose.shape != (4, 4):
+            raise ValueError(f"pose must be (4, 4), got {tuple(self.pose.shape)}")
+        if self.cov is not None:
+            self.cov = torch.as_tensor(self.cov, dtype=torch.float64)
+            if self.cov.shape != (6, 6):
+                raise ValueError(f"pose covariance must be (6, 6), got {tuple(self.cov.shape)}")
+
+
+@runtime_checkable
+class PoseSource(Protocol):
+    """Anything callable as ``source(t_us, rgb, depth) -> PoseMeasurement | None``."""
+
+    def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None
+                 ) -> PoseMeasurement | None: ...
+
+
+class NetworkPoseSource:
+    """Poses from a pose network estimator (:class:`evtrack.models.PoseEstimator`).
+
+    Args:
+        estimator: callable ``estimator(rgb) -> list[PoseDetection]`` (most confident first or
+            not; the most confident detection is taken). Detection poses are object-to-RGB-camera.
+        T_event_rgb: (4, 4) maps RGB-camera points into the event camera (identity default).
+        min_confidence: detections below it are ignored.
+        cov: (6, 6) measurement covariance handed to the filter, or ``None`` for its default.
+    """
+
+    def __init__(self, estimator: Callable[[np.ndarray], Sequence],
+                 T_event_rgb: Tensor | None = None, min_confidence: float = 0.0,
+                 cov: Tensor | None = None) -> None:
+        self.estimator = estimator
+        self.T_event_rgb = (torch.eye(4, dtype=torch.float64) if T_event_rgb is None
+                            else torch.as_tensor(T_event_rgb, dtype=torch.float64))
+        if self.T_event_rgb.shape != (4, 4):
+            raise ConfigError(f"T_event_rgb must be (4, 4), got {tuple(self.T_event_rgb.shape)}")
+        self.min_confidence = float(min_confidence)
+        self.cov = cov
+
+    def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None = None
+                 ) -> PoseMeasurement | None:
+        detections = [d for d in self.estimator(rgb) if d.confidence >= self.min_confidence]
+        if not detections:
+            return None
+        best = max(detections, key=lambda d: d.confidence)
+        pose = torch.as_tensor(np.asarray(best.pose), dtype=torch.float64)
+        if not bool(torch.isfinite(pose).all()):
+            return None
+        return PoseMeasurement(t_us, self.T_event_rgb @ pose, self.cov, float(best.confidence))
+
+
+class OraclePoseSource:
+    """Ground-truth poses with synthetic errors — for tests and diagnostics only.
+
+    **Not a pose estimator.** It reads the true pose of a simulated sequence at the frame time
+    and perturbs it; use it to test the tracker and to measure the filters without a network.
+
+    Every frame time gets its own random draws, from ``(seed, t_us)``: the same frame always
+    gives the same measurement, whatever the order or chunking of the calls.
+
+    Args:
+        pose_at: the true pose at a time, ``pose_at(t_us) -> (4, 4)`` (e.g.
+            ``sequence.ground_truth.pose_at``).
+        std_translation: metres, Gaussian noise per axis on the translation.
+        std_rotation: radians, Gaussian noise per axis of a rotation vector applied in the
+            camera frame (``R' = exp(δθ) R``).
+        outlier_rate: probability that the pose is replaced by a random one: a uniformly random
+            rotation and the true translation moved uniformly within ``±outlier_translation``
+            per axis.
+        outlier_translation: metres, see ``outlier_rate``.
+        dropout_rate: probability of returning nothing (a missed detection).
+        report_cov: hand the filter the covariance of the inlier noise (else ``None``: the
+            filter's default).
+        seed: seed of all draws.
+    """
+
+    def __init__(self, pose_at: Callable[[int], Tensor], std_translation: float = 0.0,
+                 std_rotation: float = 0.0, outlier_rate: float = 0.0,
+                 outlier_translation: float = 0.3, dropout_rate: float = 0.0,
+                 report_cov: bool = False, seed: int = 0) -> None:
+        for name, value in (("std_translation", std_translation), ("std_rotation", std_rotation),
+                            ("outlier_translation", outlier_translation)):
+            if not value >= 0:
+                raise ConfigError(f"OraclePoseSource: {name} must be >= 0, got {value}")
+        for name, value in (("outlier_rate", outlier_rate), ("dropout_rate", dropout_rate)):
+            if not 0 <= value <= 1:
+                raise ConfigError(f"OraclePoseSource: {name} must be in [0, 1], got {value}")
+        self.pose_at = pose_at
+        self.std_translation = float(std_translation)
+        self.std_rotation = float(std_rotation)
+        self.outlier_rate = float(outlier_rate)
+        self.outlier_translation = float(outlier_translation)
+        self.dropout_rate = float(dropout_rate)
+        self.report_cov = bool(report_cov)
+        self.seed = int(seed)
+        self.outliers: list[int] = []  # frame times given an outlier (for tests)
+
+    @classmethod
+    def from_sequence(cls, sequence, **kwargs) -> OraclePoseSource:
+        """The oracle of a sequence with ground truth (raises if it has none)."""
+        gt = sequence.ground_truth
+        if gt is None:
+            raise ConfigError(f"{sequence.root or sequence.meta.name}: the oracle pose source "
+                              "needs ground truth (groundtruth.h5)")
+        return cls(gt.pose_at, **kwargs)
+
+    def _cov(self) -> Tensor | None:
+        if not self.report_cov:
+            return None
+        var = [max(self.std_translation, 1e-6) ** 2] * 3 + [max(self.std_rotation, 1e-6) ** 2] * 3
+        return torch.diag(torch.tensor(var, dtype=torch.float64))
+
+    def __call__(self, t_us: int, rgb: np.ndarray | None = None,
+                 depth: np.ndarray | None = None) -> PoseMeasurement | None:
+        rng = np.random.default_rng([self.seed, int(t_us)])
+        drop, outlier = rng.random(2)
+        noise = rng.standard_normal(6)
+        random_rot = Rotation.random(random_state=rng).as_matrix()
+        offset = rng.uniform(-1.0, 1.0, 3) * self.outlier_translation
+        if drop < self.dropout_rate:
+            return None
+        T = np.array(self.pose_at(int(t_us)), dtype=np.float64)
+        if outlier < self.outlier_rate:
+            self.outliers.append(int(t_us))
+            T[:3, :3] = random_rot
+            T[:3, 3] += offset
+        else:
+            T[:3, 3] += noise[:3] * self.std_translation
+            T[:3, :3] = Rotation.from_rotvec(noise[3:] * self.std_rotation).as_matrix() @ T[:3, :3]
+        return PoseMeasurement(int(t_us), torch.from_numpy(T), self._cov(), 1.0)

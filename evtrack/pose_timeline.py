@@ -1,0 +1,181 @@
+"""A pose filter with its recent past, so that late measurements are fused at their own time.
+
+A pose network needs time: the pose of the frame taken at ``t`` reaches the filter at
+``t + latency``, when the filter has already moved on. :class:`PoseTimeline` keeps a snapshot
+of the filter state at the end of every step of the last ``horizon_us`` and every measurement
+of that span. A measurement for a past time ``t_m`` rolls the filter back to the last step end
+before ``t_m``, and replays the steps from there, fusing every kept measurement at its own time
+(predict to it, update, predict on). The result is the state the filter would have reached had
+the measurement arrived on time; the past outputs of the tracker are not rewritten (they were
+the best estimates available then).
+
+Snapshots hold the filter's whole state, counters included (:class:`~evtrack.filters.PoseUKF`:
+``t, q, cov, initialized, rejected_run, rejected, reinitialised``; :class:`PoseTwistUKF` adds
+``twist``), so a replayed measurement is counted once.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import deque
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from evtrack.filters import PoseTwistUKF, PoseUKF
+
+__all__ = ["PoseTimeline", "Measurement"]
+
+_STATE_NAMES = ("t", "q", "cov", "twist", "initialized", "rejected_run", "rejected",
+                "reinitialised")
+
+
+@dataclass
+class Measurement:
+    """A measurement for the pose filter.
+
+    Attributes:
+        t_us: the time it describes (µs).
+        kind: ``"pose"`` (``value`` = (t (1,3), q (1,4))) or ``"twist"`` (``value`` = (1,6)).
+        value: see ``kind``.
+        cov: (1,6,6) covariance, or ``None`` for the filter's default.
+        seq: insertion order (ties at the same time are fused in this order).
+    """
+
+    t_us: int
+    kind: str
+    value: tuple[Tensor, ...]
+    cov: Tensor | None
+    seq: int = 0
+
+
+class PoseTimeline:
+    """Step a pose filter and fuse measurements at their own (past) times.
+
+    Args:
+        filt: a :class:`PoseUKF` (predicted with a twist per step) or :class:`PoseTwistUKF`
+            (constant-velocity predict) with batch size 1.
+        horizon_us: how much past (µs) is kept; older measurements are dropped and counted in
+            :attr:`late`.
+    """
+
+    def __init__(self, filt: PoseUKF | PoseTwistUKF, horizon_us: int) -> None:
+        if filt.batch_size != 1:
+            raise ValueError(f"PoseTimeline needs a filter of batch size 1, got {filt.batch_size}")
+        self.filter = filt
+        self.twist_driven = isinstance(filt, PoseUKF)
+        buffers = dict(filt.named_buffers(recurse=False))
+        self.names = tuple(n for n in _STATE_NAMES if n in buffers)
+        self.horizon_us = int(horizon_us)
+        self.late = 0
+        self._seq = 0
+        self.start(0)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def now(self) -> int:
+        """Time of the current state (µs)."""
+        return self._times[-1]
+
+    def start(self, t_us: int) -> None:
+        """Forget the past: the current filter state is the state at ``t_us``."""
+        self._times: deque[int] = deque([int(t_us)])
+        self._snaps: deque[tuple[Tensor, ...]] = deque([self._snapshot()])
+        self._twists: deque[Tensor | None] = deque([None])
+        self._records: list[Measurement] = []
+
+    def _snapshot(self) -> tuple[Tensor, ...]:
+        return tuple(getattr(self.filter, n).clone() for n in self.names)
+
+    def _restore(self, snap: tuple[Tensor, ...]) -> None:
+        for name, value in zip(self.names, snap, strict=True):
+            setattr(self.filter, name, value.clone())
+
+    # ------------------------------------------------------------------ stepping
+    def _predict(self, dt_us: int, twist: Tensor | None) -> None:
+        if dt_us <= 0:
+            return
+        dt = dt_us * 1e-6
+        if self.twist_driven:
+            self.filter.predict(twist, dt)
+        else:
+            self.filter.predict(dt)
+
+    def _fuse(self, m: Measurement) -> None:
+        if m.kind == "pose":
+            self.filter.update(m.value[0], m.value[1], m.cov)
+        else:
+            self.filter.update_twist(m.value[0], m.cov)
+
+    def step(self, t1_us: int, twist: Tensor | None = None) -> None:
+        """Predict from :attr:`now` to ``t1_us`` (with ``twist`` (1,6) for a :class:`PoseUKF`)."""
+        t1_us = int(t1_us)
+        if t1_us <= self.now:
+            raise ValueError(f"PoseTimeline.step: {t1_us} µs is not after {self.now} µs")
+        if self.twist_driven and twist is None:
+            raise ValueError("PoseTimeline.step: a twist-driven filter needs a twist")
+        self._predict(t1_us - self.now, twist)
+        self._times.append(t1_us)
+        self._snaps.append(self._snapshot())
+        self._twists.append(None if twist is None else twist.clone())
+        self._trim()
+
+    def _trim(self) -> None:
+        limit = self.now - self.horizon_us
+        while len(self._times) > 1 and self._times[1] <= limit:
+            self._times.popleft()
+            self._snaps.popleft()
+            self._twists.popleft()
+        first = self._times[0]
+        if self._records and self._records[0].t_us <= first:
+            self._records = [m for m in self._records if m.t_us > first]
+
+    # ------------------------------------------------------------------ measurements
+    def add(self, t_us: int, kind: str, value: tuple[Tensor, ...], cov: Tensor | None = None
+            ) -> bool:
+        """Fuse a measurement for time ``t_us`` <= :attr:`now`.
+
+        Returns:
+            False when it is older than the kept past (dropped, counted in :attr:`late`).
+        """
+        t_us = int(t_us)
+        if t_us > self.now:
+            raise ValueError(f"measurement at {t_us} µs is in the future of the filter "
+                             f"({self.now} µs)")
+        if t_us <= self._times[0]:
+            self.late += 1
+            return False
+        self._seq += 1
+        m = Measurement(t_us, kind, value, cov, self._seq)
+        keys = [(r.t_us, r.seq) for r in self._records]
+        self._records.insert(bisect.bisect(keys, (m.t_us, m.seq)), m)
+        times = list(self._times)
+        j = bisect.bisect_left(times, t_us) - 1  # last step end strictly before t_us
+        self._restore(self._snaps[j])
+        for i in range(j + 1, len(times)):
+            t_start, t_end = times[i - 1], times[i]
+            twist = self._twists[i]
+            t_cur = t_start
+            for r in self._records:
+                if t_start < r.t_us <= t_end:
+                    self._predict(r.t_us - t_cur, twist)
+                    self._fuse(r)
+                    t_cur = r.t_us
+            self._predict(t_end - t_cur, twist)
+            self._snaps[i] = self._snapshot()
+        return True
+
+    def pose_at_now(self) -> tuple[Tensor, Tensor]:
+        """``(t (3,), q (4,))`` of the current state."""
+        return self.filter.t[0], self.filter.q[0]
+
+
+def pose_measurement_value(T: Tensor, dtype: torch.dtype, device: torch.device
+                           ) -> tuple[Tensor, Tensor]:
+    """(4, 4) pose -> ``(t (1,3), q (1,4))`` for :meth:`PoseTimeline.add`."""
+    from evtrack.geometry import matrix_to_tq
+
+    t, q = matrix_to_tq(T.to(torch.float64))
+    return t.reshape(1, 3).to(dtype=dtype, device=device), q.reshape(1, 4).to(dtype=dtype,
+                                                                              device=device)

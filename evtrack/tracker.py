@@ -1,0 +1,747 @@
+"""``Tracker``: 6-DoF pose tracking from events and RGB-D frames (the method paper, Sec. III).
+
+Data flow of the ``full`` method (DESIGN.md), once per velocity step (1 ms by default)::
+
+    events of the step ──► kept if within mask_margin_px of the predicted silhouette
+        ──► TripletFlow (one flow window per step) ──► RoI flows (px/s)
+        ──► depth at the RoIs (sensor depth frame or mesh rendered at the predicted pose)
+        ──► VelocityKF (decaying-velocity predict + flow update) ──► twist [v_o, ω]
+        ──► PoseUKF.predict(twist, step)
+    RGB frames at pose_rate_hz ──► pose source ──► pose available at t + pose_latency
+        ──► PoseUKF.update at the frame's time t (the filter rolls back and replays)
+
+The methods (``TrackerConfig.method``) share this code:
+
+* ``full``: as above (the paper).
+* ``velocity``: the same velocity pipeline; poses are used only to initialise (and to
+  re-initialise after the object was lost).
+* ``pose``: no velocity; the pose UKF (``pose_only_ukf``, random-walk process noise) with poses.
+* ``frame-flow``: ROFT-like: dense optical flow between consecutive RGB frames
+  (:mod:`evtrack.frame_flow`) -> a twist per frame pair (``frame_flow_kf``) -> twist
+  measurement of a constant-velocity pose UKF (:class:`~evtrack.filters.PoseTwistUKF`), which is
+  predicted every step and fused with the poses.
+* ``ge``: the 1-DoF generative event model (:mod:`evtrack.ge_model`) in place of the flow.
+
+Time: one clock in µs, advanced by the events (a step ``[t_k, t_k + step)`` closes when an event
+at or after its end arrives) and by :meth:`Tracker.advance` / :meth:`Tracker.push_frame`
+(``push_frame(t)`` first closes every step ending at or before ``t``). Inputs must be pushed in
+time order, as one merged stream: events, then the frame at ``t`` once the events before ``t``
+were pushed. The tracker outputs a pose and a twist at the end of every step.
+
+Lost object: when the predicted silhouette stays outside the image for ``lost_after_ms``, the
+pose filter forgets its state and the next pose re-initialises it (meanwhile the last pose is
+held and flagged). The pose filter also re-initialises itself after ``reinit_after`` gated
+poses in a row (:class:`~evtrack.filters.PoseUKF`).
+
+Depth fallback: a RoI without a valid depth (no depth frame yet, a frame older than
+``max_depth_age_ms``, a pushed frame without depth and no earlier one, or only missing or
+out-of-range pixels in its patch) takes the predicted depth of the object's origin; each such RoI
+is counted in :attr:`TrackerStats.depth_fallbacks`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evtrack.camera import PinholeCamera
+from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth
+from evtrack.errors import ConfigError, EventsError
+from evtrack.events import Events, concatenate
+from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
+from evtrack.flow import FlowResult, TripletFlow
+from evtrack.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
+from evtrack.geometry import integrate_twist, matrix_to_tq
+from evtrack.pose_sources import PoseMeasurement, PoseSource
+from evtrack.pose_timeline import PoseTimeline, pose_measurement_value
+from evtrack.silhouette import Silhouette, SilhouettePolygon
+from evtrack.tracking_config import TrackerConfig
+from evtrack.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING, Trajectory
+
+__all__ = ["Tracker", "TrackerStats"]
+
+_FRAME_JITTER_US = 1000
+"""A frame up to this much before a pose-source slot still takes that slot (frame timestamps
+are rounded to µs, so 60 FPS frames fall a few µs either side of the 5 Hz grid)."""
+
+_DEPTH_TOLERANCE_M = 0.05
+"""Depths within this distance outside the object's predicted depth range still count as the
+object's (noise, pose error)."""
+
+_EVENTS_CHUNK_US = 50_000
+"""Offline tracking reads the events in windows of this length."""
+
+FrameInput = np.ndarray | Callable[[], np.ndarray] | None
+
+
+@dataclass
+class TrackerStats:
+    """Counters of one run (since the last :meth:`Tracker.reset`).
+
+    Attributes:
+        steps: velocity steps processed.
+        events: events pushed.
+        events_on_object: events inside the predicted silhouette (used by the flow).
+        roi_flows: RoI flows given to the velocity filter.
+        velocity_updates: steps with at least one RoI flow (or GE row).
+        depth_fallbacks: RoIs that took the fallback depth (see the module docstring).
+        frames: frames pushed; frames_without_depth: of those, without a depth frame.
+        pose_calls: pose-source calls; poses: measurements returned; poses_late: dropped
+            because older than ``history_ms``.
+        poses_rejected: poses rejected by the gate; reinitialisations: filter re-inits after
+            rejections; lost: times the object was declared lost.
+        twist_measurements: frame-flow twist measurements fused.
+        time_s: processing time per stage (flow, velocity, pose, frames, other).
+    """
+
+    steps: int = 0
+    events: int = 0
+    events_on_object: int = 0
+    roi_flows: int = 0
+    velocity_updates: int = 0
+    depth_fallbacks: int = 0
+    frames: int = 0
+    frames_without_depth: int = 0
+    pose_calls: int = 0
+    poses: int = 0
+    poses_late: int = 0
+    poses_rejected: int = 0
+    reinitialisations: int = 0
+    lost: int = 0
+    twist_measurements: int = 0
+    time_s: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+class _Timer:
+    def __init__(self, totals: dict[str, float], name: str) -> None:
+        self.totals, self.name = totals, name
+
+    def __enter__(self) -> None:
+        self.t0 = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        self.totals[self.name] = self.totals.get(self.name, 0.0) + time.perf_counter() - self.t0
+
+
+def _load_mesh(mesh: Any):
+    """ObjectMesh, a mesh file (object frame kept: no recentring) or (V, 3) vertices."""
+    from evtrack.sim.objects import ObjectMesh, load_mesh
+
+    if isinstance(mesh, ObjectMesh):
+        return mesh, np.asarray(mesh.vertices, np.float64)
+    if isinstance(mesh, str | Path):
+        m = load_mesh(mesh, recenter=False)
+        return m, np.asarray(m.vertices, np.float64)
+    vertices = np.asarray(mesh, np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ConfigError(f"mesh must be an ObjectMesh, a mesh file or (V, 3) vertices, got "
+                          f"an array of shape {vertices.shape}")
+    return None, vertices
+
+
+def _quat_to_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(3,), (4,) wxyz -> (4, 4) float64 (numpy; the per-step path avoids torch overheads)."""
+    w, x, y, z = q / np.linalg.norm(q)
+    T = np.eye(4)
+    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                 [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                 [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    T[:3, 3] = t
+    return T
+
+
+class Tracker:
+    """Track one known rigid object with an event camera and an RGB-D camera.
+
+    Args:
+        config: :class:`~evtrack.tracking_config.TrackerConfig` (default: its defaults).
+        camera: the event camera.
+        mesh: the object: an :class:`~evtrack.sim.objects.ObjectMesh`, a mesh file (read in its
+            own frame, which must be the poses' object frame), or (V, 3) vertices (enough for
+            everything but ``depth_source="model"``).
+        pose_source: gives absolute poses from RGB frames (:mod:`evtrack.pose_sources`);
+            ``None``: poses only through :meth:`push_pose` or :meth:`reset`.
+        rgb_camera: the RGB-D camera (default: the event camera).
+        T_event_rgb: (4, 4) maps RGB-camera points into the event camera (default identity).
+
+    Example:
+        >>> tracker = Tracker.for_sequence(seq, TrackerConfig(), pose_source)   # doctest: +SKIP
+        >>> trajectory = tracker.track(seq)                                      # doctest: +SKIP
+        >>> trajectory.save("track.csv")                                         # doctest: +SKIP
+    """
+
+    def __init__(self, config: TrackerConfig | None = None, *, camera: PinholeCamera,
+                 mesh: Any, pose_source: PoseSource | None = None,
+                 rgb_camera: PinholeCamera | None = None,
+                 T_event_rgb: Tensor | np.ndarray | None = None) -> None:
+        self.config = config if config is not None else TrackerConfig()
+        cfg = self.config
+        self.camera = camera
+        self.rgb_camera = rgb_camera if rgb_camera is not None else camera
+        self.T_event_rgb = (torch.eye(4, dtype=torch.float64) if T_event_rgb is None
+                            else torch.as_tensor(T_event_rgb, dtype=torch.float64))
+        if self.T_event_rgb.shape != (4, 4):
+            raise ConfigError(f"T_event_rgb must be (4, 4), got {tuple(self.T_event_rgb.shape)}")
+        self.pose_source = pose_source
+        self.mesh, vertices = _load_mesh(mesh)
+        self.device = torch.device(cfg.device)
+        self.silhouette = Silhouette(vertices, camera)
+        self.method = cfg.method
+        eye = torch.eye(4, dtype=torch.float64)
+        self._aligned = self.rgb_camera == camera and bool(torch.allclose(self.T_event_rgb, eye))
+        # the camera whose images measure the motion: events, or RGB for frame-flow
+        sensing_camera = self.rgb_camera if self.method == "frame-flow" else camera
+        if self.method == "frame-flow":
+            self.rgb_silhouette = Silhouette(vertices, self.rgb_camera)
+            self.T_rgb_event = torch.linalg.inv(self.T_event_rgb)
+            self.dense_flow = DenseFlow(cfg.frame_flow)
+            self.frame_kf = VelocityKF(self.rgb_camera, 1, cfg.frame_flow_kf, device=self.device)
+            self.rgb_to_event_twist = twist_adjoint(self.T_event_rgb)
+        self.depth = self._make_depth_source(sensing_camera, vertices)
+        self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
+        self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
+        if self.method == "ge":
+            from evtrack.ge_model import GEVelocity
+
+            if not self._aligned:
+                raise ConfigError("method 'ge' needs the RGB frames in the event camera's image "
+                                  "(same camera, identity T_event_rgb)")
+            self.ge = GEVelocity(camera, cfg.ge, cfg.velocity_kf, device=self.device)
+        if self.method == "pose":
+            filt = PoseUKF(1, cfg.pose_only_ukf, device=self.device)
+        elif self.method == "frame-flow":
+            filt = PoseTwistUKF(1, cfg.pose_twist_ukf, device=self.device)
+        else:
+            filt = PoseUKF(1, cfg.pose_ukf, device=self.device)
+        self.ukf = filt
+        # before the first pose the flow runs on all events (sensor depth only), so that a late
+        # first pose is carried to the present by the measured motion
+        self._velocity_before_pose = (cfg.velocity_before_pose and cfg.depth_source == "sensor"
+                                      and self.method in ("full", "velocity"))
+        self.timeline = PoseTimeline(filt, int(round(cfg.history_ms * 1e3)))
+        self._zero_twist = torch.zeros(1, 6, dtype=torch.float64, device=self.device)
+        self.reset()
+
+    def _make_depth_source(self, cam: PinholeCamera, vertices: np.ndarray) -> DepthSource:
+        cfg = self.config
+        if cfg.depth_source == "model":
+            if self.mesh is None:
+                raise ConfigError("depth_source 'model' needs the object's mesh (an ObjectMesh "
+                                  "or a mesh file), not bare vertices")
+            return ModelDepth(self.mesh, cam, cfg.model_depth_scale, cfg.model_depth_interval_us,
+                              cfg.depth_patch_px, cfg.depth_stride_px)
+        if cam is self.rgb_camera and self.method == "frame-flow":
+            return SensorDepth(cam, cam, None, cfg.depth_patch_px, cfg.depth_stride_px)
+        return SensorDepth(cam, self.rgb_camera, self.T_event_rgb, cfg.depth_patch_px,
+                           cfg.depth_stride_px)
+
+    @classmethod
+    def for_sequence(cls, sequence, config: TrackerConfig | None = None,
+                     pose_source: PoseSource | None = None) -> Tracker:
+        """A tracker with the cameras, extrinsics and mesh of a :class:`~evtrack.Sequence`."""
+        mesh = sequence.mesh_file
+        if mesh is None:
+            raise ConfigError(f"{sequence.root or sequence.meta.name}: the sequence names no "
+                              "object mesh (meta.yaml object.mesh)")
+        return cls(config, camera=sequence.meta.event_camera, mesh=mesh, pose_source=pose_source,
+                   rgb_camera=sequence.meta.rgb_camera, T_event_rgb=sequence.meta.T_event_rgb)
+
+    # ------------------------------------------------------------------ state
+    def reset(self, pose: Tensor | np.ndarray | None = None, t_us: int | None = None) -> None:
+        """Start over. With ``pose`` (4, 4) the track starts at ``t_us`` (required then) from
+        that pose; without, it waits for the first pose from the pose source."""
+        if pose is not None and t_us is None:
+            raise ValueError("reset: a starting pose needs its time t_us")
+        self.flow.reset()
+        self.vkf.reset(1)
+        self.ukf.reset(1)
+        if self.method == "frame-flow":
+            self.dense_flow.reset()
+        if self.method == "ge":
+            self.ge.reset()
+        if isinstance(self.depth, SensorDepth):
+            self.depth.map, self.depth.t_us = None, None
+        elif isinstance(self.depth, ModelDepth):
+            self.depth.invalidate()
+        self.stats = TrackerStats()
+        self._t: int | None = None
+        self._ev_buf: list[Events] = []
+        self._last_event_t: int | None = None
+        self._pending: list[tuple[int, int, PoseMeasurement | tuple]] = []
+        self._pending_seq = 0
+        self._next_pose_slot: int | None = None
+        self._ever_lost = False
+        self._out_of_view_us = 0
+        self._held: np.ndarray | None = None
+        self._out_t: list[int] = []
+        self._out_tq: list[np.ndarray] = []
+        self._out_twist: list[np.ndarray] = []
+        self._out_status: list[int] = []
+        self._latest_rgb: tuple[int, np.ndarray] | None = None
+        if t_us is not None:
+            self._start_clock(int(t_us))
+        if pose is not None:
+            t, q = pose_measurement_value(torch.as_tensor(pose, dtype=torch.float64),
+                                          torch.float64, self.device)
+            self.ukf.reset(1, t=t, q=q)
+            self.timeline.start(self._t)
+
+    def _start_clock(self, t_us: int) -> None:
+        step = self.config.velocity_step_us
+        self._t = (t_us // step) * step
+        self.timeline.start(self._t)
+
+    @property
+    def initialized(self) -> bool:
+        """Whether the pose filter holds a pose."""
+        return bool(self.ukf.initialized[0])
+
+    @property
+    def status(self) -> int:
+        """:data:`~evtrack.trajectory.STATUS_WAITING`, ``STATUS_TRACKING`` or ``STATUS_LOST``."""
+        if self.initialized:
+            return STATUS_TRACKING
+        return STATUS_LOST if self._ever_lost else STATUS_WAITING
+
+    @property
+    def now_us(self) -> int | None:
+        """The clock: end of the last closed velocity step (µs), ``None`` before any input."""
+        return self._t
+
+    def _current_pose(self) -> np.ndarray:
+        t, q = self.ukf.t[0].detach().cpu().numpy(), self.ukf.q[0].detach().cpu().numpy()
+        return _quat_to_matrix(t, q)
+
+    def _current_twist(self) -> np.ndarray:
+        if self.method == "pose":
+            return np.zeros(6)
+        if self.method == "frame-flow":
+            return self.ukf.twist[0].detach().cpu().numpy().astype(np.float64)
+        if self.method == "ge":
+            return self.ge.twist[0].detach().cpu().numpy().astype(np.float64)
+        return self.vkf.twist[0].detach().cpu().numpy().astype(np.float64)
+
+    # ------------------------------------------------------------------ inputs
+    def push_events(self, events: Events) -> None:
+        """Add the next events of the stream (time-sorted, not before earlier ones).
+
+        Raises:
+            EventsError: unsorted events, events before the previous ones or before the
+                current step, events outside the sensor.
+        """
+        if not isinstance(events, Events):
+            raise EventsError(f"push_events expects an Events container, got "
+                              f"{type(events).__name__}")
+        if not len(events):
+            return
+        if events.sensor_size is not None and tuple(events.sensor_size) != self.camera.size:
+            raise EventsError(f"events of sensor size {tuple(events.sensor_size)} given to a "
+                              f"tracker for a {self.camera.size} camera")
+        report = Events(events.x, events.y, events.t, events.p, self.camera.size).validate()
+        if not report.ok:
+            raise EventsError(f"push_events: {report}")
+        t_first, t_last = events.t_start, events.t_end
+        if self._last_event_t is not None and t_first < self._last_event_t:
+            raise EventsError(f"push_events: events start at t={t_first} µs, before the last "
+                              f"event pushed (t={self._last_event_t} µs)")
+        if self._t is not None and t_first < self._t:
+            raise EventsError(f"push_events: events start at t={t_first} µs, before the "
+                              f"tracker's clock ({self._t} µs); push events and frames in "
+                              "time order")
+        if self._t is None:
+            self._start_clock(t_first)
+        self._last_event_t = t_last
+        self.stats.events += len(events)
+        self._ev_buf.append(events.to("cpu"))
+        self._advance(t_last)
+
+    def advance(self, t_us: int) -> None:
+        """Declare that every event before ``t_us`` was pushed: close the steps ending by then."""
+        if self._t is None:
+            self._start_clock(int(t_us))
+        self._advance(int(t_us))
+
+    def push_frame(self, t_us: int, rgb: FrameInput = None, depth: FrameInput = None) -> None:
+        """Add the RGB-D frame taken at ``t_us`` (after the events before ``t_us``).
+
+        Args:
+            t_us: frame time (µs).
+            rgb: (H, W, 3) uint8 RGB of the RGB-D camera, or a zero-argument callable that
+                returns it (called only when the frame is needed), or ``None``.
+            depth: (H, W) metres (NaN or <= 0 = missing), a callable returning it, or ``None``
+                (sensor depth: the previous depth frame is kept, see the module docstring).
+        """
+        t_us = int(t_us)
+        self.advance(t_us)
+        self.stats.frames += 1
+        with _Timer(self.stats.time_s, "frames"):
+            if depth is None:
+                self.stats.frames_without_depth += 1
+            elif isinstance(self.depth, SensorDepth):
+                self.depth.set_frame(t_us, depth() if callable(depth) else depth)
+            if rgb is None:
+                return
+            get_rgb = rgb if callable(rgb) else (lambda: rgb)
+            image: np.ndarray | None = None
+            if self.method == "frame-flow":
+                image = get_rgb()
+                self._frame_flow(t_us, image)
+            if self.method == "ge":
+                image = image if image is not None else get_rgb()
+                self.ge.set_frame(t_us, image, self.pose(t_us) if self.initialized else None)
+            if self._wants_pose(t_us):
+                self.stats.pose_calls += 1
+                image = image if image is not None else get_rgb()
+                with _Timer(self.stats.time_s, "pose_source"):
+                    m = self.pose_source(t_us, image, None)
+                if m is not None:
+                    self.push_pose(m, available_us=t_us + self.config.pose_latency_us)
+
+    def push_pose(self, measurement: PoseMeasurement, available_us: int | None = None) -> None:
+        """Add a pose measurement (e.g. from a pose network running in another thread).
+
+        Args:
+            measurement: pose of the object at ``measurement.t_us`` (event camera frame).
+            available_us: when the filter may use it (default: now, or its own time if later).
+        """
+        if self._t is None:
+            self._start_clock(measurement.t_us)
+        avail = max(measurement.t_us, self._t if available_us is None else int(available_us))
+        self.stats.poses += 1
+        self._schedule(avail, measurement)
+        self._apply_due(self._t)
+
+    def _schedule(self, available_us: int, item: PoseMeasurement | tuple) -> None:
+        self._pending_seq += 1
+        heapq.heappush(self._pending, (available_us, self._pending_seq, item))
+
+    def _wants_pose(self, t_us: int) -> bool:
+        if self.pose_source is None:
+            return False
+        if self.method == "velocity" and self.initialized:
+            return False
+        period = self.config.pose_period_us
+        if self._next_pose_slot is None:
+            self._next_pose_slot = t_us
+        if t_us + _FRAME_JITTER_US < self._next_pose_slot:
+            return False
+        while self._next_pose_slot <= t_us + _FRAME_JITTER_US:
+            self._next_pose_slot += period
+        return True
+
+    # ------------------------------------------------------------------ the clock
+    def _advance(self, t_us: int) -> None:
+        """Close every step ending at or before ``t_us``."""
+        step = self.config.velocity_step_us
+        n_steps = (t_us - self._t) // step
+        if n_steps <= 0:
+            return
+        ev = concatenate(self._ev_buf) if len(self._ev_buf) > 1 else (
+            self._ev_buf[0] if self._ev_buf else Events.empty(self.camera.size))
+        bounds = self._t + step * torch.arange(1, n_steps + 1, dtype=torch.int64)
+        cut = torch.searchsorted(ev.t, bounds).tolist() if len(ev) else [0] * n_steps
+        start = 0
+        for k in range(n_steps):
+            t0 = self._t
+            self._step(t0, t0 + step, ev[start:cut[k]])
+            start = cut[k]
+        rest = ev[start:]
+        self._ev_buf = [rest] if len(rest) else []
+
+    def _step(self, t0: int, t1: int, ev: Events) -> None:
+        cfg = self.config
+        st = self.stats
+        dt = (t1 - t0) * 1e-6
+        initialised = self.initialized
+        pose = self._current_pose() if initialised else None
+        poly = self.silhouette.polygon(pose) if pose is not None else None
+        twist: Tensor | None = None
+        if self.method in ("full", "velocity", "ge"):
+            if poly is not None and len(ev):
+                xy = np.stack([ev.x.numpy(), ev.y.numpy()], 1)
+                ev = ev[torch.from_numpy(poly.contains(xy, cfg.mask_margin_px))]
+            elif not (pose is None and self._velocity_before_pose):
+                ev = ev[:0]
+            st.events_on_object += len(ev) if pose is not None else 0
+            if self.method == "ge":
+                with _Timer(st.time_s, "velocity"):
+                    twist = self.ge.step(dt, ev, pose if poly is not None else None,
+                                         lambda uv: self._roi_depth(uv, poly, pose, patch=False))
+                    st.velocity_updates += int(self.ge.last_rows > 0)
+            else:
+                with _Timer(st.time_s, "flow"):
+                    self.flow.update(ev)
+                    res = self.flow.flush()
+                with _Timer(st.time_s, "velocity"):
+                    twist = self._velocity_step(dt, res, poly, pose)
+        elif self.method == "pose":
+            twist = self._zero_twist
+        with _Timer(st.time_s, "pose"):
+            self.timeline.step(t1, twist if self.timeline.twist_driven else None)
+            self._t = t1
+            self._apply_due(t1)
+        st.steps += 1
+        self._check_view(t1)
+        self._record(t1)
+
+    def _fallback_depth(self, pose: np.ndarray | None) -> float:
+        return float(pose[2, 3]) if pose is not None else float("nan")
+
+    def _velocity_step(self, dt: float, res: FlowResult, poly: SilhouettePolygon | None,
+                       pose: np.ndarray | None) -> Tensor:
+        """VelocityKF predict + update from the step's RoI flows; returns the twist (1, 6)."""
+        if len(res) == 0 or (poly is None and pose is not None):
+            return self.vkf.predict(dt)
+        cfg = self.config
+        uv = res.xy.detach().cpu().numpy().astype(np.float64)
+        if pose is None:  # before the first pose: plain patch medians, no fallback
+            z = self._unranged_depth(uv)
+        else:
+            z = self._roi_depth(uv, poly, pose)
+        kw = {"dtype": self.vkf.twist.dtype, "device": self.device}
+        normal = res.normal.reshape(1, -1).to(self.device) if cfg.use_flow_normal_flags else None
+        self.stats.roi_flows += len(res)
+        self.stats.velocity_updates += 1
+        return self.vkf(dt, torch.as_tensor(uv, **kw).unsqueeze(0),
+                        torch.as_tensor(z, **kw).unsqueeze(0),
+                        res.flow.to(**kw).unsqueeze(0), normal)
+
+    def _unranged_depth(self, uv: np.ndarray) -> np.ndarray:
+        if (self.depth.t_us is not None
+                and self._t - self.depth.t_us > self.config.max_depth_age_ms * 1e3):
+            self.depth.map = None
+        return self.depth.lookup(uv, None)
+
+    def _roi_depth(self, uv: np.ndarray, poly: SilhouettePolygon, pose: np.ndarray,
+                   t_now: int | None = None, patch: bool = True) -> np.ndarray:
+        cfg = self.config
+        t_now = self._t if t_now is None else t_now
+        if isinstance(self.depth, ModelDepth):
+            self.depth.update(t_now, pose)
+        elif self.depth.t_us is not None and t_now - self.depth.t_us > cfg.max_depth_age_ms * 1e3:
+            self.depth.map = None  # too old: fall back
+        z_lo, z_hi = poly.z_range
+        z = self.depth.lookup(uv, (z_lo - _DEPTH_TOLERANCE_M, z_hi + _DEPTH_TOLERANCE_M), patch)
+        missing = ~np.isfinite(z)
+        if missing.any():
+            z[missing] = self._fallback_depth(pose)
+            self.stats.depth_fallbacks += int(missing.sum())
+        return z
+
+    # ------------------------------------------------------------------ measurements
+    def _apply_due(self, t_now: int) -> None:
+        while self._pending and self._pending[0][0] <= t_now:
+            _, _, item = heapq.heappop(self._pending)
+            if isinstance(item, PoseMeasurement):
+                self._fuse_pose(item)
+            else:
+                self._fuse_twist(*item)
+
+    def _fuse_pose(self, m: PoseMeasurement) -> None:
+        if self.method == "velocity" and self.initialized:
+            return  # the velocity baseline uses poses only to (re-)initialise
+        rejected = int(self.ukf.rejected[0])
+        reinit = int(self.ukf.reinitialised[0])
+        t, q = pose_measurement_value(m.pose, self.ukf.t.dtype, self.device)
+        cov = None if m.cov is None else m.cov.to(self.ukf.t.dtype).to(self.device).unsqueeze(0)
+        if m.t_us > self.timeline.now:  # pragma: no cover - _apply_due never lets it happen
+            raise RuntimeError(f"pose at {m.t_us} µs applied before the clock reached it")
+        was_init = self.initialized
+        if not self.timeline.add(m.t_us, "pose", (t, q), cov):
+            self.stats.poses_late += 1
+            return
+        self.stats.poses_rejected += max(0, int(self.ukf.rejected[0]) - rejected)
+        self.stats.reinitialisations += max(0, int(self.ukf.reinitialised[0]) - reinit)
+        if self.initialized and not was_init:
+            self._out_of_view_us = 0
+
+    def _fuse_twist(self, t_us: int, twist: Tensor, cov: Tensor) -> None:
+        if not self.initialized:
+            return
+        if self.timeline.add(t_us, "twist", (twist,), cov):
+            self.stats.twist_measurements += 1
+
+    # ------------------------------------------------------------------ frame-flow
+    def _frame_flow(self, t_us: int, rgb: np.ndarray) -> None:
+        """Dense flow from the previous frame -> one twist measurement (event camera frame)."""
+        pair = self.dense_flow.push(t_us, rgb)
+        if pair is None or not self.initialized:
+            return
+        pose_ev = self.pose(pair.t0_us)
+        pose_rgb = (self.T_rgb_event @ torch.from_numpy(pose_ev)).numpy()
+        poly = self.rgb_silhouette.polygon(pose_rgb)
+        if poly is None:
+            return
+        cfg = self.config.frame_flow
+        pts = grid_in_polygon(poly, pair.flow.shape[:2], cfg.grid_px, cfg.max_samples)
+        if len(pts) == 0:
+            return
+        uv, flow = pair.sample(pts)
+        z = self._roi_depth(pts.astype(np.float64), poly, pose_rgb, t_now=t_us)
+        kw = {"dtype": self.frame_kf.twist.dtype, "device": self.device}
+        self.frame_kf.reset(1)
+        V = self.frame_kf.update(torch.as_tensor(uv, **kw).unsqueeze(0),
+                                 torch.as_tensor(z, **kw).unsqueeze(0),
+                                 torch.as_tensor(flow, **kw).unsqueeze(0),
+                                 torch.zeros(1, len(uv), dtype=torch.bool, device=self.device))
+        A = self.rgb_to_event_twist.to(**kw)
+        V_ev = (A @ V[0]).unsqueeze(0)
+        cov_ev = (A @ self.frame_kf.cov[0] @ A.T).unsqueeze(0)
+        dtype = self.ukf.t.dtype
+        self._schedule(t_us, (pair.t_mid_us, V_ev.to(dtype), cov_ev.to(dtype)))
+        self._apply_due(self._t)
+
+    # ------------------------------------------------------------------ loss and output
+    def _check_view(self, t1: int) -> None:
+        if not self.initialized:
+            return
+        poly = self.silhouette.polygon(self._current_pose())
+        visible = 0.0 if poly is None else poly.visible_fraction
+        if visible >= self.config.min_visible_fraction:
+            self._out_of_view_us = 0
+            return
+        self._out_of_view_us += self.config.velocity_step_us
+        if self._out_of_view_us >= self.config.lost_after_ms * 1e3:
+            self._held = self._current_pose()
+            self._ever_lost = True
+            self.stats.lost += 1
+            self._out_of_view_us = 0
+            self.ukf.reset(1)
+            self.vkf.reset(1)
+            self.timeline.start(t1)
+            if self.method == "ge":
+                self.ge.reset()
+
+    def _record(self, t1: int) -> None:
+        status = self.status
+        if status == STATUS_TRACKING:
+            tq = np.concatenate([self.ukf.t[0].detach().cpu().numpy(),
+                                 self.ukf.q[0].detach().cpu().numpy()])
+            self._held = None
+        elif status == STATUS_LOST and self._held is not None:
+            t, q = matrix_to_tq(torch.from_numpy(self._held))
+            tq = np.concatenate([t.numpy(), q.numpy()])
+        else:
+            tq = np.full(7, np.nan)
+        self._out_t.append(t1)
+        self._out_tq.append(tq.astype(np.float64))
+        self._out_twist.append(self._current_twist() if status == STATUS_TRACKING
+                               else np.zeros(6))
+        self._out_status.append(status)
+
+    def trajectory(self) -> Trajectory:
+        """Every output so far: one sample at the end of each velocity step."""
+        from evtrack.geometry import tq_to_matrix
+
+        n = len(self._out_t)
+        tq = torch.from_numpy(np.asarray(self._out_tq, np.float64).reshape(n, 7))
+        poses = torch.full((n, 4, 4), float("nan"), dtype=torch.float64)
+        ok = torch.isfinite(tq).all(1)
+        if ok.any():
+            poses[ok] = tq_to_matrix(tq[ok, :3], tq[ok, 3:])
+        meta = {"config": self.config.to_dict(), "stats": self.stats.to_dict()}
+        return Trajectory(torch.tensor(self._out_t, dtype=torch.int64), poses,
+                          torch.from_numpy(np.asarray(self._out_twist, np.float64).reshape(n, 6)),
+                          torch.tensor(self._out_status, dtype=torch.int8), self.method, meta)
+
+    def pose(self, t_us: int | None = None) -> np.ndarray:
+        """The pose (4, 4) at ``t_us`` (default: now).
+
+        For a past time, the output of the last step ending at or before it, moved on by that
+        step's twist; for a time after the clock, the current pose predicted with the current
+        twist. NaN before the first pose.
+        """
+        twist, T, t_ref = self._lookup(t_us)
+        if not np.isfinite(T).all():
+            return T
+        dt = (t_us - t_ref) * 1e-6 if t_us is not None else 0.0
+        if dt == 0:
+            return T
+        return integrate_twist(torch.from_numpy(T), torch.from_numpy(twist), dt).numpy()
+
+    def twist(self, t_us: int | None = None) -> np.ndarray:
+        """The twist (6,) ``[v_o, ω]`` at ``t_us`` (default: now); see :meth:`pose`."""
+        return self._lookup(t_us)[0]
+
+    def _lookup(self, t_us: int | None) -> tuple[np.ndarray, np.ndarray, int]:
+        if self._t is None:
+            return np.zeros(6), np.full((4, 4), np.nan), 0
+        if t_us is None or t_us >= self._t or not self._out_t:
+            if self.status == STATUS_TRACKING:
+                return self._current_twist(), self._current_pose(), self._t
+            held = self._held if self._held is not None else np.full((4, 4), np.nan)
+            return np.zeros(6), held, self._t
+        i = int(np.searchsorted(np.asarray(self._out_t), int(t_us), side="right")) - 1
+        if i < 0:
+            return np.zeros(6), np.full((4, 4), np.nan), int(t_us)
+        tq = self._out_tq[i]
+        T = _quat_to_matrix(tq[:3], tq[3:]) if np.isfinite(tq).all() else np.full((4, 4), np.nan)
+        return self._out_twist[i].copy(), T, self._out_t[i]
+
+    # ------------------------------------------------------------------ offline
+    def track(self, sequence, progress: bool = False) -> Trajectory:
+        """Track a whole :class:`~evtrack.Sequence` (events and frames in time order).
+
+        The pose source runs on the frames at ``pose_rate_hz`` and its poses reach the filter
+        ``pose_latency_ms`` later, as they would live.
+
+        Returns:
+            the :class:`~evtrack.trajectory.Trajectory` (one sample per velocity step).
+        """
+        self.reset()
+        rgb_t = sequence.rgb_times_us.tolist()
+        depth_t = sequence.depth_times_us.tolist()
+        depth_index = {t: i for i, t in enumerate(depth_t)}
+        rgb_index = {t: i for i, t in enumerate(rgb_t)}
+        frame_times = sorted(set(rgb_t) | set(depth_t))
+        events = sequence.iter_events(window_us=_EVENTS_CHUNK_US)
+        carry: Events | None = None
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(frame_times), unit="frame", desc=f"track {self.method}")
+
+        def push_until(t_stop: int | None) -> None:
+            nonlocal carry
+            while True:
+                chunk = carry if carry is not None else next(events, None)
+                carry = None
+                if chunk is None:
+                    return
+                if t_stop is None:
+                    self.push_events(chunk)
+                    continue
+                k = int(torch.searchsorted(chunk.t, torch.tensor([t_stop]))[0])
+                if k:
+                    self.push_events(chunk[:k])
+                if k < len(chunk):
+                    carry = chunk[k:]
+                    return
+
+        for t in frame_times:
+            push_until(t)
+            i_rgb, i_d = rgb_index.get(t), depth_index.get(t)
+            rgb = (lambda i=i_rgb: sequence.rgb(i)) if i_rgb is not None else None
+            depth = (lambda i=i_d: sequence.depth(i)) if i_d is not None else None
+            self.push_frame(t, rgb, depth)
+            if bar is not None:
+                bar.update(1)
+        push_until(None)
+        if self._last_event_t is not None:
+            self.advance(self._last_event_t + 1)
+        if bar is not None:
+            bar.close()
+        return self.trajectory()

@@ -1,0 +1,418 @@
+"""Configuration of :class:`evtrack.Tracker`: one dataclass, loadable from YAML.
+
+``configs/tracker.yaml`` holds the defaults below. :meth:`TrackerConfig.from_dict` and
+:meth:`TrackerConfig.from_yaml` read a (partial) mapping: absent fields keep their documented
+defaults, unknown fields and values of the wrong type raise a :class:`~evtrack.errors.ConfigError`
+that names the file and the field (``flow.window_us``, ``pose_ukf.q_rotation``...).
+
+Units: microseconds for event-clock quantities (``*_us``), milliseconds for latencies and
+ages (``*_ms``), pixels, metres, radians, Hz.
+
+Example:
+    >>> cfg = TrackerConfig.from_dict({"method": "pose", "pose_rate_hz": 10})
+    >>> cfg.method, cfg.pose_rate_hz, cfg.velocity_step_us
+    ('pose', 10.0, 1000)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from evtrack.errors import ConfigError
+from evtrack.filters.config import (
+    PoseTwistUKFConfig,
+    PoseUKFConfig,
+    VelocityKFConfig,
+    config_from_dict,
+)
+from evtrack.flow.config import FlowConfig
+
+__all__ = [
+    "METHODS",
+    "DEPTH_SOURCES",
+    "FRAME_FLOW_ALGORITHMS",
+    "FrameFlowConfig",
+    "GEConfig",
+    "TrackerConfig",
+    "load_tracker_config",
+]
+
+#: Tracking methods (``TrackerConfig.method``), see :class:`evtrack.Tracker`.
+METHODS = ("full", "velocity", "pose", "frame-flow", "ge")
+#: Where the depth at the RoIs comes from.
+DEPTH_SOURCES = ("sensor", "model")
+#: Dense optical flow algorithms of the ``frame-flow`` baseline (OpenCV).
+FRAME_FLOW_ALGORITHMS = ("dis", "farneback")
+
+
+@dataclass
+class FrameFlowConfig:
+    """The ``frame-flow`` baseline (ROFT-like): dense optical flow between consecutive RGB frames.
+
+    Attributes:
+        algorithm: ``"dis"`` (OpenCV's DIS optical flow) or ``"farneback"``.
+        dis_preset: DIS preset: ``"ultrafast"``, ``"fast"`` or ``"medium"``.
+        grid_px: flow samples are taken on a grid of this pitch (pixels, event-camera image)
+            inside the predicted object silhouette.
+        max_gap_ms: two frames further apart than this (dropped frames) give no flow.
+        max_samples: at most this many grid samples per frame pair (evenly thinned).
+    """
+
+    algorithm: str = "dis"
+    dis_preset: str = "medium"
+    grid_px: int = 16
+    max_gap_ms: float = 50.0
+    max_samples: int = 400
+
+    def __post_init__(self) -> None:
+        if self.algorithm not in FRAME_FLOW_ALGORITHMS:
+            raise ConfigError(f"field 'algorithm' must be one of {FRAME_FLOW_ALGORITHMS}, "
+                              f"got {self.algorithm!r}")
+        if self.dis_preset not in ("ultrafast", "fast", "medium"):
+            raise ConfigError(f"field 'dis_preset' must be ultrafast, fast or medium, "
+                              f"got {self.dis_preset!r}")
+        _need_int(self, "grid_px", 1)
+        _need_int(self, "max_samples", 1)
+        _need_positive(self, "max_gap_ms")
+
+
+@dataclass
+class GEConfig:
+    """The ``ge`` baseline: the 1-DoF generative event model (per-event brightness change).
+
+    Each event on the object at pixel ``x`` with polarity ``p``, after the previous event of
+    that pixel ``Δt`` earlier, measures one number: the log-brightness change ``p·C`` must
+    equal ``−∇L(x) · (J(x) V) Δt`` (brightness constancy), with ``∇L`` the gradient of the
+    log intensity of the latest RGB frame, carried to the predicted pose. Linear in ``V``: one
+    Kalman row per event, fused with the same decaying-velocity model as the full method.
+
+    Attributes:
+        contrast: ``C``, the log-intensity step of one event (the sensor's threshold).
+        blur_sigma_px: Gaussian smoothing of the log image before its gradient, pixels.
+        min_gradient: events where ``|∇L|`` (1/px) is below this carry no information and are
+            skipped.
+        max_dt_ms: a pixel's previous event older than this gives no ``Δt`` (the event is
+            skipped).
+        residual_std: standard deviation of one event's brightness residual (log units).
+        max_events: at most this many events per velocity step enter the update (evenly
+            thinned).
+        log_eps: the log image is ``log(I + log_eps)`` with ``I`` the luminance in [0, 1].
+    """
+
+    contrast: float = 0.2
+    blur_sigma_px: float = 1.5
+    min_gradient: float = 0.02
+    max_dt_ms: float = 50.0
+    residual_std: float = 0.1
+    max_events: int = 2000
+    log_eps: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name in ("contrast", "blur_sigma_px", "max_dt_ms", "residual_std", "log_eps"):
+            _need_positive(self, name)
+        if not (math.isfinite(self.min_gradient) and self.min_gradient >= 0):
+            raise ConfigError(f"field 'min_gradient' must be >= 0, got {self.min_gradient}")
+        _need_int(self, "max_events", 1)
+
+
+def _tracker_flow_defaults() -> FlowConfig:
+    # One flow window per velocity step: every step's flows are complete at its end.
+    return FlowConfig(window_us=1000, roi_size=32)
+
+
+def _pose_only_defaults() -> PoseUKFConfig:
+    # Without a twist the pose is a random walk between 5 Hz poses: its process noise must
+    # cover the object's motion over a pose period or the gate rejects every pose.
+    return PoseUKFConfig(q_translation=0.5, q_rotation=5.0)
+
+
+def _frame_flow_kf_defaults() -> VelocityKFConfig:
+    # One twist per frame pair from dense (full, not normal) flow: no decay inside the pair.
+    return VelocityKFConfig(normal_flow=False, assume_normal=False, flow_std=20.0,
+                            init_std_linear=2.0, init_std_angular=6.0)
+
+
+def _pose_twist_defaults() -> PoseTwistUKFConfig:
+    return PoseTwistUKFConfig()
+
+
+@dataclass
+class TrackerConfig:
+    """Everything :class:`evtrack.Tracker` needs besides the cameras, the object and the sources.
+
+    Attributes:
+        method: ``"full"`` (the paper: event flow -> velocity KF -> pose UKF with poses),
+            ``"velocity"`` (the twist integrated after the first pose only), ``"pose"`` (UKF with
+            poses only), ``"frame-flow"`` (ROFT-like: dense RGB flow -> twist measurements of a
+            constant-velocity pose UKF), ``"ge"`` (1-DoF generative event model).
+        device: torch device of the flow and the filters (``"cpu"``, ``"cuda"``).
+        velocity_step_us: the velocity filter runs once per step (µs); the tracker outputs a
+            pose and a twist at the end of every step (1 kHz by default). Steps are aligned on
+            absolute time (multiples of the step).
+        mask_margin_px: events are kept when they lie within this distance (pixels) of the
+            object's predicted silhouette (the convex hull of the projected mesh).
+        lost_after_ms: the object counts as lost when its predicted silhouette has stayed
+            outside the image (less than ``min_visible_fraction`` of its hull area inside) for
+            this long; the pose filter then waits for the next pose to re-initialise.
+        min_visible_fraction: see ``lost_after_ms``.
+        depth_source: ``"sensor"`` (the RGB-D depth frames, carried into the event camera) or
+            ``"model"`` (depth rendered from the mesh at the predicted pose).
+        depth_patch_px: the depth of a RoI is the median of the valid depths within this
+            radius (pixels, square patch) of its centre that lie inside the predicted silhouette.
+        depth_stride_px: pitch of the depth samples in that patch (pixels).
+        max_depth_age_ms: a sensor depth frame older than this is not used; RoIs then take the
+            fallback depth (the predicted depth of the object's origin) and are counted.
+        model_depth_interval_us: the ``model`` depth map is re-rendered at most this often.
+        model_depth_scale: the ``model`` depth map is rendered at this fraction of the event
+            camera's resolution.
+        pose_rate_hz: the pose source runs on RGB frames at this rate (the paper: 5 Hz).
+        pose_latency_ms: a pose computed from the frame at ``t`` becomes available to the
+            filter at ``t + latency`` (simulated offline, as in the paper; the filter rolls back
+            to ``t`` to fuse it). Default: one pose period (a network just fast enough for its
+            rate).
+        pose_min_confidence: detections below this confidence are ignored.
+        history_ms: how far back the pose filter keeps its past states for late poses; a pose
+            older than that is dropped and counted.
+        velocity_before_pose: before the first pose (and after losing the object) run the
+            flow and the velocity filter on all events, with the sensor depth's patch medians,
+            so that the first pose, which arrives ``pose_latency_ms`` late, is carried to the
+            present by the measured motion (``full`` and ``velocity`` with sensor depth).
+        use_flow_normal_flags: pass the flow's per-RoI aperture flags to the velocity filter
+            (normal-only rows where the flow saw one edge direction). Off, every RoI gets
+            ``velocity_kf.assume_normal`` (the paper treats every flow as a normal flow).
+        flow: the event optical flow (:class:`~evtrack.flow.FlowConfig`); ``velocity_step_us``
+            must be a multiple of ``flow.window_us``.
+        velocity_kf: the velocity Kalman filter (ablations: ``normal_flow``, ``weighting``).
+        pose_ukf: the pose UKF of ``full``, ``velocity`` and ``ge``.
+        pose_only_ukf: the pose UKF of the ``pose`` baseline (random-walk process noise).
+        pose_twist_ukf: the constant-velocity pose UKF of ``frame-flow``.
+        frame_flow: dense RGB flow settings of ``frame-flow``.
+        frame_flow_kf: the velocity filter that turns one frame pair's flows into a twist
+            measurement (``frame-flow``).
+        ge: the generative event model of ``ge``.
+    """
+
+    method: str = "full"
+    device: str = "cpu"
+    velocity_step_us: int = 1000
+    mask_margin_px: float = 8.0
+    lost_after_ms: float = 100.0
+    min_visible_fraction: float = 0.05
+    depth_source: str = "sensor"
+    depth_patch_px: int = 16
+    depth_stride_px: int = 2
+    max_depth_age_ms: float = 100.0
+    model_depth_interval_us: int = 5000
+    model_depth_scale: float = 0.5
+    pose_rate_hz: float = 5.0
+    pose_latency_ms: float = 200.0
+    pose_min_confidence: float = 0.0
+    history_ms: float = 1000.0
+    velocity_before_pose: bool = True
+    use_flow_normal_flags: bool = True
+    flow: FlowConfig = field(default_factory=_tracker_flow_defaults)
+    velocity_kf: VelocityKFConfig = field(default_factory=VelocityKFConfig)
+    pose_ukf: PoseUKFConfig = field(default_factory=PoseUKFConfig)
+    pose_only_ukf: PoseUKFConfig = field(default_factory=_pose_only_defaults)
+    pose_twist_ukf: PoseTwistUKFConfig = field(default_factory=_pose_twist_defaults)
+    frame_flow: FrameFlowConfig = field(default_factory=FrameFlowConfig)
+    frame_flow_kf: VelocityKFConfig = field(default_factory=_frame_flow_kf_defaults)
+    ge: GEConfig = field(default_factory=GEConfig)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(f"tracker config field 'method' must be one of {METHODS}, "
+                              f"got {self.method!r}")
+        if self.depth_source not in DEPTH_SOURCES:
+            raise ConfigError(f"tracker config field 'depth_source' must be one of "
+                              f"{DEPTH_SOURCES}, got {self.depth_source!r}")
+        for name in ("velocity_step_us", "depth_patch_px", "depth_stride_px",
+                     "model_depth_interval_us"):
+            _need_int(self, name, 1 if name != "depth_patch_px" else 0)
+        for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
+                     "pose_min_confidence"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"tracker config field {name!r} must be finite and >= 0, "
+                                  f"got {value!r}")
+        for name in ("pose_rate_hz", "history_ms"):
+            _need_positive(self, name)
+        if not 0 < self.model_depth_scale <= 1:
+            raise ConfigError(f"tracker config field 'model_depth_scale' must be in (0, 1], "
+                              f"got {self.model_depth_scale}")
+        if not 0 <= self.min_visible_fraction <= 1:
+            raise ConfigError(f"tracker config field 'min_visible_fraction' must be in [0, 1], "
+                              f"got {self.min_visible_fraction}")
+        if self.velocity_step_us % self.flow.window_us:
+            raise ConfigError(
+                f"tracker config: velocity_step_us ({self.velocity_step_us}) must be a multiple "
+                f"of flow.window_us ({self.flow.window_us}) so that every step's flows are "
+                "complete at its end")
+        if self.history_ms < self.pose_latency_ms + 1e3 / self.pose_rate_hz:
+            raise ConfigError(
+                f"tracker config: history_ms ({self.history_ms}) must cover pose_latency_ms "
+                f"({self.pose_latency_ms}) plus one pose period ({1e3 / self.pose_rate_hz:g} ms)")
+
+    # ------------------------------------------------------------------ derived values
+    @property
+    def pose_period_us(self) -> int:
+        """The pose source's period in µs."""
+        return int(round(1e6 / self.pose_rate_hz))
+
+    @property
+    def pose_latency_us(self) -> int:
+        return int(round(self.pose_latency_ms * 1e3))
+
+    # ------------------------------------------------------------------ loading
+    def replace(self, **changes: Any) -> TrackerConfig:
+        """A copy with some top-level fields changed (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None, source: str = "tracker config",
+                  base: TrackerConfig | None = None) -> TrackerConfig:
+        """Build from a (partial) mapping; absent fields keep the defaults (or ``base``'s).
+
+        Raises:
+            ConfigError: an unknown field, a value of the wrong type or out of range, naming
+                ``source`` and the field.
+        """
+        base = base if base is not None else cls()
+        if data is None:
+            return dataclasses.replace(base)
+        if not isinstance(data, Mapping):
+            raise ConfigError(f"{source}: expected a mapping of tracker fields, "
+                              f"got {type(data).__name__}")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - set(fields))
+        if unknown:
+            raise ConfigError(f"{source}: unknown field(s) {unknown}; known: {sorted(fields)}")
+        values: dict[str, Any] = {}
+        for name, value in data.items():
+            where = f"{source}: {name}"
+            current = getattr(base, name)
+            if name == "flow":
+                values[name] = _flow_from(value, current, where)
+            elif isinstance(current, VelocityKFConfig | PoseUKFConfig | FrameFlowConfig
+                            | GEConfig):
+                values[name] = _section_from(type(current), value, current, where)
+            else:
+                values[name] = _scalar(name, value, current, source)
+        try:
+            return dataclasses.replace(base, **values)
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from exc
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> TrackerConfig:
+        """Load from a YAML file: the fields at top level, or under a ``tracker:`` key."""
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"{path}: cannot read tracker config ({exc})") from exc
+        if data is None:
+            data = {}
+        if isinstance(data, Mapping) and set(data) == {"tracker"}:
+            data = data["tracker"]
+        return cls.from_dict(data, source=str(path))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain Python values (YAML-serialisable); ``from_dict(to_dict())`` gives it back."""
+        out: dict[str, Any] = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, FlowConfig):
+                value = value.to_dict()
+            elif dataclasses.is_dataclass(value):
+                value = dataclasses.asdict(value)
+            out[f.name] = value
+        return out
+
+    def to_yaml(self, path: str | Path) -> None:
+        from evtrack.utils import atomic_write_text
+
+        atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+
+def load_tracker_config(path: str | Path) -> TrackerConfig:
+    """:meth:`TrackerConfig.from_yaml`."""
+    return TrackerConfig.from_yaml(path)
+
+
+# ---------------------------------------------------------------------------- helpers
+def _flow_from(value: Any, current: FlowConfig, where: str) -> FlowConfig:
+    if value is None:
+        return current
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{where}: expected a mapping of flow fields, got {value!r}")
+    merged = current.to_dict()
+    merged.update(value)
+    try:
+        return FlowConfig.from_dict(merged)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+
+def _section_from(cls: type, value: Any, current: Any, where: str) -> Any:
+    if value is None:
+        return current
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{where}: expected a mapping of {cls.__name__} fields, got {value!r}")
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(value) - names)
+    if unknown:
+        raise ConfigError(f"{where}: unknown {cls.__name__} field(s) {unknown}")
+    merged = {n: getattr(current, n) for n in names}
+    merged.update(value)
+    if cls in (VelocityKFConfig, PoseUKFConfig, PoseTwistUKFConfig):
+        return config_from_dict(cls, merged, where)
+    converted = {n: _scalar(n, v, getattr(current, n), where) for n, v in merged.items()}
+    try:
+        return cls(**converted)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from exc
+
+
+def _scalar(name: str, value: Any, default: Any, source: str) -> Any:
+    """Check ``value`` against the type of the field's default."""
+    def bad(kind: str) -> ConfigError:
+        return ConfigError(f"{source}: field {name!r} must be {kind}, got {value!r}")
+
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise bad("true or false")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+            raise bad("an integer")
+        return int(value)
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise bad("a number")
+        return float(value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise bad("a string")
+        return value
+    return value  # pragma: no cover - every scalar field is a bool, a number or a string
+
+
+def _need_int(cfg: object, name: str, low: int) -> None:
+    value = getattr(cfg, name)
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ConfigError(f"field {name!r} must be an integer >= {low}, got {value!r}")
+
+
+def _need_positive(cfg: object, name: str) -> None:
+    value = getattr(cfg, name)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            math.isfinite(value) and value > 0):
+        raise ConfigError(f"field {name!r} must be a finite number > 0, got {value!r}")
