@@ -12,7 +12,8 @@ px/s, quaternions wxyz, float64 by default.
     cv = PoseTwistUKF(batch_size=B)                  # constant-velocity variant (as ROFT)
 
 Each filter also has a pure ``step`` (state in, state out) that exports to ONNX
-(:mod:`evtrack.filters.onnx_export`).
+(:mod:`evtrack.filters.onnx_export`), and ``compile_steps()`` to run its steps through
+``torch.compile`` (batch-1 latency is otherwise bound by per-op dispatch).
 """
 
 from evtrack.filters.config import (

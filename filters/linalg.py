@@ -18,7 +18,7 @@ from contextlib import contextmanager
 import torch
 from torch import Tensor
 
-__all__ = ["cholesky", "spd_inverse", "symmetrize", "portable_linalg", "use_portable"]
+__all__ = ["cholesky", "spd_inverse", "spd_solve", "symmetrize", "portable_linalg", "use_portable"]
 
 _FORCE_PORTABLE = [False]
 
@@ -62,6 +62,13 @@ def spd_inverse(A: Tensor) -> Tensor:
         Linv = _tril_inverse_unrolled(_cholesky_unrolled(A))
         return symmetrize(Linv.transpose(-1, -2) @ Linv)  # A⁻¹ = L⁻ᵀ L⁻¹
     return torch.cholesky_inverse(torch.linalg.cholesky_ex(A).L)  # exactly symmetric
+
+
+def spd_solve(A: Tensor, B: Tensor) -> Tensor:
+    """``A⁻¹ B`` for SPD ``A`` (*,n,n) and ``B`` (*,n,k) -> (*,n,k)."""
+    if use_portable():
+        return spd_inverse(A) @ B
+    return torch.linalg.solve_ex(A, B).result
 
 
 def _cholesky_unrolled(A: Tensor) -> Tensor:

@@ -18,8 +18,15 @@ Mahalanobis distance ``νᵀ S⁻¹ ν`` exceeds ``gate_chi2`` is rejected and c
 ``reinit_after`` consecutive rejections the filter re-initialises on the pose (state = pose,
 covariance = ``R``), as it does on the first pose of a track that has none yet.
 
+By default (``sigma_points=False``) the pose UKF evaluates its unscented transforms in closed
+form: a known twist moves every sigma point by one rigid motion, linear on the tangent
+(``δt' = R_Δ δt``, ``δθ' = R_Δ δθ``), and ``h(x) = pose`` is the identity, so the sigma-point
+results are exactly ``P' = A P Aᵀ + Q dt`` and ``S = P + R`` (pinned to the sigma-point path in
+``tests/filters/test_pose_ukf.py``). ``sigma_points=True`` propagates the 2n+1 points; the
+constant-velocity filter always does in its predict, which is nonlinear in the state.
+
 Every step is branch-free on tensor values (``torch.where``), so it exports to ONNX
-(:mod:`onnx_export`).
+(:mod:`onnx_export`); :meth:`compile_steps` opts into ``torch.compile``.
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ import torch
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig
 from evtrack.filters.lie import pose_boxminus, pose_boxplus, quat_mul, quat_rotate, se3_exp
-from evtrack.filters.linalg import spd_inverse, symmetrize
+from evtrack.filters.linalg import spd_inverse, spd_solve, symmetrize
 from evtrack.filters.ukf import merwe_weights, quat_mean, sigma_offsets, weighted_cov
 from torch import Tensor, nn
 
@@ -216,13 +223,13 @@ class _PoseFilter(CompilableSteps, nn.Module):
             zt, zq = t, q
             Pxz = cov if self.n == 6 else cov[:, :, :6]
             S = (cov if self.n == 6 else cov[:, :6, :6]) + R
-        S_inv = spd_inverse(S)
         nu = pose_boxminus(t_meas, q_meas, zt, zq)  # (B,6)
-        S_inv_nu = S_inv @ nu.unsqueeze(-1)
+        # One solve gives Kᵀ = S⁻¹ Pxzᵀ and S⁻¹ ν.
+        X = spd_solve(S, torch.cat([Pxz.transpose(-1, -2), nu.unsqueeze(-1)], dim=-1))
+        S_inv_nu = X[..., self.n :]
         d2 = (nu.unsqueeze(-2) @ S_inv_nu).reshape(-1)  # νᵀ S⁻¹ ν
-        delta = (Pxz @ S_inv_nu).squeeze(-1)  # K ν with K = Pxz S⁻¹
-        K = Pxz @ S_inv
-        cov_up = symmetrize(cov - K @ Pxz.transpose(-1, -2))  # P − K S Kᵀ
+        delta = (Pxz @ S_inv_nu).squeeze(-1)  # K ν
+        cov_up = symmetrize(cov - Pxz @ X[..., : self.n])  # P − K S Kᵀ = P − Pxz S⁻¹ Pxzᵀ
         t_up, q_up = pose_boxplus(t, q, delta if self.n == 6 else delta[:, :6])
         extra_up = extra + delta[:, 6:]
 
@@ -328,10 +335,6 @@ class PoseUKF(_PoseFilter):
         qd = [cfg.q_translation] * 3 + [cfg.q_rotation] * 3
         var = [cfg.init_std_translation**2] * 3 + [cfg.init_std_rotation**2] * 3
         super().__init__(cfg, 6, qd, var, batch_size, dtype, device)
-        self.register_buffer("eye3", torch.eye(3, dtype=dtype, device=device))
-        self.register_buffer(
-            "eye2_blocks", torch.eye(2, dtype=dtype, device=device)[:, None, :, None]
-        )
         self.reset(batch_size)
 
     def reset(
@@ -369,14 +372,15 @@ class PoseUKF(_PoseFilter):
         # Every sigma point moves by the same rigid motion, which acts on the tangent linearly:
         # δt' = R_Δ δt, δθ' = R_Δ δθ. The unscented transform is exact: P' = A P Aᵀ + Q dt.
         qd, pd = se3_exp(twist * dt.unsqueeze(-1))
-        # One rotation gives R_Δ t and R_Δ's columns R_Δ eᵢ (the rows of R_Δᵀ).
-        points = torch.cat([self.eye3.expand(t.shape[0], 3, 3), t.unsqueeze(1)], dim=1)
-        moved = quat_rotate(qd.unsqueeze(1), points)
-        t = moved[:, 3] + pd
+        t = quat_rotate(qd, t) + pd
         q = quat_mul(qd, q)
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-        At = (self.eye2_blocks * moved[:, None, :3, None, :]).reshape(-1, 6, 6)  # diag(R_Δ, R_Δ)ᵀ
-        cov = symmetrize(At.transpose(-1, -2) @ cov @ At) + dt[:, None, None] * self.q_matrix
+        # P' = A P Aᵀ with A = diag(R_Δ, R_Δ): rotate the 3-vector blocks of P's rows, then of
+        # the columns (elementwise work: batched 6x6 matmuls are slow at large B).
+        qb = qd[:, None, None, :]
+        half = quat_rotate(qb, cov.unflatten(-1, (2, 3))).flatten(-2)  # P Aᵀ
+        cov = quat_rotate(qb, half.transpose(-1, -2).unflatten(-1, (2, 3))).flatten(-2)  # A P Aᵀ
+        cov = symmetrize(cov) + dt[:, None, None] * self.q_matrix
         return t, q, cov
 
     def forward(
