@@ -85,8 +85,8 @@ class FlowConfig:
             this value (all lines share one normal), see :mod:`evtrack.flow.registration`.
         refine: replace the Eq. 3 solution (one candidate, direction quantised to the integer
             displacements) by the robust intersection of the events' constraint lines.
-        line_gate: an event's constraint line is taken through its two candidates nearest to
-            the Eq. 3 solution F, both within ``line_gate * |F|`` of it.
+        line_gate: an event gives a constraint line only if its candidate nearest to the
+            Eq. 3 solution F lies within ``line_gate * |F|`` of it.
         refine_iters: IRLS iterations of the refinement.
         chunk_size: events handed to the batched search at once (bounds the sorting work).
         block_size: events whose lookups are evaluated as one tensor operation; peak tensor

@@ -22,8 +22,9 @@ Evaluated batched over many groups, exactly and deterministically:
 Constraint lines, aperture test and refinement. All candidates of one event lie on the
 event's constraint line ``n . F = s`` (a local edge with unit normal ``n`` moving at normal
 speed ``s`` matches along any displacement ``d`` with ``n . d > 0``, giving ``s d / (n . d)``).
-Each event whose two candidates nearest to ``F`` come from non-parallel displacements and lie
-within ``line_gate * |F|`` of it gives its line. With the IRLS weights ``w_i`` of the robust
+An event gives its line through its candidate nearest to ``F`` (which must lie within
+``line_gate * |F|`` of it) and its candidate nearest to ``F`` from a non-parallel
+displacement. With the IRLS weights ``w_i`` of the robust
 fit below, the 2x2 scatter ``A = sum_i w_i n_i n_i^T`` has eigenvalues ``l_min <= l_max``:
 
 * **aperture**: ``l_min / l_max < aperture_ratio`` (all lines share one normal: an edge). The
@@ -224,10 +225,11 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
 
 def _event_lines(c_group: Tensor, c_run: Tensor, c_flow: Tensor, full: Tensor, n_events: int,
                  ev_group: Tensor, gate: float) -> dict[str, Tensor]:
-    """One constraint line ``n . F = s`` per event, through its two candidates nearest to F.
+    """One constraint line ``n . F = s`` per event, through two of its candidates.
 
-    The two candidates must come from non-parallel displacements and lie within
-    ``gate * max(|F|, 1)`` of the group's flow F; events without such a pair give no line.
+    The first is the event's candidate nearest to the group's flow F and must lie within
+    ``gate * max(|F|, 1)`` of it (the event agrees with F); the second is its nearest
+    candidate to F from a non-parallel displacement. Events without such a pair give no line.
     """
     dev = c_flow.device
     m = c_flow.shape[0]
@@ -248,7 +250,7 @@ def _event_lines(c_group: Tensor, c_run: Tensor, c_flow: Tensor, full: Tensor, n
     has2 = best2 != big
     i2 = torch.where(has2, best2 & 0xFFFFFFFF, i1)
     limit = gate * full[ev_group].norm(dim=1).clamp_min(1.0)
-    ok = has2 & (dist[i1] <= limit) & (dist[i2] <= limit)
+    ok = has2 & (dist[i1] <= limit)
     a, b = c_flow[i1], c_flow[i2]
     tangent = a - b
     length = tangent.norm(dim=1).clamp_min(1e-30)

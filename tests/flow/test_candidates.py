@@ -1,0 +1,175 @@
+"""The batched candidate search equals the sequential reference, bit for bit, for any chunking."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from flow_reference import reference_candidates, reference_offsets
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from evtrack.flow.candidates import CandidateSearch, pass_bounds, pass_starts
+from evtrack.flow.config import FlowConfig, dt_bounds_us, search_offsets
+from evtrack.flow.scenes import translating_texture
+
+FIELDS = ("event", "offset", "age_j", "age_i", "seq_j", "seq_i", "dt_us")
+
+
+def _rows(c):
+    return list(zip(*(getattr(c, f).tolist() for f in FIELDS), strict=True))
+
+
+def _reference(x, y, t, p, cfg, state=None):
+    return reference_candidates(
+        x, y, t, p, cfg.sensor_size, radius=cfg.radius, history=cfg.history,
+        refractory_us=cfg.refractory_us, tolerance_us=cfg.tolerance_us,
+        tolerance_permille=cfg.tolerance_permille, min_speed=cfg.min_speed,
+        max_speed=cfg.max_speed, state=state)
+
+
+def _assert_same(cands, ref_rows):
+    assert _rows(cands) == [r[:7] for r in ref_rows]
+    if ref_rows:
+        ref_flow = torch.tensor([r[7:] for r in ref_rows], dtype=torch.float64)
+        torch.testing.assert_close(cands.flow.to(torch.float64), ref_flow, rtol=1e-6, atol=1e-3)
+
+
+def _random_stream(seed, n, size, max_gap):
+    rng = np.random.default_rng(seed)
+    w, h = size
+    # a few moving blobs plus noise, so that triplets actually occur
+    t = np.cumsum(rng.integers(0, max_gap + 1, n))
+    x = rng.integers(0, w, n)
+    y = rng.integers(0, h, n)
+    p = rng.choice([-1, 1], n)
+    return [torch.as_tensor(a) for a in (x, y, t, p)]
+
+
+def _structured_stream(n_max=3000):
+    ev, _ = translating_texture((40, 30), velocity=(900.0, -400.0), duration_us=12_000, seed=3)
+    ev = ev[:n_max]
+    return ev.x, ev.y, ev.t, ev.p
+
+
+def test_offsets_and_bounds_match_their_definition():
+    for r in (1, 2, 3):
+        assert search_offsets(r).tolist() == [list(o) for o in reference_offsets(r)]
+    offsets = search_offsets(3)
+    bounds = dt_bounds_us(offsets, 37.0, 9000.0)
+    for (dx, dy), (lo, hi) in zip(offsets.tolist(), bounds.tolist(), strict=True):
+        dist = float(np.hypot(2 * dx, 2 * dy))
+        def ok(dt, dist=dist):
+            return 37.0 <= dist * 1e6 / dt <= 9000.0
+        assert ok(lo) and ok(hi) and not ok(lo - 1) and not ok(hi + 1)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 250), chunk=st.integers(1, 300),
+       block=st.integers(1, 64), radius=st.integers(1, 3), history=st.integers(1, 3),
+       repeats=st.integers(1, 4), refractory=st.sampled_from([0, 40, 400]),
+       max_gap=st.sampled_from([0, 3, 60]))
+def test_random_streams_equal_reference(seed, n, chunk, block, radius, history, repeats,
+                                        refractory, max_gap):
+    size = (9, 7)
+    x, y, t, p = _random_stream(seed, n, size, max_gap)
+    cfg = FlowConfig(sensor_size=size, radius=radius, history=history, pass_repeats=repeats,
+                     refractory_us=refractory, chunk_size=chunk, block_size=block,
+                     tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6)
+    got = CandidateSearch(cfg)(x, y, t, p)
+    ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
+    _assert_same(got, ref)
+
+
+@pytest.mark.parametrize("chunk", [1, 13, 500, 100_000])
+@pytest.mark.parametrize("block", [7, 4096])
+def test_structured_stream_equals_reference_for_any_chunking(chunk, block):
+    x, y, t, p = _structured_stream()
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=chunk, block_size=block)
+    got = CandidateSearch(cfg)(x, y, t, p)
+    ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
+    assert len(ref) > 100  # the scene really produces triplets
+    _assert_same(got, ref)
+
+
+def test_streaming_calls_equal_one_call():
+    x, y, t, p = _structured_stream(2000)
+    cfg = FlowConfig(sensor_size=(40, 30), refractory_us=0, chunk_size=97)
+    whole = CandidateSearch(cfg)(x, y, t, p)
+    search = CandidateSearch(cfg)
+    parts = [search(x[a:b], y[a:b], t[a:b], p[a:b])
+             for a, b in [(0, 1), (1, 1), (1, 700), (700, 1500), (1500, 2000)]]
+    assert [r for part in parts for r in _rows(part)] == _rows(whole)
+
+
+def test_causal_prefix_is_unchanged_by_later_events():
+    """Candidates of the first m events do not depend on what comes after them."""
+    x, y, t, p = _structured_stream(2000)
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=4096)
+    full = _rows(CandidateSearch(cfg)(x, y, t, p))
+    m = 1200
+    prefix = _rows(CandidateSearch(cfg)(x[:m], y[:m], t[:m], p[:m]))
+    assert [r for r in full if r[0] < m] == prefix
+    # reversing later events' polarity changes nothing before m either
+    p2 = p.clone()
+    p2[m:] = -p2[m:]
+    changed = _rows(CandidateSearch(cfg)(x, y, t, p2))
+    assert [r for r in changed if r[0] < m] == prefix
+
+
+def test_same_timestamp_events_see_only_earlier_ones():
+    # e_i, e_j, then two events at e_k's time: only stream order decides what is visible
+    cfg = FlowConfig(sensor_size=(8, 3), radius=1, history=1, refractory_us=0,
+                     tolerance_us=0, tolerance_rel=0.0, min_speed=1.0, max_speed=1e7)
+    x = torch.tensor([1, 2, 3, 3, 2])
+    y = torch.tensor([1, 1, 1, 1, 1])
+    t = torch.tensor([0, 100, 200, 200, 200])
+    p = torch.tensor([1, 1, 1, 1, 1])
+    got = _rows(CandidateSearch(cfg.replace(chunk_size=5))(x, y, t, p))
+    # event 2 matches (0, 1); event 3 (same pixel, same time) too; event 4 at x=2 sees event
+    # 1 as its own pixel's past, not as a neighbour, and nothing at x=1/x=0 fits.
+    assert [(r[0], r[4], r[5]) for r in got] == [(2, 1, 0), (3, 1, 0)]
+    ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
+    assert [r[:7] for r in ref] == got
+
+
+def test_passes_hold_at_most_L_events_per_cell_and_are_maximal():
+    rng = np.random.default_rng(0)
+    cell = torch.as_tensor(rng.integers(0, 20, 3000))
+    for repeats in (1, 2, 5):
+        _, next_end = pass_starts(cell, repeats)
+        bounds = pass_bounds(next_end)
+        assert bounds[0][0] == 0 and bounds[-1][1] == cell.numel()
+        for (a, b), nxt in zip(bounds, bounds[1:] + [None], strict=True):
+            counts = torch.bincount(cell[a:b])
+            assert int(counts.max()) <= repeats
+            if nxt is not None:  # one more event would break the cap
+                assert int(torch.bincount(cell[a:b + 1]).max()) == repeats + 1
+
+
+def test_burst_memory_is_bounded_by_block_size(monkeypatch):
+    """A burst at 100x the rate is split into blocks no larger than block_size."""
+    ev, _ = translating_texture((40, 30), velocity=(900.0, 300.0), duration_us=6_000, seed=1)
+    burst_t = ev.t // 100  # the same events squeezed into 1/100 of the time
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=5000, block_size=256, refractory_us=0)
+    search = CandidateSearch(cfg)
+    sizes = []
+    original = CandidateSearch._block
+
+    def spy(self, x, *args):
+        sizes.append(int(x.shape[0]))
+        return original(self, x, *args)
+
+    monkeypatch.setattr(CandidateSearch, "_block", spy)
+    chunk_sizes = []
+    original_chunk = CandidateSearch._chunk
+
+    def spy_chunk(self, x, *args):
+        chunk_sizes.append(int(x.shape[0]))
+        return original_chunk(self, x, *args)
+
+    monkeypatch.setattr(CandidateSearch, "_chunk", spy_chunk)
+    search(ev.x, ev.y, burst_t, ev.p)
+    assert sum(sizes) == len(ev)
+    assert max(sizes) <= 256
+    assert max(chunk_sizes) <= 5000
