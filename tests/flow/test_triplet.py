@@ -1,0 +1,188 @@
+"""TripletFlow end to end: known flow, aperture, streaming, bad input, config."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from evtrack.errors import ConfigError, EventsError
+from evtrack.events import Events, concatenate
+from evtrack.flow import FlowConfig, FlowResult, TripletFlow
+from evtrack.flow.scenes import moving_stripes, translating_texture
+
+SIZE = (64, 48)
+
+
+@pytest.fixture(scope="module")
+def texture():
+    return translating_texture(SIZE, velocity=(700.0, -450.0), duration_us=25_000, seed=4)
+
+
+@pytest.fixture(scope="module")
+def stripes():
+    return moving_stripes(SIZE, normal_angle=1.1, speed=800.0, duration_us=25_000, seed=2)
+
+
+def _rel_error(flow, truth):
+    return (flow - truth).norm(dim=1) / truth.norm()
+
+
+def test_translating_texture_flow_within_a_few_percent(texture):
+    ev, gt = texture
+    res = TripletFlow(roi_size=32, window_us=5_000)(ev)
+    assert len(res) >= 12
+    full = ~res.normal
+    # a RoI window may see one edge orientation only: it is then (rightly) normal flow
+    assert float(full.float().mean()) > 0.8
+    err = _rel_error(res.flow[full], gt[0])
+    assert float(err.median()) < 0.05
+    assert float((err < 0.15).float().mean()) > 0.8
+    n = res.normal_dir[res.normal]
+    normal_err = ((res.flow[res.normal] * n).sum(1) - n @ gt[0]).abs() / gt[0].norm()
+    assert float(normal_err.max()) < 0.2  # few of them, some in the start-up window
+    # shapes and units of the documented fields
+    assert res.xy.shape == (len(res), 2) and res.t.dtype == torch.int64
+    assert bool((res.support >= 5).all()) and bool((res.support <= res.n_events).all())
+    assert torch.isfinite(res.cost).all()
+    assert set(res.t.tolist()) <= {2_500 + 5_000 * w for w in range(6)}
+
+
+def test_moving_stripes_give_normal_flow(stripes):
+    ev, gt = stripes
+    res = TripletFlow(roi_size=32, window_us=5_000)(ev)
+    assert len(res) >= 12
+    assert float(res.normal.float().mean()) > 0.9
+    truth_n = torch.tensor([math.cos(1.1), math.sin(1.1)])
+    n = res.normal_dir[res.normal]
+    assert float((n @ truth_n).abs().min()) > 0.99
+    err = _rel_error(res.flow[res.normal], gt[0])  # the true flow is the normal flow here
+    assert float(err.median()) < 0.08
+
+
+def test_streaming_equals_one_call(texture):
+    ev, _ = texture
+    cfg = FlowConfig(roi_size=24, window_us=3_000, chunk_size=1_500, max_events_per_roi=16,
+                     max_hypotheses=12)
+    whole = TripletFlow(cfg, return_event_flow=True)(ev)
+    flow = TripletFlow(cfg, return_event_flow=True)
+    cuts = [0, 1, 1, 900, 4_000, 4_001, 11_000, len(ev)]
+    parts = [flow.update(ev[a:b]) for a, b in zip(cuts, cuts[1:], strict=False)]
+    parts.append(flow.flush())
+    joined = FlowResult.cat(parts)
+    for name in ("xy", "t", "flow", "support", "cost", "normal", "roi", "window", "n_events"):
+        torch.testing.assert_close(getattr(joined, name), getattr(whole, name), equal_nan=True)
+    torch.testing.assert_close(joined.event_flow, whole.event_flow, equal_nan=True)
+    assert whole.event_flow.shape == (len(ev), 2) and joined.event_start == 0
+
+
+def test_event_flows_are_candidates_near_the_roi_flow(texture):
+    ev, gt = texture
+    res = TripletFlow(roi_size=32, window_us=5_000, return_event_flow=True)(ev)
+    ef = res.event_flow
+    has = ~torch.isnan(ef[:, 0])
+    assert 0.05 < float(has.float().mean()) < 1.0  # skipped burst events have none
+    err = _rel_error(ef[has], gt[0])
+    assert float(err.median()) < 0.2
+
+
+def test_chunk_size_does_not_change_the_result(texture):
+    ev, _ = texture
+    ev = ev[:8_000]
+    a = TripletFlow(roi_size=32, window_us=4_000, chunk_size=100_000)(ev)
+    b = TripletFlow(roi_size=32, window_us=4_000, chunk_size=333, block_size=50)(ev)
+    torch.testing.assert_close(a.flow, b.flow, equal_nan=True)
+    torch.testing.assert_close(a.support, b.support)
+
+
+def test_empty_and_single_event_inputs():
+    flow = TripletFlow(sensor_size=SIZE)
+    assert len(flow(Events.empty(SIZE))) == 0
+    one = Events([3], [4], [10], [1], SIZE)
+    assert len(flow(one)) == 0
+    flow.reset()
+    assert len(flow.update(Events.empty(SIZE))) == 0
+    assert len(flow.update(one)) == 0
+    assert len(flow.flush()) == 0
+    res = TripletFlow(sensor_size=SIZE, return_event_flow=True)(one)
+    assert res.event_flow.shape == (1, 2) and bool(torch.isnan(res.event_flow).all())
+
+
+def test_bad_inputs_raise_events_error():
+    flow = TripletFlow()
+    with pytest.raises(EventsError, match="sensor size is unknown"):
+        flow(Events([1], [1], [0], [1]))
+    with pytest.raises(EventsError, match="backwards"):
+        flow(Events([1, 2], [1, 1], [10, 5], [1, 1], SIZE))
+    with pytest.raises(EventsError, match="outside the sensor"):
+        flow(Events([1, 64], [1, 1], [1, 2], [1, 1], SIZE))
+    with pytest.raises(EventsError, match="polarity"):
+        flow(Events([1, 2], [1, 1], [1, 2], [1, 0], SIZE))
+    stream = TripletFlow(sensor_size=SIZE)
+    stream.update(Events([1], [1], [100], [1], SIZE))
+    with pytest.raises(EventsError, match="before the last event"):
+        stream.update(Events([1], [1], [99], [1], SIZE))
+    with pytest.raises(EventsError, match="sensor size"):
+        stream.update(Events([1], [1], [200], [1], (32, 32)))
+
+
+def test_burst_of_100x_rate_is_processed_in_bounded_chunks(texture, monkeypatch):
+    ev, _ = texture
+    burst = Events(ev.x, ev.y, ev.t // 100, ev.p, ev.sensor_size)
+    # the same scene 100x faster: speeds and time constants scaled accordingly
+    flow = TripletFlow(roi_size=32, window_us=100, chunk_size=2_000, refractory_us=20,
+                       tolerance_us=1, max_speed=1e6, min_speed=1000.0)
+    seen = []
+    original = TripletFlow._process
+
+    def spy(self, chunk):
+        seen.append(len(chunk))
+        return original(self, chunk)
+
+    monkeypatch.setattr(TripletFlow, "_process", spy)
+    res = flow(burst)
+    assert max(seen) <= 2_000 and sum(seen) == len(ev)
+    assert len(res) > 0
+
+
+def test_config_loading_and_errors(tmp_path):
+    path = tmp_path / "flow.yaml"
+    path.write_text("flow:\n  radius: 2\n  window_us: 1000\n  tolerance_rel: 0.2\n")
+    cfg = FlowConfig.from_yaml(path)
+    assert (cfg.radius, cfg.window_us, cfg.tolerance_permille) == (2, 1000, 200)
+    assert FlowConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ConfigError, match="unknown field"):
+        FlowConfig.from_dict({"radios": 2})
+    with pytest.raises(ConfigError, match="'history'"):
+        FlowConfig.from_dict({"history": 0})
+    with pytest.raises(ConfigError, match="'window_us'"):
+        FlowConfig.from_dict({"window_us": 1.5})
+    with pytest.raises(ConfigError, match="'max_speed'"):
+        FlowConfig(min_speed=100.0, max_speed=50.0)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("- not a mapping\n")
+    with pytest.raises(ConfigError, match="bad.yaml"):
+        FlowConfig.from_yaml(bad)
+
+
+def test_saving_results(tmp_path, texture):
+    ev, _ = texture
+    res = TripletFlow(roi_size=32, window_us=5_000)(ev[:6_000])
+    for name in ("f.csv", "f.npz", "f.h5"):
+        res.save(tmp_path / name)
+        assert (tmp_path / name).stat().st_size > 0
+    lines = (tmp_path / "f.csv").read_text().splitlines()
+    assert lines[0].startswith("t_us,window,roi,x,y,flow_x,flow_y") and len(lines) == len(res) + 1
+    with pytest.raises(ValueError, match="unknown flow output format"):
+        res.save(tmp_path / "f.txt")
+    assert not list(tmp_path.glob(".f.txt*"))  # nothing half-written left behind
+
+
+def test_concatenated_events_match_separate_updates(texture):
+    ev, _ = texture
+    a, b = ev[:5_000], ev[5_000:9_000]
+    one = TripletFlow(roi_size=32, window_us=5_000)(concatenate([a, b]))
+    flow = TripletFlow(roi_size=32, window_us=5_000)
+    two = FlowResult.cat([flow.update(a), flow.update(b), flow.flush()])
+    torch.testing.assert_close(one.flow, two.flow, equal_nan=True)
