@@ -1,0 +1,52 @@
+"""Smoke test of ``evtrack flow``: files written, bad options rejected cleanly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evtrack.cli import main
+from evtrack.flow.scenes import translating_texture
+
+
+@pytest.fixture(scope="module")
+def event_file(tmp_path_factory):
+    from evtrack.io import write_events
+
+    ev, _ = translating_texture((64, 48), velocity=(600.0, 250.0), duration_us=40_000, seed=5)
+    path = tmp_path_factory.mktemp("flow_cli") / "events.h5"
+    write_events(path, ev)
+    return path
+
+
+def test_flow_command_writes_flows_and_pictures(event_file, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(["flow", str(event_file), "--out", str(out), "--window-ms", "5", "--roi", "32",
+                 "--frame-ms", "10", "--video"])
+    assert code == 0
+    assert "RoI flows" in capsys.readouterr().out
+    lines = (out / "flow.csv").read_text().splitlines()
+    assert len(lines) > 10
+    flow = np.array([[float(v) for v in line.split(",")[5:7]] for line in lines[1:]])
+    assert np.median(np.linalg.norm(flow - [600.0, 250.0], axis=1)) < 0.1 * 650
+    assert (out / "flow.png").stat().st_size > 1000
+    assert (out / "flow.mp4").stat().st_size > 1000
+    assert (out / "flow_config.yaml").is_file()
+    assert not list(out.glob(".*tmp*"))
+
+
+def test_flow_command_npz_with_event_flows(event_file, tmp_path):
+    out = tmp_path / "out"
+    assert main(["flow", str(event_file), "--out", str(out), "--format", "npz",
+                 "--event-flow"]) == 0
+    data = np.load(out / "flow.npz")
+    assert data["event_flow"].shape[1] == 2 and data["flow"].shape[1] == 2
+
+
+def test_flow_command_reports_bad_options(event_file, tmp_path, capsys):
+    assert main(["flow", str(event_file), "--out", str(tmp_path), "--event-flow"]) == 1
+    assert "--event-flow needs" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("radius: -1\n")
+    assert main(["flow", str(event_file), "--out", str(tmp_path), "--config", str(bad)]) == 1
+    assert "radius" in capsys.readouterr().err
