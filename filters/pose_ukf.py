@@ -318,8 +318,8 @@ class PoseUKF(_PoseFilter):
     Example:
         >>> ukf = PoseUKF(batch_size=1)
         >>> ukf.reset(t=torch.tensor([[0.0, 0.0, 1.0]]), q=torch.tensor([[1.0, 0.0, 0.0, 0.0]]))
-        >>> ukf.predict(torch.tensor([[0.1, 0.0, 0.0, 0.0, 0.0, 0.0]]), 0.5)[0].tolist()
-        [[0.05, 0.0, 1.0]]
+        >>> ukf.predict(torch.tensor([[0.5, 0.0, 0.0, 0.0, 0.0, 0.0]]), 0.5)[0].tolist()
+        [[0.25, 0.0, 1.0]]
     """
 
     _STEP_NAMES = ("predict_state", "update_pose_state", "step")
