@@ -119,7 +119,7 @@ class FlowConfig:
     refine_iters: int = 5
     chunk_size: int = 200_000
     block_size: int | None = None
-    pass_repeats: int = 4
+    pass_repeats: int = 1
     pair_budget: int = 4_000_000
     device: str = "cpu"
 

@@ -149,8 +149,8 @@ class EventHistory:
             (M, history) int64 keys, ``EMPTY_KEY`` where the cell holds fewer events.
         """
         rows = self.ring.view(self.cells, self.slots).index_select(0, cell)
-        later = (rows >= query_key[:, None]).sum(1)
-        newest = self.head.index_select(0, cell) - 1 - later
+        later = (rows >= query_key[:, None]).to(torch.uint8).sum(1, dtype=torch.uint8)
+        newest = self.head.index_select(0, cell) - 1 - later.to(torch.int64)
         slot = torch.remainder(newest[:, None] - self._ages, self.slots)
         return rows.gather(1, slot)
 
