@@ -94,7 +94,8 @@ class FlowConfig:
             ``None``: 16384 on CPU, 262144 on CUDA.
         pass_repeats: L, how many events of one pixel a conflict-free pass may hold. The
             ring buffer keeps ``history + pass_repeats`` slots per pixel and polarity; larger
-            values mean fewer sequential passes but wider lookups.
+            values mean fewer sequential passes but wider lookups. With the burst filter on,
+            repeated onsets of one cell within a chunk are rare and 1 is fastest.
         pair_budget: largest number of (hypothesis, candidate) distances the registration
             evaluates at once (bounds its memory).
         device: torch device of the history and of all computation.
