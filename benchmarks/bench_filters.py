@@ -29,12 +29,12 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-from evtrack.filters import PoseTwistUKF, PoseUKF, PoseUKFConfig, VelocityKF, interaction_matrix
-from evtrack.filters.onnx_export import export_step, step_inputs
 from filterpy.kalman import KalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from scipy.spatial.transform import Rotation
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import PoseTwistUKF, PoseUKF, PoseUKFConfig, VelocityKF, interaction_matrix
+from evtrack.filters.onnx_export import export_step, step_inputs
 
 ROIS = 400
 CAM = PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480)

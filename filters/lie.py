@@ -16,8 +16,9 @@ onnxruntime does not implement in float64. These kernels are pinned to kornia in
 from __future__ import annotations
 
 import torch
-from evtrack.filters.linalg import use_portable
 from torch import Tensor
+
+from evtrack.filters.linalg import use_portable
 
 __all__ = [
     "atan2_precise",

@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor, nn
+
 from evtrack.filters.interaction import interaction_matrix
 from evtrack.filters.pose_ukf import PoseTwistUKF, PoseUKF
 from evtrack.filters.velocity_kf import VelocityKF
-from torch import Tensor, nn
-
 from evtrack.utils import atomic_path
 
 __all__ = [

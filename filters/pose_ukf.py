@@ -35,12 +35,13 @@ import math
 from typing import Any
 
 import torch
+from torch import Tensor, nn
+
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig
 from evtrack.filters.lie import pose_boxminus, pose_boxplus, quat_mul, quat_rotate, se3_exp
 from evtrack.filters.linalg import spd_inverse, spd_solve, symmetrize
 from evtrack.filters.ukf import merwe_weights, quat_mean, sigma_offsets, weighted_cov
-from torch import Tensor, nn
 
 __all__ = ["PoseUKF", "PoseTwistUKF"]
 

@@ -15,9 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch import Tensor
+
 from evtrack.filters.lie import quat_conj, quat_exp, quat_log, quat_mul
 from evtrack.filters.linalg import cholesky
-from torch import Tensor
 
 __all__ = ["SigmaWeights", "merwe_weights", "sigma_offsets", "quat_mean", "weighted_cov"]
 

@@ -38,14 +38,14 @@ import math
 from typing import Any
 
 import torch
+from torch import Tensor, nn
+
+from evtrack.camera import PinholeCamera
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.interaction import undistort_flow
 from evtrack.filters.linalg import spd_inverse
 from evtrack.filters.weighting import laplacian_weights
-from torch import Tensor, nn
-
-from evtrack.camera import PinholeCamera
 
 __all__ = ["VelocityKF"]
 

@@ -19,8 +19,9 @@ which outliers no longer inflate.
 from __future__ import annotations
 
 import torch
-from evtrack.filters.linalg import use_portable
 from torch import Tensor
+
+from evtrack.filters.linalg import use_portable
 
 __all__ = ["masked_lower_median", "laplacian_weights"]
 

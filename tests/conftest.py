@@ -10,6 +10,12 @@ import torch
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # One intra-op thread: the suite's tensors are small, and on a shared 2-core machine two
+    # OpenMP threads made some steps 10-100x slower. Benchmarks set their own thread counts.
+    torch.set_num_threads(1)
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--device", default="cpu", help="torch device for device-aware tests")
 

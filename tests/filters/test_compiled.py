@@ -7,9 +7,9 @@ build itself is exercised, and compared with eager, by benchmarks/bench_filters.
 from __future__ import annotations
 
 import torch
-from evtrack.filters import PoseUKF, VelocityKF
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import PoseUKF, VelocityKF
 
 CAM = PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480)
 

@@ -6,10 +6,10 @@ import math
 from pathlib import Path
 
 import pytest
-from evtrack.filters import PoseTwistUKFConfig, PoseUKFConfig, VelocityKFConfig, load_filters_config
-from evtrack.filters.config import config_from_dict
 
 from evtrack.errors import ConfigError
+from evtrack.filters import PoseTwistUKFConfig, PoseUKFConfig, VelocityKFConfig, load_filters_config
+from evtrack.filters.config import config_from_dict
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "filters.yaml"
 

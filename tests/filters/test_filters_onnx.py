@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
-from evtrack.filters.onnx_export import FilterStep, export_step, run_onnx, step_inputs
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
+from evtrack.filters.onnx_export import FilterStep, export_step, run_onnx, step_inputs
 
 CAM = PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480)
 TOL = {torch.float64: 1e-9, torch.float32: 1e-5}

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
-from evtrack.filters import interaction_matrix, undistort_flow
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import interaction_matrix, undistort_flow
 
 # Off-centre principal point and unequal focal lengths, so swapped axes would show.
 CAM = PinholeCamera(520.0, 470.0, 301.5, 268.25, 640, 480)

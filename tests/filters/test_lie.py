@@ -5,6 +5,10 @@ from __future__ import annotations
 import math
 
 import torch
+from kornia.geometry.liegroup import So3
+from kornia.geometry.quaternion import Quaternion
+from scipy.spatial.transform import Rotation
+
 from evtrack.filters.lie import (
     atan2_precise,
     pose_boxminus,
@@ -16,10 +20,6 @@ from evtrack.filters.lie import (
     quat_rotate,
     se3_exp,
 )
-from kornia.geometry.liegroup import So3
-from kornia.geometry.quaternion import Quaternion
-from scipy.spatial.transform import Rotation
-
 from evtrack.geometry import integrate_twist_tq
 
 G = torch.Generator().manual_seed(0)

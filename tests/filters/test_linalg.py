@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+
 from evtrack.filters.linalg import cholesky, portable_linalg, spd_inverse, symmetrize, use_portable
 
 

@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 import torch
-from evtrack.filters import PoseTwistUKF, PoseTwistUKFConfig, PoseUKF, PoseUKFConfig, VelocityKF
-from evtrack.filters.lie import quat_exp
 from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from scipy.spatial.transform import Rotation
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import PoseTwistUKF, PoseTwistUKFConfig, PoseUKF, PoseUKFConfig, VelocityKF
+from evtrack.filters.lie import quat_exp
 from evtrack.geometry import integrate_twist, integrate_twist_tq, matrix_to_tq, tq_to_matrix
 
 F64 = torch.float64

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from filterpy.kalman import MerweScaledSigmaPoints
+
 from evtrack.filters.lie import quat_conj, quat_exp, quat_log, quat_mul
 from evtrack.filters.ukf import merwe_weights, quat_mean, sigma_offsets, weighted_cov
-from filterpy.kalman import MerweScaledSigmaPoints
 
 
 def test_weights_and_points_match_filterpy() -> None:

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from evtrack.filters import VelocityKF, VelocityKFConfig, interaction_matrix, laplacian_weights
 from filterpy.kalman import KalmanFilter
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import VelocityKF, VelocityKFConfig, interaction_matrix, laplacian_weights
 from evtrack.geometry import integrate_twist, transform_points
 
 CAM = PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480)

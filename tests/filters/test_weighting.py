@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+
 from evtrack.filters.linalg import portable_linalg
 from evtrack.filters.weighting import laplacian_weights, masked_lower_median
 
