@@ -173,3 +173,13 @@ def test_burst_memory_is_bounded_by_block_size(monkeypatch):
     assert sum(sizes) == len(ev)
     assert max(sizes) <= 256
     assert max(chunk_sizes) <= 5000
+
+
+def test_search_on_the_test_device_equals_reference(device):
+    """Run with ``pytest --device cuda`` to check the CUDA path against the reference."""
+    x, y, t, p = _structured_stream(2500)
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=900, block_size=300, device=str(device))
+    got = CandidateSearch(cfg, device)(x.to(device), y.to(device), t.to(device), p.to(device))
+    ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
+    _assert_same(got.select(torch.arange(len(got), device=device)), ref)
+    assert got.flow.device.type == device.type

@@ -186,3 +186,18 @@ def test_concatenated_events_match_separate_updates(texture):
     flow = TripletFlow(roi_size=32, window_us=5_000)
     two = FlowResult.cat([flow.update(a), flow.update(b), flow.flush()])
     torch.testing.assert_close(one.flow, two.flow, equal_nan=True)
+
+
+def test_shipped_config_file_holds_the_defaults():
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "configs" / "flow.yaml"
+    assert FlowConfig.from_yaml(path) == FlowConfig()
+
+
+def test_flow_on_the_test_device(device, texture):
+    ev, gt = texture
+    res = TripletFlow(roi_size=32, window_us=5_000, device=str(device))(ev[:20_000].to(device))
+    assert res.flow.device.type == device.type
+    full = ~res.normal
+    assert float(_rel_error(res.flow[full].cpu(), gt[0]).median()) < 0.1
