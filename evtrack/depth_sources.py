@@ -123,17 +123,22 @@ class SensorDepth(DepthSource):
         self.T_event_rgb = T
         self.same_camera = (self.rgb_camera == event_camera) and np.allclose(T, np.eye(4))
 
+    def check_frame(self, t_us: int, depth: np.ndarray) -> np.ndarray:
+        """The frame as float32 (H, W); raises ValueError when its size is not the camera's."""
+        d = np.asarray(depth, np.float32)
+        expected = (self.rgb_camera.height, self.rgb_camera.width)
+        if d.shape != expected:
+            raise ValueError(f"depth frame at t={t_us} µs is {d.shape}"
+                             f", the RGB-D camera is {expected[1]}x{expected[0]}")
+        return d
+
     def set_frame(self, t_us: int, depth: np.ndarray) -> None:
         """Take a depth frame: (H, W) metres of the RGB-D camera; NaN, 0 or negative = missing.
 
         Raises:
             ValueError: a frame whose size is not the RGB-D camera's.
         """
-        d = np.asarray(depth, np.float32)
-        expected = (self.rgb_camera.height, self.rgb_camera.width)
-        if d.shape != expected:
-            raise ValueError(f"depth frame at t={t_us} µs is {d.shape[1]}x{d.shape[0]}, the "
-                             f"RGB-D camera is {expected[1]}x{expected[0]}")
+        d = self.check_frame(t_us, depth)
         d = np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
         self.map = d if self.same_camera else self._to_event_camera(d)
         self.t_us = int(t_us)

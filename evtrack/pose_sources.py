@@ -175,7 +175,9 @@ class OraclePoseSource:
         offset = rng.uniform(-1.0, 1.0, 3) * self.outlier_translation
         if drop < self.dropout_rate:
             return None
-        T = np.array(self.pose_at(int(t_us)), dtype=np.float64)
+        pose = self.pose_at(int(t_us))
+        T = (pose.detach().cpu().numpy() if isinstance(pose, Tensor) else np.asarray(pose)
+             ).astype(np.float64, copy=True)
         if outlier < self.outlier_rate:
             self.outliers.append(int(t_us))
             T[:3, :3] = random_rot

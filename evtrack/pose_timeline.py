@@ -81,7 +81,9 @@ class PoseTimeline:
     def start(self, t_us: int) -> None:
         """Forget the past: the current filter state is the state at ``t_us``."""
         self._times: deque[int] = deque([int(t_us)])
-        self._snaps: deque[tuple[Tensor, ...]] = deque([self._snapshot()])
+        self._base = self._snapshot()  # the state at the start, before any measurement
+        self._base_open = True  # measurements at exactly the start time may still come
+        self._snaps: deque[tuple[Tensor, ...]] = deque([self._base])
         self._twists: deque[Tensor | None] = deque([None])
         self._records: list[Measurement] = []
 
@@ -124,11 +126,12 @@ class PoseTimeline:
     def _trim(self) -> None:
         limit = self.now - self.horizon_us
         while len(self._times) > 1 and self._times[1] <= limit:
+            self._base_open = False
             self._times.popleft()
             self._snaps.popleft()
             self._twists.popleft()
         first = self._times[0]
-        if self._records and self._records[0].t_us <= first:
+        if not self._base_open and self._records and self._records[0].t_us <= first:
             self._records = [m for m in self._records if m.t_us > first]
 
     # ------------------------------------------------------------------ measurements
@@ -143,7 +146,7 @@ class PoseTimeline:
         if t_us > self.now:
             raise ValueError(f"measurement at {t_us} µs is in the future of the filter "
                              f"({self.now} µs)")
-        if t_us <= self._times[0]:
+        if t_us < self._times[0] or (t_us == self._times[0] and not self._base_open):
             self.late += 1
             return False
         self._seq += 1
@@ -152,7 +155,15 @@ class PoseTimeline:
         self._records.insert(bisect.bisect(keys, (m.t_us, m.seq)), m)
         times = list(self._times)
         j = bisect.bisect_left(times, t_us) - 1  # last step end strictly before t_us
-        self._restore(self._snaps[j])
+        if j < 0:  # at the start time itself: from the state before any measurement
+            j = 0
+            self._restore(self._base)
+            for r in self._records:
+                if r.t_us == times[0]:
+                    self._fuse(r)
+            self._snaps[0] = self._snapshot()
+        else:
+            self._restore(self._snaps[j])
         for i in range(j + 1, len(times)):
             t_start, t_end = times[i - 1], times[i]
             twist = self._twists[i]

@@ -151,6 +151,17 @@ def _load_mesh(mesh: Any):
     return None, vertices
 
 
+def _subset(res: FlowResult, rows: Tensor) -> FlowResult:
+    """The RoI rows ``rows`` (bool) of a flow result."""
+    rows = rows.to(res.t.device)
+    kw = {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
+    for name in ("xy", "t", "flow", "support", "cost", "normal", "normal_dir", "full_flow",
+                 "n_events", "roi", "window"):
+        kw[name] = kw[name][rows]
+    kw["event_flow"] = None
+    return FlowResult(**kw)
+
+
 def _quat_to_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     """(3,), (4,) wxyz -> (4, 4) float64 (numpy; the per-step path avoids torch overheads)."""
     w, x, y, z = q / np.linalg.norm(q)
@@ -289,7 +300,9 @@ class Tracker:
         self._out_tq: list[np.ndarray] = []
         self._out_twist: list[np.ndarray] = []
         self._out_status: list[int] = []
-        self._latest_rgb: tuple[int, np.ndarray] | None = None
+        self._frames: list[tuple[int, int, FrameInput, FrameInput]] = []
+        self._frame_seq = 0
+        self._horizon = -(1 << 62)
         if t_us is not None:
             self._start_clock(int(t_us))
         if pose is not None:
@@ -365,16 +378,31 @@ class Tracker:
         self._last_event_t = t_last
         self.stats.events += len(events)
         self._ev_buf.append(events.to("cpu"))
-        self._advance(t_last)
+        self.advance(t_last)
 
     def advance(self, t_us: int) -> None:
-        """Declare that every event before ``t_us`` was pushed: close the steps ending by then."""
+        """Declare that every event before ``t_us`` was pushed: close the step groups (of
+        ``flow_batch_steps`` steps) ending by then, and the frames before them."""
+        t_us = int(t_us)
         if self._t is None:
-            self._start_clock(int(t_us))
-        self._advance(int(t_us))
+            self._start_clock(t_us)
+        self._horizon = max(self._horizon, t_us)
+        self._advance(t_us, whole_groups=True)
+
+    def flush(self) -> None:
+        """Close every step ending by the latest time known (the last event pushed or the last
+        :meth:`advance`), also inside an unfinished step group, and process the frames queued up
+        to then. Call it at the end of a stream."""
+        if self._t is None:
+            return
+        self._advance(self._horizon, whole_groups=False)
+        self._frames_due(self._horizon + 1)
 
     def push_frame(self, t_us: int, rgb: FrameInput = None, depth: FrameInput = None) -> None:
         """Add the RGB-D frame taken at ``t_us`` (after the events before ``t_us``).
+
+        The frame is processed once the clock reaches it (after the steps ending by ``t_us``);
+        a frame older than the clock is processed at once.
 
         Args:
             t_us: frame time (µs).
@@ -384,30 +412,46 @@ class Tracker:
                 (sensor depth: the previous depth frame is kept, see the module docstring).
         """
         t_us = int(t_us)
-        self.advance(t_us)
+        if depth is not None and not callable(depth) and isinstance(self.depth, SensorDepth):
+            self.depth.check_frame(t_us, depth)
+        if self._t is None:
+            self._start_clock(t_us)
         self.stats.frames += 1
-        with _Timer(self.stats.time_s, "frames"):
-            if depth is None:
-                self.stats.frames_without_depth += 1
-            elif isinstance(self.depth, SensorDepth):
-                self.depth.set_frame(t_us, depth() if callable(depth) else depth)
-            if rgb is None:
-                return
-            get_rgb = rgb if callable(rgb) else (lambda: rgb)
-            image: np.ndarray | None = None
-            if self.method == "frame-flow":
-                image = get_rgb()
-                self._frame_flow(t_us, image)
-            if self.method == "ge":
-                image = image if image is not None else get_rgb()
-                self.ge.set_frame(t_us, image, self.pose(t_us) if self.initialized else None)
-            if self._wants_pose(t_us):
-                self.stats.pose_calls += 1
-                image = image if image is not None else get_rgb()
-                with _Timer(self.stats.time_s, "pose_source"):
-                    m = self.pose_source(t_us, image, None)
-                if m is not None:
-                    self.push_pose(m, available_us=t_us + self.config.pose_latency_us)
+        if depth is None:
+            self.stats.frames_without_depth += 1
+        self._frame_seq += 1
+        heapq.heappush(self._frames, (t_us, self._frame_seq, rgb, depth))
+        if t_us < self._t:
+            self._frames_due(self._t)
+        self.advance(t_us)
+
+    def _frames_due(self, t_before: int) -> None:
+        """Process the queued frames taken before ``t_before``."""
+        while self._frames and self._frames[0][0] < t_before:
+            t_us, _, rgb, depth = heapq.heappop(self._frames)
+            with _Timer(self.stats.time_s, "frames"):
+                self._process_frame(t_us, rgb, depth)
+
+    def _process_frame(self, t_us: int, rgb: FrameInput, depth: FrameInput) -> None:
+        if depth is not None and isinstance(self.depth, SensorDepth):
+            self.depth.set_frame(t_us, depth() if callable(depth) else depth)
+        if rgb is None:
+            return
+        get_rgb = rgb if callable(rgb) else (lambda: rgb)
+        image: np.ndarray | None = None
+        if self.method == "frame-flow":
+            image = get_rgb()
+            self._frame_flow(t_us, image)
+        if self.method == "ge":
+            image = image if image is not None else get_rgb()
+            self.ge.set_frame(t_us, image, self.pose(t_us) if self.initialized else None)
+        if self._wants_pose(t_us):
+            self.stats.pose_calls += 1
+            image = image if image is not None else get_rgb()
+            with _Timer(self.stats.time_s, "pose_source"):
+                m = self.pose_source(t_us, image, None)
+            if m is not None:
+                self.push_pose(m, available_us=t_us + self.config.pose_latency_us)
 
     def push_pose(self, measurement: PoseMeasurement, available_us: int | None = None) -> None:
         """Add a pose measurement (e.g. from a pose network running in another thread).
@@ -442,59 +486,79 @@ class Tracker:
         return True
 
     # ------------------------------------------------------------------ the clock
-    def _advance(self, t_us: int) -> None:
-        """Close every step ending at or before ``t_us``."""
+    def _advance(self, t_us: int, whole_groups: bool) -> None:
+        """Close the step groups ending at or before ``t_us`` (or every step, see :meth:`flush`)."""
         step = self.config.velocity_step_us
-        n_steps = (t_us - self._t) // step
-        if n_steps <= 0:
+        group = step * self.config.flow_batch_steps
+        end = (t_us // group) * group if whole_groups else (t_us // step) * step
+        if end <= self._t:
             return
         ev = concatenate(self._ev_buf) if len(self._ev_buf) > 1 else (
             self._ev_buf[0] if self._ev_buf else Events.empty(self.camera.size))
-        bounds = self._t + step * torch.arange(1, n_steps + 1, dtype=torch.int64)
-        cut = torch.searchsorted(ev.t, bounds).tolist() if len(ev) else [0] * n_steps
-        start = 0
-        for k in range(n_steps):
-            t0 = self._t
-            self._step(t0, t0 + step, ev[start:cut[k]])
-            start = cut[k]
-        rest = ev[start:]
-        self._ev_buf = [rest] if len(rest) else []
+        g_start = self._t
+        while g_start < end:
+            g_end = min((g_start // group + 1) * group, end)
+            k = int(torch.searchsorted(ev.t, torch.tensor([g_end]))[0]) if len(ev) else 0
+            self._group(g_start, g_end, ev[:k])
+            ev = ev[k:]
+            g_start = g_end
+        self._ev_buf = [ev] if len(ev) else []
 
-    def _step(self, t0: int, t1: int, ev: Events) -> None:
+    def _group(self, t0: int, t_end: int, ev: Events) -> None:
+        """Process the steps of ``[t0, t_end)``: one flow call for all of them (the mask is the
+        silhouette predicted at ``t0``), then the filters step by step."""
         cfg = self.config
         st = self.stats
-        dt = (t1 - t0) * 1e-6
-        initialised = self.initialized
-        pose = self._current_pose() if initialised else None
+        step = cfg.velocity_step_us
+        self._frames_due(t0 + step)
+        pose = self._current_pose() if self.initialized else None
         poly = self.silhouette.polygon(pose) if pose is not None else None
-        twist: Tensor | None = None
-        if self.method in ("full", "velocity", "ge"):
+        events_based = self.method in ("full", "velocity", "ge")
+        if events_based:
             if poly is not None and len(ev):
                 xy = np.stack([ev.x.numpy(), ev.y.numpy()], 1)
                 ev = ev[torch.from_numpy(poly.contains(xy, cfg.mask_margin_px))]
-            elif not (pose is None and self._velocity_before_pose):
+                st.events_on_object += len(ev)
+            elif not (pose is None and self._velocity_before_pose and self.method != "ge"):
                 ev = ev[:0]
-            st.events_on_object += len(ev) if pose is not None else 0
-            if self.method == "ge":
+        res: FlowResult | None = None
+        if self.method in ("full", "velocity"):
+            with _Timer(st.time_s, "flow"):
+                res = FlowResult.cat([self.flow.update(ev), self.flow.flush()])
+            res_t = res.t.cpu()
+        ev_cut = torch.searchsorted(ev.t, t0 + step * torch.arange(
+            1, (t_end - t0) // step + 1, dtype=torch.int64)).tolist() if len(ev) else None
+        for k in range((t_end - t0) // step):
+            a, b = t0 + k * step, t0 + (k + 1) * step
+            if k:
+                self._frames_due(b)
+            usable = pose is None or self.initialized  # lost inside the group: predict only
+            dt = step * 1e-6
+            twist: Tensor | None = None
+            if res is not None:
                 with _Timer(st.time_s, "velocity"):
-                    twist = self.ge.step(dt, ev, pose if poly is not None else None,
-                                         lambda uv: self._roi_depth(uv, poly, pose, patch=False))
+                    if usable:
+                        rows = (res_t >= a) & (res_t < b)
+                        twist = self._velocity_step(dt, _subset(res, rows), poly, pose)
+                    else:
+                        twist = self.vkf.predict(dt)
+            elif self.method == "ge":
+                lo = ev_cut[k - 1] if (ev_cut and k) else 0
+                ev_k = ev[lo:ev_cut[k]] if ev_cut else ev
+                with _Timer(st.time_s, "velocity"):
+                    twist = self.ge.step(
+                        dt, ev_k, pose if (poly is not None and usable) else None,
+                        lambda uv: self._roi_depth(uv, poly, pose, patch=False))
                     st.velocity_updates += int(self.ge.last_rows > 0)
-            else:
-                with _Timer(st.time_s, "flow"):
-                    self.flow.update(ev)
-                    res = self.flow.flush()
-                with _Timer(st.time_s, "velocity"):
-                    twist = self._velocity_step(dt, res, poly, pose)
-        elif self.method == "pose":
-            twist = self._zero_twist
-        with _Timer(st.time_s, "pose"):
-            self.timeline.step(t1, twist if self.timeline.twist_driven else None)
-            self._t = t1
-            self._apply_due(t1)
-        st.steps += 1
-        self._check_view(t1)
-        self._record(t1)
+            elif self.method == "pose":
+                twist = self._zero_twist
+            with _Timer(st.time_s, "pose"):
+                self.timeline.step(b, twist if self.timeline.twist_driven else None)
+                self._t = b
+                self._apply_due(b)
+            st.steps += 1
+            self._check_view(b)
+            self._record(b)
 
     def _fallback_depth(self, pose: np.ndarray | None) -> float:
         return float(pose[2, 3]) if pose is not None else float("nan")
@@ -742,6 +806,7 @@ class Tracker:
         push_until(None)
         if self._last_event_t is not None:
             self.advance(self._last_event_t + 1)
+        self.flush()
         if bar is not None:
             bar.close()
         return self.trajectory()

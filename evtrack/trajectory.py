@@ -178,6 +178,7 @@ class Trajectory:
         table = np.asarray(rows, np.float64).reshape(-1, len(_COLUMNS))
         t_us = torch.from_numpy(table[:, 0].astype(np.int64))
         poses = tq_to_matrix(torch.from_numpy(table[:, 1:4]), torch.from_numpy(table[:, 4:8]))
+        poses[~np.isfinite(table[:, 1:8]).all(1)] = float("nan")  # no estimate: NaN throughout
         try:
             return cls(t_us, poses, torch.from_numpy(table[:, 8:14]),
                        torch.from_numpy(table[:, 14].astype(np.int8)), method, meta)

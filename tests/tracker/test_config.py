@@ -1,0 +1,70 @@
+"""TrackerConfig: defaults, YAML, and clear errors for unknown or invalid fields."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from evtrack.errors import ConfigError
+from evtrack.tracking_config import TrackerConfig, load_tracker_config
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def test_shipped_yaml_equals_the_defaults() -> None:
+    assert load_tracker_config(CONFIGS / "tracker.yaml").to_dict() == TrackerConfig().to_dict()
+
+
+def test_round_trip(tmp_path) -> None:
+    cfg = TrackerConfig.from_dict({"method": "frame-flow", "flow": {"roi_size": 16},
+                                   "velocity_kf": {"weighting": False},
+                                   "frame_flow": {"algorithm": "farneback"}})
+    path = tmp_path / "t.yaml"
+    cfg.to_yaml(path)
+    again = TrackerConfig.from_yaml(path)
+    assert again == cfg
+    assert again.flow.roi_size == 16 and again.flow.window_us == 1000
+    assert again.velocity_kf.weighting is False and again.velocity_kf.normal_flow is True
+
+
+def test_partial_sections_keep_the_other_defaults() -> None:
+    cfg = TrackerConfig.from_dict({"pose_ukf": {"q_rotation": 0.5}})
+    assert cfg.pose_ukf.q_rotation == 0.5
+    assert cfg.pose_ukf.q_translation == TrackerConfig().pose_ukf.q_translation
+
+
+@pytest.mark.parametrize(("data", "match"), [
+    ({"metod": "full"}, r"unknown field\(s\) \['metod'\]"),
+    ({"method": "magic"}, "method"),
+    ({"velocity_step_us": 1500}, "multiple of flow.window_us"),
+    ({"velocity_step_us": 1.5}, "velocity_step_us"),
+    ({"flow": {"roi_sise": 3}}, "roi_sise"),
+    ({"flow": {"window_us": "fast"}}, "window_us"),
+    ({"pose_ukf": {"q_rotation": "a lot"}}, "q_rotation"),
+    ({"pose_ukf": {"gate": 3}}, "gate"),
+    ({"velocity_kf": {"weighting": "yes"}}, "weighting"),
+    ({"frame_flow": {"algorithm": "raft"}}, "algorithm"),
+    ({"ge": {"contrast": -1}}, "contrast"),
+    ({"pose_rate_hz": 0}, "pose_rate_hz"),
+    ({"depth_source": "lidar"}, "depth_source"),
+    ({"history_ms": 100}, "history_ms"),
+    ({"use_flow_normal_flags": 1}, "use_flow_normal_flags"),
+])
+def test_errors_name_the_field(data, match) -> None:
+    with pytest.raises(ConfigError, match=match):
+        TrackerConfig.from_dict(data)
+
+
+def test_yaml_errors_name_the_file(tmp_path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"pose_latency_ms": -5.0}))
+    with pytest.raises(ConfigError, match="bad.yaml.*pose_latency_ms"):
+        TrackerConfig.from_yaml(path)
+    path.write_text("method: [unclosed")
+    with pytest.raises(ConfigError, match="bad.yaml"):
+        TrackerConfig.from_yaml(path)
+    path.write_text("- a list")
+    with pytest.raises(ConfigError, match="mapping"):
+        TrackerConfig.from_yaml(path)

@@ -1,0 +1,183 @@
+"""Silhouette mask, depth lookup and reprojection, pose sources, frame flow, GE event timing."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from evtrack.camera import PinholeCamera
+from evtrack.depth_sources import SensorDepth, patch_offsets, roi_depth
+from evtrack.frame_flow import DenseFlow, twist_adjoint
+from evtrack.geometry import integrate_twist
+from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
+from evtrack.silhouette import Silhouette, points_in_polygon
+
+CAM = PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120)
+
+
+def _pose(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_points_in_polygon_against_opencv() -> None:
+    rng = np.random.default_rng(0)
+    poly = cv2.convexHull(rng.uniform(20, 100, (12, 2)).astype(np.float32)).reshape(-1, 2)
+    pts = rng.uniform(0, 120, (2000, 2))
+    for margin in (0.0, 5.0):
+        ours = points_in_polygon(poly[::-1], pts, margin)  # either orientation
+        dist = np.array([cv2.pointPolygonTest(poly, (float(x), float(y)), True) for x, y in pts])
+        # inside the exact offset region -> inside ours (ours is the mitred, larger offset)
+        assert ours[dist >= -margin + 1e-6].all()
+        if margin == 0:
+            np.testing.assert_array_equal(ours[np.abs(dist) > 1e-6], dist[np.abs(dist) > 1e-6] > 0)
+
+
+def test_silhouette_covers_the_rendered_mask(box) -> None:
+    from evtrack.sim.renderer import Renderer
+
+    sil = Silhouette(box.vertices, CAM)
+    with Renderer(CAM) as r:
+        r.set_object(box)
+        for T in [_pose([0.3, -0.5, 0.2], [0.02, -0.01, 0.5]),
+                  _pose([1.2, 0.4, -0.9], [0.1, 0.05, 0.7])]:
+            out = r.render(T)
+            v, u = np.nonzero(out.mask)
+            poly = sil.polygon(T)
+            assert poly.contains(np.stack([u, v], 1), 1.0).all()
+            # tight: the hull of a box's projection is its silhouette, up to pixel coverage
+            area = cv2.contourArea(poly.vertices.astype(np.float32))
+            assert abs(area - out.mask.sum()) < 0.05 * out.mask.sum() + 2 * len(poly.vertices)
+            z = out.depth[out.mask]
+            assert poly.z_range[0] <= z.min() + 1e-4 and z.max() <= poly.z_range[1] + 1e-4
+    assert sil.polygon(_pose([0, 0, 0], [0, 0, -1.0])) is None  # behind the camera
+    outside = sil.polygon(_pose([0, 0, 0], [5.0, 0, 1.0]))
+    assert outside.visible_fraction == 0.0
+
+
+def test_roi_depth_median_range_and_missing() -> None:
+    depth = np.full((20, 30), 2.0, np.float32)
+    depth[5:15, 5:15] = 0.5
+    depth[9, 9] = np.nan
+    depth[8, 8] = 0.55
+    off = patch_offsets(2, 1)
+    z = roi_depth(depth, np.array([[9.0, 9.0], [25.0, 2.0], [14.6, 9.0]]), off, (0.3, 1.0))
+    assert z[0] == 0.5 and np.isnan(z[1])
+    # at the border of the object: only the object pixels count
+    assert z[2] == 0.5
+    assert roi_depth(depth, np.array([[14.6, 9.0]]), off, None)[0] == 2.0
+
+
+def test_sensor_depth_reprojection_against_rendering(box) -> None:
+    """Depth rendered in an RGB camera, carried into a different event camera, equals the
+    depth rendered in the event camera (away from the silhouette's edge)."""
+    from evtrack.sim.renderer import Renderer
+
+    rgb_cam = PinholeCamera(150.0, 150.0, 99.5, 74.5, 200, 150)
+    T_event_rgb = _pose([0.0, 0.05, 0.0], [0.03, 0.0, 0.0])
+    T_obj_rgb = _pose([0.4, 0.2, 0.1], [0.0, 0.0, 0.5])
+    T_obj_ev = T_event_rgb @ T_obj_rgb
+    with Renderer(rgb_cam) as r:
+        r.set_object(box)
+        d_rgb = r.render(T_obj_rgb).depth
+    with Renderer(CAM) as r:
+        r.set_object(box)
+        ref = r.render(T_obj_ev)
+    src = SensorDepth(CAM, rgb_cam, T_event_rgb, radius=0, stride=1)
+    src.set_frame(0, d_rgb)
+    inner = cv2.erode(ref.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    got = src.map[inner]
+    ok = np.isfinite(got)
+    assert ok.mean() > 0.8  # a denser RGB camera leaves few holes
+    # nearest-pixel splatting on slanted faces: a few mm (1 px ~ 4 mm across here)
+    diff = np.abs(got[ok] - ref.depth[inner][ok])
+    assert np.quantile(diff, 0.95) < 3e-3 and diff.max() < 1.5e-2
+    assert np.isnan(src.map[~ref.mask & (ref.depth == 0)]).mean() > 0.99
+
+
+def test_oracle_is_deterministic_per_frame_and_noisy() -> None:
+    truth = _pose([0.1, 0.2, 0.3], [0.0, 0.0, 0.6])
+    src = OraclePoseSource(lambda t: torch.from_numpy(truth), std_translation=0.01,
+                           std_rotation=0.02, seed=5)
+    a = [src(t) for t in range(0, 100_000, 1000)]
+    b = [src(t) for t in reversed(range(0, 100_000, 1000))][::-1]
+    for x, y in zip(a, b, strict=True):
+        assert torch.equal(x.pose, y.pose)
+    dt = np.array([(m.pose[:3, 3].numpy() - truth[:3, 3]) for m in a])
+    assert 0.006 < dt.std() < 0.014
+    out = OraclePoseSource(lambda t: torch.from_numpy(truth), outlier_rate=1.0, seed=1)(7)
+    assert np.linalg.norm(out.pose[:3, 3].numpy() - truth[:3, 3]) > 0
+    assert OraclePoseSource(lambda t: torch.from_numpy(truth), dropout_rate=1.0)(7) is None
+
+
+def test_network_source_takes_the_best_detection_into_the_event_camera() -> None:
+    class Det:
+        def __init__(self, pose, c):
+            self.pose, self.confidence = pose, c
+
+    T_er = _pose([0, 0.1, 0], [0.05, 0, 0])
+    dets = [Det(_pose([0, 0, 0], [0, 0, 1.0]), 0.4), Det(_pose([0, 0, 0.2], [0, 0.1, 0.8]), 0.9)]
+    src = NetworkPoseSource(lambda rgb: dets, T_event_rgb=torch.from_numpy(T_er),
+                            min_confidence=0.5)
+    m = src(10, np.zeros((8, 8, 3), np.uint8))
+    np.testing.assert_allclose(m.pose.numpy(), T_er @ dets[1].pose)
+    assert m.confidence == 0.9
+    assert NetworkPoseSource(lambda rgb: dets, min_confidence=0.95)(0, None) is None
+
+
+def test_twist_adjoint_against_moving_points() -> None:
+    """A twist mapped by the adjoint moves points of the other frame identically."""
+    T_ab = torch.from_numpy(_pose([0.3, -0.2, 0.5], [0.1, 0.2, -0.3]))
+    V_b = torch.tensor([0.2, -0.4, 0.1, 1.0, 0.5, -0.7], dtype=torch.float64)
+    V_a = twist_adjoint(T_ab) @ V_b
+    P_obj = torch.eye(4, dtype=torch.float64)
+    P_obj[:3, 3] = torch.tensor([0.05, -0.02, 0.6])
+    dt = 0.01
+    moved_b = integrate_twist(P_obj, V_b, dt)
+    moved_a = integrate_twist(T_ab @ P_obj, V_a, dt)
+    torch.testing.assert_close(moved_a, T_ab @ moved_b, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("algorithm", ["dis", "farneback"])
+def test_dense_flow_measures_a_shift(algorithm) -> None:
+    from evtrack.tracking_config import FrameFlowConfig
+
+    rng = np.random.default_rng(0)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (140, 180)).astype(np.float32), (0, 0), 2.0)
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    a = np.repeat(tex[10:130, 10:170, None], 3, 2)
+    b = np.repeat(tex[8:128, 13:173, None], 3, 2)  # content moves by (-3, +2) px
+    flow = DenseFlow(FrameFlowConfig(algorithm=algorithm))
+    assert flow.push(0, a) is None
+    pair = flow.push(20_000, b)
+    uv, f = pair.sample(np.array([[80, 60], [60, 50], [100, 70]]))
+    np.testing.assert_allclose(f, np.tile([-150.0, 100.0], (3, 1)), atol=25.0)  # px/s
+    assert flow.push(200_000, a) is None  # gap longer than max_gap_ms
+
+
+def test_ge_previous_event_times_against_a_loop() -> None:
+    from evtrack.events import Events
+    from evtrack.filters.config import VelocityKFConfig
+    from evtrack.ge_model import GEVelocity
+    from evtrack.tracking_config import GEConfig
+
+    rng = np.random.default_rng(0)
+    cam = PinholeCamera(10.0, 10.0, 3.5, 2.5, 8, 6)
+    ge = GEVelocity(cam, GEConfig(), VelocityKFConfig())
+    last = {}
+    for chunk in range(3):
+        n = 200
+        x, y = rng.integers(0, 8, n), rng.integers(0, 6, n)
+        t = np.sort(rng.integers(chunk * 1000, (chunk + 1) * 1000, n))
+        prev = ge._previous_times(x, y, t)
+        for i in range(n):
+            key = (x[i], y[i])
+            assert prev[i] == last.get(key, -(1 << 62))
+            last[key] = t[i]
+    ev = Events(np.array([1]), np.array([1]), np.array([5000]), np.array([1]), (8, 6))
+    assert ge.step(1e-3, ev, None, lambda uv: np.ones(len(uv))).shape == (1, 6)

@@ -1,0 +1,90 @@
+"""Late measurements: rolling back and replaying equals receiving them on time."""
+
+from __future__ import annotations
+
+import torch
+
+from evtrack.filters import PoseTwistUKF, PoseUKF
+from evtrack.pose_timeline import PoseTimeline
+
+STEP = 1000
+
+
+def _twists(n: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(0)
+    return torch.randn(n, 1, 6, generator=g, dtype=torch.float64) * 0.5
+
+
+def _meas(k: int):
+    g = torch.Generator().manual_seed(100 + k)
+    t = torch.tensor([[0.0, 0.0, 0.8]], dtype=torch.float64) + 0.02 * torch.randn(
+        1, 3, generator=g, dtype=torch.float64)
+    q = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64) + 0.05 * torch.randn(
+        1, 4, generator=g, dtype=torch.float64)
+    return t, q / q.norm()
+
+
+def _start(filt):
+    filt.reset(1, t=torch.tensor([[0.0, 0.0, 0.8]], dtype=torch.float64),
+               q=torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64))
+
+
+def test_late_poses_equal_on_time_poses() -> None:
+    n = 60
+    twists = _twists(n)
+    times = {2300: 0, 17000: 1, 17000 + 1: 2, 40500: 3}  # µs -> measurement id
+    # reference: a plain filter, measurements fused when their time comes
+    ref = PoseUKF(1, dtype=torch.float64)
+    _start(ref)
+    t_cur = 0
+    for k in range(n):
+        t_end = (k + 1) * STEP
+        for tm in sorted(times):
+            if t_cur < tm <= t_end:
+                ref.predict(twists[k], (tm - t_cur) * 1e-6)
+                ref.update(*_meas(times[tm]))
+                t_cur = tm
+        ref.predict(twists[k], (t_end - t_cur) * 1e-6)
+        t_cur = t_end
+    # timeline: every measurement arrives 12 ms late, two of them in reverse order
+    filt = PoseUKF(1, dtype=torch.float64)
+    _start(filt)
+    line = PoseTimeline(filt, horizon_us=30_000)
+    arrivals = sorted((tm + 12_000, -tm if tm == 17001 else tm) for tm in times)
+    for k in range(n):
+        line.step((k + 1) * STEP, twists[k])
+        for avail, key in arrivals:
+            if k * STEP < avail <= (k + 1) * STEP:
+                tm = abs(key)
+                assert line.add(tm, "pose", _meas(times[tm]))
+    torch.testing.assert_close(filt.t, ref.t, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.q, ref.q, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.cov, ref.cov, rtol=1e-9, atol=1e-15)
+    assert int(filt.rejected[0]) == int(ref.rejected[0])
+
+
+def test_twist_measurements_on_the_constant_velocity_filter() -> None:
+    ref, filt = PoseTwistUKF(1), PoseTwistUKF(1)
+    for f in (ref, filt):
+        _start(f)
+    line = PoseTimeline(filt, horizon_us=20_000)
+    z = torch.tensor([[0.3, -0.1, 0.0, 0.0, 1.0, 0.5]], dtype=torch.float64)
+    for k in range(10):
+        ref.predict(STEP * 1e-6)
+        if k == 3:
+            ref.update_twist(z)
+        line.step((k + 1) * STEP)
+    line.add(4 * STEP, "twist", (z,))
+    torch.testing.assert_close(filt.t, ref.t, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.twist, ref.twist, rtol=0, atol=1e-12)
+
+
+def test_too_late_is_dropped() -> None:
+    filt = PoseUKF(1)
+    _start(filt)
+    line = PoseTimeline(filt, horizon_us=5_000)
+    for k in range(20):
+        line.step((k + 1) * STEP, torch.zeros(1, 6, dtype=torch.float64))
+    before = filt.t.clone()
+    assert not line.add(10_000, "pose", _meas(0))
+    assert line.late == 1 and torch.equal(filt.t, before)

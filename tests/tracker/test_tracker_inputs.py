@@ -1,0 +1,159 @@
+"""The streaming API's contract: input checks, fallbacks, loss and re-initialisation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError, EventsError
+from evtrack.events import Events
+from evtrack.pose_sources import PoseMeasurement
+from evtrack.tracker import Tracker
+from evtrack.tracking_config import TrackerConfig
+from evtrack.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING
+
+CAM = PinholeCamera(100.0, 100.0, 63.5, 47.5, 128, 96)
+CUBE = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
+
+
+def _pose(x: float = 0.0, y: float = 0.0, z: float = 0.6) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def _events(t, x=None, y=None) -> Events:
+    n = len(t)
+    x = np.full(n, 60) if x is None else x
+    y = np.full(n, 40) if y is None else y
+    return Events(x, y, t, np.ones(n), (128, 96))
+
+
+def _tracker(**config) -> Tracker:
+    return Tracker(TrackerConfig.from_dict(config), camera=CAM, mesh=CUBE)
+
+
+def test_unsorted_events_are_an_error() -> None:
+    tracker = _tracker()
+    with pytest.raises(EventsError, match="go backwards"):
+        tracker.push_events(_events([10, 5, 20]))
+
+
+def test_events_before_earlier_ones_are_an_error() -> None:
+    tracker = _tracker()
+    tracker.push_events(_events([100, 200]))
+    with pytest.raises(EventsError, match="before the last event"):
+        tracker.push_events(_events([150]))
+    tracker.advance(10_000)
+    with pytest.raises(EventsError, match="clock"):
+        tracker.push_events(_events([9_000]))
+
+
+def test_events_outside_the_sensor_or_of_another_sensor() -> None:
+    tracker = _tracker()
+    with pytest.raises(EventsError):
+        tracker.push_events(_events([1, 2], x=np.array([5, 200])))
+    with pytest.raises(EventsError, match="sensor size"):
+        tracker.push_events(Events([1], [1], [5], [1], (640, 480)))
+
+
+def test_waiting_until_the_first_pose_then_tracking() -> None:
+    tracker = _tracker(pose_latency_ms=0.0)
+    tracker.reset(t_us=0)
+    tracker.advance(5_000)
+    assert tracker.status == STATUS_WAITING
+    assert np.isnan(tracker.pose()).all()
+    tracker.push_pose(PoseMeasurement(5_000, _pose()))
+    assert tracker.status == STATUS_TRACKING
+    np.testing.assert_allclose(tracker.pose(), _pose(), atol=1e-12)
+    traj = (tracker.advance(8_000), tracker.flush(), tracker.trajectory())[2]
+    assert traj.status.tolist() == [0] * 5 + [1] * 3
+
+
+def test_late_pose_is_fused_at_its_own_time() -> None:
+    """A pose of t=20 ms pushed at 60 ms rolls the filter back: with zero twist the state equals
+    the one reached by pushing the same pose on time."""
+    on_time, late = _tracker(method="pose"), _tracker(method="pose")
+    for tr in (on_time, late):
+        tr.reset(_pose(), t_us=0)
+    on_time.advance(20_000)
+    on_time.push_pose(PoseMeasurement(20_000, _pose(x=0.01)))
+    on_time.advance(60_000)
+    late.advance(60_000)
+    late.push_pose(PoseMeasurement(20_000, _pose(x=0.01)))
+    np.testing.assert_allclose(late.pose(), on_time.pose(), atol=1e-12)
+    torch.testing.assert_close(late.ukf.cov, on_time.ukf.cov)
+    # the past outputs of the late tracker were not rewritten
+    assert late.pose(30_000)[0, 3] == 0.0 and on_time.pose(30_000)[0, 3] > 0.0
+
+
+def test_pose_older_than_the_history_is_dropped_and_counted() -> None:
+    tracker = _tracker(method="pose", history_ms=500.0, pose_latency_ms=100.0)
+    tracker.reset(_pose(), t_us=0)
+    tracker.advance(1_000_000)
+    tracker.push_pose(PoseMeasurement(100_000, _pose(x=0.01)))
+    assert tracker.stats.poses_late == 1
+    np.testing.assert_allclose(tracker.pose(), _pose(), atol=1e-12)
+
+
+def test_frame_without_depth_uses_the_fallback_depth() -> None:
+    """Sensor depth, but no depth frame ever: RoIs take the predicted depth of the object
+    origin (counted), and the velocity filter still runs."""
+    from evtrack.flow.scenes import translating_texture
+
+    ev, _ = translating_texture((128, 96), velocity=(300.0, 0.0), duration_us=60_000)
+    tracker = _tracker(flow={"roi_size": 16}, mask_margin_px=200.0)
+    tracker.reset(_pose(), t_us=0)
+    tracker.push_frame(0, rgb=None, depth=None)
+    tracker.push_events(ev)
+    tracker.flush()
+    assert tracker.stats.frames_without_depth == 1
+    assert tracker.stats.roi_flows > 0
+    assert tracker.stats.depth_fallbacks == tracker.stats.roi_flows
+    # a texture moving right at 300 px/s at depth 0.6 m: v_x ≈ 300 * 0.6 / 100 = 1.8 m/s
+    assert tracker.twist()[0] > 0.5
+
+
+def test_depth_frame_of_the_wrong_size_is_an_error() -> None:
+    tracker = _tracker()
+    with pytest.raises(ValueError, match="RGB-D camera"):
+        tracker.push_frame(0, depth=np.ones((10, 10), np.float32))
+
+
+def test_object_leaving_the_view_is_lost_then_reinitialised() -> None:
+    tracker = _tracker(method="pose", lost_after_ms=20.0, pose_latency_ms=0.0)
+    tracker.reset(_pose(x=5.0), t_us=0)  # far to the right: outside the image
+    tracker.advance(30_000)
+    assert tracker.status == STATUS_LOST and tracker.stats.lost == 1
+    np.testing.assert_allclose(tracker.pose(), _pose(x=5.0), atol=1e-12)  # held
+    tracker.push_pose(PoseMeasurement(30_000, _pose()))
+    assert tracker.status == STATUS_TRACKING
+    np.testing.assert_allclose(tracker.pose(), _pose(), atol=1e-12)
+    traj = (tracker.advance(40_000), tracker.flush(), tracker.trajectory())[2]
+    assert STATUS_LOST in traj.status.tolist() and traj.status[-1] == STATUS_TRACKING
+
+
+def test_pose_source_rate_and_latency() -> None:
+    calls = []
+
+    def source(t_us, rgb, depth):
+        calls.append(t_us)
+        return PoseMeasurement(t_us, _pose())
+
+    tracker = Tracker(TrackerConfig(pose_rate_hz=5.0, pose_latency_ms=100.0), camera=CAM,
+                      mesh=CUBE, pose_source=source)
+    rgb = np.zeros((96, 128, 3), np.uint8)
+    for k in range(40):  # 60 FPS for 0.65 s
+        tracker.push_frame(round(k * 1e6 / 60), rgb=rgb)
+    assert calls == [0, 200_000, 400_000, 600_000]
+    # the first pose (frame 0) reaches the filter at 100 ms
+    traj = tracker.trajectory()
+    first = int(traj.t_us[traj.tracked][0])
+    assert first == 100_000
+
+
+def test_model_depth_needs_a_mesh() -> None:
+    with pytest.raises(ConfigError, match="mesh"):
+        _tracker(depth_source="model")
