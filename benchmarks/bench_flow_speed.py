@@ -5,7 +5,7 @@ Prints one table: for each chunk size, events per second of
 * ``search``: the batched candidate search alone (burst filter + triplets), and
 * ``flow``: the whole ``TripletFlow`` (search + RoI registration),
 
-on CPU with ``--threads`` threads (default 2) and on CUDA when available, next to the
+on CPU with each of ``--threads`` thread counts (default 2) and on CUDA when available, next to the
 sequential per-event reference of ``tests/flow/flow_reference.py`` run in the same process
 on a prefix of the same events (it is far slower, so it sees fewer events). A calibration
 line (int32 add throughput) helps compare runs on busy machines.
@@ -68,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration-ms", type=float, default=40.0)
     parser.add_argument("--chunks", default="10000,100000,1000000",
                         help="comma-separated chunk sizes")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", default="2",
+                        help="comma-separated CPU thread counts to measure (default 2)")
     parser.add_argument("--reference-events", type=int, default=20_000,
                         help="events given to the sequential reference")
     parser.add_argument("--repeats", type=int, default=2, help="best of this many runs")
@@ -76,14 +77,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="cache of the generated scene ('' to disable)")
     parser.add_argument("--no-cuda", action="store_true")
     args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    thread_counts = [int(v) for v in args.threads.split(",")]
+    torch.set_num_threads(thread_counts[0])
     w, h = (int(v) for v in args.size.lower().split("x"))
     cache = args.cache if str(args.cache) else None
     ev = _scene((w, h), args.duration_ms, cache)
     rate_in = len(ev) / max(ev.duration_us, 1) * 1e6
     print(f"scene: translating texture {w}x{h}, {len(ev)} events over {ev.duration_us / 1000:.1f}"
           f" ms ({rate_in / 1e6:.1f} M ev/s in the stream); torch {torch.__version__}, "
-          f"{args.threads} CPU threads")
+          f"CPU threads {thread_counts}")
     cfg = FlowConfig(sensor_size=(w, h))
     onsets = _count_onsets(cfg, ev)
     print(f"config: radius {cfg.radius}, history {cfg.history}, refractory {cfg.refractory_us} µs"
@@ -101,14 +103,16 @@ def main(argv: list[str] | None = None) -> int:
                          max_speed=cfg.max_speed)
     ref_rate = len(sub) / (time.perf_counter() - t0)
 
-    devices = [torch.device("cpu")]
+    runs = [(torch.device("cpu"), n) for n in thread_counts]
     if torch.cuda.is_available() and not args.no_cuda:
-        devices.append(torch.device("cuda"))
+        runs.append((torch.device("cuda"), thread_counts[0]))
     print()
-    print(f"{'device':<7}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
+    print(f"{'device':<9}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
           f"{'x reference':>14}{'calib Gop/s':>13}")
-    print(f"{'cpu':<7}{'-':>10}{'(reference)':>16}{ref_rate:>16,.0f}{1.0:>14.1f}{'':>13}")
-    for dev in devices:
+    print(f"{'cpu/1':<9}{'-':>10}{'(reference)':>16}{ref_rate:>16,.0f}{1.0:>14.1f}{'':>13}")
+    for dev, threads in runs:
+        torch.set_num_threads(threads)
+        name = f"cpu/{threads}" if dev.type == "cpu" else "cuda"
         sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
         evd = ev.to(dev)
         calib = _calibration(dev)
@@ -123,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
 
             r_search = _rate(search, len(ev), args.repeats, sync)
             r_flow = _rate(flow, len(ev), args.repeats, sync)
-            print(f"{dev.type:<7}{chunk:>10,}{r_search:>16,.0f}{r_flow:>16,.0f}"
+            print(f"{name:<9}{chunk:>10,}{r_search:>16,.0f}{r_flow:>16,.0f}"
                   f"{r_flow / ref_rate:>14.1f}{calib:>13.2f}")
     print("\ntarget: >= 2,000,000 ev/s on 2 CPU cores, >= 50,000,000 ev/s on one GPU "
           "(flow column)")
