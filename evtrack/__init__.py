@@ -10,7 +10,7 @@ Public API (see DESIGN.md)::
 
 from __future__ import annotations
 
-from evtrack import geometry, io
+from evtrack import flow, geometry, io
 from evtrack.camera import PinholeCamera
 from evtrack.errors import (
     ConfigError,
@@ -35,6 +35,7 @@ __all__ = [
     "Sequence",
     "UnknownFormatError",
     "concatenate",
+    "flow",
     "geometry",
     "io",
 ]
