@@ -68,3 +68,19 @@ def test_velocity_report_without_rendering(tmp_path, ycb_dir, capsys) -> None:
     assert (out / "velocity_cdf.png").is_file()
     assert not any(p.is_dir() for p in out.iterdir())  # nothing rendered
     assert "010_potted_meat_can_faster" in capsys.readouterr().out
+
+
+def test_object_texture_follows_object_seed_not_trajectory_seed(tmp_path) -> None:
+    import trimesh
+
+    def texture(out, *extra):
+        args = ["simulate", "--object", "box", "--duration", "0.02", "--width", "32",
+                "--height", "24", "--out", str(out), "--quiet", *extra]
+        assert main(args) == 0
+        mesh = trimesh.load(out / "object.glb", force="mesh")
+        return bytes(mesh.visual.material.baseColorTexture.tobytes())
+
+    a = texture(tmp_path / "a", "--seed", "1")
+    b = texture(tmp_path / "b", "--seed", "2")
+    c = texture(tmp_path / "c", "--seed", "1", "--object-seed", "5")
+    assert a == b and a != c
