@@ -1,0 +1,100 @@
+"""Single-frame pose accuracy: ADD, ADD-S and their pass rates (Hinterstoisser et al. 2012).
+
+* ADD: mean distance between the model points moved by the estimated and by the true pose.
+* ADD-S: for symmetric objects, the mean distance from each truly-posed point to the *nearest*
+  estimated-posed point.
+A pose passes when the distance is below ``fraction`` (default 10%) of the object's diameter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+__all__ = ["add_distance", "adds_distance", "object_diameter", "PoseAccuracy", "pose_accuracy"]
+
+
+def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def add_distance(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> float:
+    """ADD in metres: mean ``|T_est p - T_true p|`` over the model points (M, 3)."""
+    return float(np.linalg.norm(_apply(T_est, points) - _apply(T_true, points), axis=1).mean())
+
+
+def adds_distance(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> float:
+    """ADD-S in metres: mean distance from each true point to its nearest estimated point."""
+    tree = cKDTree(_apply(T_est, points))
+    dist, _ = tree.query(_apply(T_true, points), k=1)
+    return float(dist.mean())
+
+
+def object_diameter(points: np.ndarray) -> float:
+    """Largest distance between two model points (M, 3), metres (exact, O(H²) on the hull)."""
+    from scipy.spatial import ConvexHull
+
+    hull = points[ConvexHull(points).vertices] if len(points) > 4 else points
+    d = np.linalg.norm(hull[:, None, :] - hull[None, :, :], axis=-1)
+    return float(d.max())
+
+
+@dataclass
+class PoseAccuracy:
+    """Accuracy of single-frame pose estimates against ground truth.
+
+    Attributes:
+        frames: frames evaluated; detected: frames with at least one detection.
+        detection_rate: detected / frames.
+        median_translation_cm, median_rotation_deg: over detected frames (NaN if none).
+        add_pass, adds_pass: fraction of *all* frames whose ADD / ADD-S is below the
+            threshold (a missed detection fails).
+        threshold_m: ``fraction`` x diameter.
+    """
+
+    frames: int
+    detected: int
+    detection_rate: float
+    median_translation_cm: float
+    median_rotation_deg: float
+    add_pass: float
+    adds_pass: float
+    threshold_m: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def pose_accuracy(
+    estimates: list[np.ndarray | None],
+    truths: list[np.ndarray],
+    points: np.ndarray,
+    fraction: float = 0.1,
+) -> PoseAccuracy:
+    """Summarise estimates (4x4 or ``None`` for no detection) against true poses (4x4)."""
+    if len(estimates) != len(truths):
+        raise ValueError(f"{len(estimates)} estimates for {len(truths)} ground-truth poses")
+    threshold = fraction * object_diameter(points)
+    t_err, r_err, add_ok, adds_ok = [], [], 0, 0
+    for T_est, T_true in zip(estimates, truths, strict=True):
+        if T_est is None:
+            continue
+        T_est, T_true = np.asarray(T_est, np.float64), np.asarray(T_true, np.float64)
+        t_err.append(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+        R = T_true[:3, :3].T @ T_est[:3, :3]
+        r_err.append(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+        add_ok += add_distance(T_est, T_true, points) < threshold
+        adds_ok += adds_distance(T_est, T_true, points) < threshold
+    n = len(truths)
+    return PoseAccuracy(
+        frames=n,
+        detected=len(t_err),
+        detection_rate=len(t_err) / n if n else float("nan"),
+        median_translation_cm=float(np.median(t_err) * 100) if t_err else float("nan"),
+        median_rotation_deg=float(np.median(r_err)) if r_err else float("nan"),
+        add_pass=add_ok / n if n else float("nan"),
+        adds_pass=adds_ok / n if n else float("nan"),
+        threshold_m=threshold,
+    )
