@@ -764,6 +764,15 @@ class Tracker:
         Returns:
             the :class:`~evtrack.trajectory.Trajectory` (one sample per velocity step).
         """
+        threads = torch.get_num_threads()
+        if self.config.torch_threads > 0:
+            torch.set_num_threads(self.config.torch_threads)
+        try:
+            return self._track(sequence, progress)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _track(self, sequence, progress: bool) -> Trajectory:
         self.reset()
         rgb_t = sequence.rgb_times_us.tolist()
         depth_t = sequence.depth_times_us.tolist()

@@ -157,3 +157,19 @@ def test_pose_source_rate_and_latency() -> None:
 def test_model_depth_needs_a_mesh() -> None:
     with pytest.raises(ConfigError, match="mesh"):
         _tracker(depth_source="model")
+
+
+def test_track_command(fast_sequence, tmp_path, capsys) -> None:
+    from evtrack.cli import main
+    from evtrack.trajectory import Trajectory
+
+    out = tmp_path / "pose.csv"
+    code = main(["track", str(fast_sequence.root), "--out", str(out), "--method", "pose",
+                 "--oracle", "--quiet"])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert "error against ground truth" in text
+    traj = Trajectory.load(out)
+    assert traj.method == "pose" and len(traj) > 500
+    assert main(["track", str(fast_sequence.root), "--out", str(out)]) == 1  # no pose source
+    assert "--weights PATH" in capsys.readouterr().err

@@ -49,15 +49,12 @@ def test_full_beats_velocity_and_pose(fast_sequence, runs) -> None:
     assert full.rotation_rmse_deg < 1.3 * pose.rotation_rmse_deg
 
 
-def test_pose_outliers_are_gated(fast_sequence) -> None:
+def test_pose_outliers_are_gated(fast_sequence, runs) -> None:
     """10% of the poses replaced by random ones (30 Hz poses: 18 of them)."""
     noise = {"std_translation": 0.01, "std_rotation": 0.03}
-    results = {}
-    for rate in (0.0, 0.1):
-        tracker, source = make_tracker(fast_sequence, method="full", pose_rate_hz=30.0,
-                                       oracle={**noise, "outlier_rate": rate}, seed=10)
-        results[rate] = (tracker.track(fast_sequence), tracker, source)
-    traj, tracker, source = results[0.1]
+    tracker, source = make_tracker(fast_sequence, method="full", pose_rate_hz=30.0,
+                                   oracle={**noise, "outlier_rate": 0.1}, seed=10)
+    traj = tracker.track(fast_sequence)
     latency = 100_000
     first = int(traj.t_us[traj.tracked][0]) - latency  # frame time of the first fused pose
     last = int(traj.t_us[-1]) - latency  # later poses arrive after the end
@@ -65,11 +62,12 @@ def test_pose_outliers_are_gated(fast_sequence) -> None:
     assert len(outliers) >= 2
     assert tracker.stats.poses_rejected == len(outliers)  # every outlier, no inlier
     assert tracker.stats.reinitialisations == 0
-    clean = tracking_errors(results[0.0][0], fast_sequence.ground_truth)
     err = tracking_errors(traj, fast_sequence.ground_truth)
-    # measured: 4.85 cm / 11.9 deg with outliers, 4.80 / 11.7 without (2 outliers gated)
-    assert err.position_rmse_cm < clean.position_rmse_cm + 1.0
-    assert err.rotation_rmse_deg < clean.rotation_rmse_deg + 3.0
+    # measured: 4.85 cm / 11.9 deg with the outliers, 4.80 / 11.7 with the same poses and no
+    # outliers; with a third of the poses (10 Hz, no outliers): 5.8 / 15.5
+    assert err.position_rmse_cm < 5.5 and err.rotation_rmse_deg < 14.0
+    clean_10hz = tracking_errors(runs.get("full")[0], fast_sequence.ground_truth)
+    assert err.position_rmse_cm < clean_10hz.position_rmse_cm
 
 
 def test_dropped_frames_and_missing_depth(fast_sequence, runs) -> None:

@@ -1,0 +1,146 @@
+"""Real-time factor and update latency of evtrack.Tracker on CPU.
+
+    python benchmarks/bench_tracker.py [--size 320x240] [--duration 1.0] [--threads 2 1]
+                                       [--methods full pose] [--sequence DIR] [--weights W.pt]
+
+Simulates a ``faster`` sequence of the procedural box (or takes ``--sequence``), then tracks it
+with each method and thread count in this process, side by side. The pose source is the
+oracle (ground truth with 1 cm / 0.03 rad noise) unless ``--weights`` gives pose-network
+weights (then the network runs at 5 Hz on the RGB frames, on CPU).
+
+Columns:
+    rtf: processing time / sequence time (< 1: faster than real time).
+    ev/s: events processed per second of processing.
+    flow, velocity, pose, frames: seconds per stage (pose source included in frames).
+    group p50/p95: processing time of one step group (``flow_batch_steps`` velocity steps:
+        one flow call and the filter steps) — the latency of an output in live use.
+    filters/step: mean time of one velocity-filter + pose-filter step (µs).
+
+Timings on a shared machine are noisy; rerun when it is quiet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from evtrack import Sequence
+from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
+from evtrack.tracker import Tracker
+from evtrack.tracking_config import TrackerConfig
+
+
+def _simulate(size: tuple[int, int], duration: float, folder: Path) -> Sequence:
+    from evtrack.sim.config import GroundTruthConfig, SimConfig, TrajectoryConfig
+    from evtrack.sim.engine import simulate
+    from evtrack.sim.objects import procedural_object
+
+    cfg = SimConfig(duration=duration, seed=1, trajectory=TrajectoryConfig(preset="faster"),
+                    ground_truth=GroundTruthConfig(event_flow=False))
+    cfg = dataclasses.replace(cfg, camera=cfg.camera.resized(*size))
+    t0 = time.perf_counter()
+    stats = simulate(procedural_object("box", 0), cfg, folder / "seq")
+    print(f"simulated {size[0]}x{size[1]}, {duration} s: {stats.num_events} events, "
+          f"median pixel speed {stats.pixel_speed.get('p50', 0):.0f} px/s "
+          f"({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+    return Sequence.load(folder / "seq")
+
+
+def _pose_source(seq: Sequence, weights: str | None):
+    if weights is None:
+        return OraclePoseSource.from_sequence(seq, std_translation=0.01, std_rotation=0.03), \
+            "oracle"
+    from evtrack.models import TorchPoseEstimator
+
+    cam = seq.meta.rgb_camera or seq.meta.event_camera
+    est = TorchPoseEstimator.from_weights(weights, cam)
+    return NetworkPoseSource(est, seq.meta.T_event_rgb), f"network {Path(weights).name}"
+
+
+def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | None) -> dict:
+    torch.set_num_threads(threads)
+    cfg = TrackerConfig.from_dict({**config, "method": method, "torch_threads": threads})
+    source, source_name = _pose_source(seq, weights)
+    tracker = Tracker.for_sequence(seq, cfg, source)
+    groups: list[float] = []
+    inner = tracker._group
+
+    def timed_group(*args):
+        t = time.perf_counter()
+        inner(*args)
+        groups.append(time.perf_counter() - t)
+
+    tracker._group = timed_group
+    t0 = time.perf_counter()
+    traj = tracker.track(seq)
+    wall = time.perf_counter() - t0
+    span = (int(traj.t_us[-1]) - int(traj.t_us[0])) * 1e-6 if len(traj) > 1 else float("nan")
+    st = tracker.stats
+    filt = st.time_s.get("velocity", 0.0) + st.time_s.get("pose", 0.0)
+    row = {"method": method, "threads": threads, "source": source_name, "events": st.events,
+           "seq_s": span, "proc_s": wall, "rtf": wall / span, "ev_per_s": st.events / wall,
+           "flow": st.time_s.get("flow", 0.0), "velocity": st.time_s.get("velocity", 0.0),
+           "pose": st.time_s.get("pose", 0.0),
+           "frames": st.time_s.get("frames", 0.0),
+           "group_p50_ms": 1e3 * statistics.median(groups) if groups else float("nan"),
+           "group_p95_ms": 1e3 * float(np.quantile(groups, 0.95)) if groups else float("nan"),
+           "step_us": 1e6 * filt / max(st.steps, 1)}
+    if seq.ground_truth is not None:
+        from evtrack.eval.metrics import tracking_errors
+
+        err = tracking_errors(traj, seq.ground_truth)
+        row["error"] = f"{err.position_rmse_cm:.2f} cm {err.rotation_rmse_deg:.2f} deg"
+    return row
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sequence", type=Path, help="a sequence folder (default: simulate one)")
+    ap.add_argument("--size", default="320x240", help="simulated image size WxH")
+    ap.add_argument("--duration", type=float, default=1.0, help="simulated seconds")
+    ap.add_argument("--threads", type=int, nargs="+", default=[2, 1])
+    ap.add_argument("--methods", nargs="+", default=["full", "pose"])
+    ap.add_argument("--roi-size", type=int, default=None,
+                    help="flow RoI size (default: 32 scaled to the image width / 640)")
+    ap.add_argument("--weights", help="pose-network weights (default: the oracle)")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.sequence is not None:
+            seq = Sequence.load(args.sequence)
+        else:
+            w, h = (int(v) for v in args.size.lower().split("x"))
+            seq = _simulate((w, h), args.duration, Path(tmp))
+        width = seq.meta.event_camera.width
+        roi = args.roi_size or max(8, round(32 * width / 640))
+        config = {"flow": {"roi_size": roi}}
+        rows = [_run(seq, m, th, config, args.weights) for th in args.threads
+                for m in args.methods]
+    cam = seq.meta.event_camera
+    print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, "
+          f"{rows[0]['events']} events over {rows[0]['seq_s']:.2f} s, pose source "
+          f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every 5 steps")
+    head = (f"{'method':<10} {'thr':>3} {'proc s':>7} {'rtf':>6} {'ev/s':>9} {'flow':>6} "
+            f"{'veloc':>6} {'pose':>6} {'frames':>6} {'grp p50':>8} {'grp p95':>8} "
+            f"{'filt/step':>9}  error")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(f"{r['method']:<10} {r['threads']:>3} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
+              f"{r['ev_per_s']:>9.0f} {r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} "
+              f"{r['frames']:>6.2f} {r['group_p50_ms']:>6.2f}ms {r['group_p95_ms']:>6.2f}ms "
+              f"{r['step_us']:>7.0f}us  {r.get('error', '')}")
+    print("rtf = processing time / sequence time; grp = one step group (5 ms of data): the "
+          "output latency in live use; filt/step = velocity KF + pose UKF per 1 ms step.")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
