@@ -21,6 +21,9 @@ from evtrack.errors import (
 )
 from evtrack.events import Events, EventsValidationReport, concatenate
 from evtrack.sequence import Sequence
+from evtrack.tracker import Tracker, TrackerStats
+from evtrack.tracking_config import TrackerConfig
+from evtrack.trajectory import Trajectory
 
 __version__ = "0.1.0"
 
@@ -33,6 +36,10 @@ __all__ = [
     "EvtrackError",
     "PinholeCamera",
     "Sequence",
+    "Tracker",
+    "TrackerConfig",
+    "TrackerStats",
+    "Trajectory",
     "UnknownFormatError",
     "concatenate",
     "flow",

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import make_tracker, stream
+from tracker_helpers import make_tracker, stream
 
 from evtrack.eval.metrics import tracking_errors
 from evtrack.trajectory import STATUS_TRACKING, STATUS_WAITING
