@@ -44,7 +44,7 @@ _COLUMNS = ("t_us", "tx", "ty", "tz", "qw", "qx", "qy", "qz", "vx", "vy", "vz", 
             "status")
 
 
-@dataclass
+@dataclass(repr=False)
 class Trajectory:
     """Poses and twists of one tracked object over time.
 
@@ -75,6 +75,12 @@ class Trajectory:
 
     def __len__(self) -> int:
         return int(self.t_us.shape[0])
+
+    def __repr__(self) -> str:
+        n = len(self)
+        span = f", t=[{int(self.t_us[0])}, {int(self.t_us[-1])}] µs" if n else ""
+        tracked = int((self.status == STATUS_TRACKING).sum()) if n else 0
+        return f"Trajectory(method={self.method!r}, n={n}{span}, tracked={tracked})"
 
     @property
     def tracked(self) -> Tensor:
