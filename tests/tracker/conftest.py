@@ -8,23 +8,12 @@ so that a full tracker run takes about 4 s of CPU.
 from __future__ import annotations
 
 import pytest
-import torch
 from tracker_helpers import make_tracker, sim_config
 
 from evtrack import Sequence
 from evtrack.sim.engine import sequence_trajectory, simulate
 from evtrack.sim.objects import procedural_object
 from evtrack.sim.trajectory import static_trajectory
-
-
-@pytest.fixture(scope="session", autouse=True)
-def one_thread():
-    """One torch thread: the per-step tensors are tiny, and on 2 busy cores two threads make
-    them several times slower (measured 7x on this suite)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="session")
