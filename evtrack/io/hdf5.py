@@ -29,6 +29,7 @@ import numpy as np
 from evtrack.errors import EventFileError, EventsError, EvtrackError
 from evtrack.events import Events
 from evtrack.io.reader import EventReader, Locator, check_events, quick_valid
+from evtrack.io.writer import StreamingWriter
 from evtrack.utils import atomic_path
 
 __all__ = [
@@ -71,7 +72,7 @@ def _check_sensor_size(sensor_size: Any) -> tuple[int, int]:
     return w, h
 
 
-class EventWriter:
+class EventWriter(StreamingWriter):
     """Stream events into a native HDF5 file; the file appears atomically on :meth:`close`.
 
     Args:
@@ -243,30 +244,10 @@ class EventWriter:
         self._closed = True
         self._stack.close()  # renames the temporary file onto self.path
 
-    def abort(self) -> None:
-        """Discard everything written; no file is created (idempotent)."""
-        if not self._closed:
-            self._abort_quietly()
-
-    def _abort_quietly(self) -> None:
-        self._closed = True
+    def _discard(self) -> None:
         with contextlib.suppress(Exception):
             self._file.close()
         self._stack.__exit__(EvtrackError, EvtrackError("aborted"), None)
-
-    @property
-    def num_events(self) -> int:
-        """Events written so far."""
-        return self._n
-
-    def __enter__(self) -> EventWriter:
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def write_hdf5(path: str | Path, events: Events, **options: Any) -> None:

@@ -25,6 +25,7 @@ import numpy as np
 from evtrack.errors import EventFileError, EventsError, EvtrackError
 from evtrack.events import Events
 from evtrack.io.reader import EventReader, Locator, check_events, quick_valid
+from evtrack.io.writer import StreamingWriter
 from evtrack.utils import atomic_path
 
 __all__ = ["NpzReader", "NpzWriter", "write_npz"]
@@ -187,7 +188,7 @@ class NpzReader(EventReader):
             self._z = None
 
 
-class NpzWriter:
+class NpzWriter(StreamingWriter):
     """Stream events into an ``.npz`` file; the file appears atomically on :meth:`close`.
 
     Args:
@@ -273,27 +274,11 @@ class NpzWriter:
         finally:
             shutil.rmtree(self._tmpdir, ignore_errors=True)
 
-    def abort(self) -> None:
-        """Discard everything written; no file is created."""
-        if not self._closed:
-            self._closed = True
-            for fh in self._parts.values():
-                with contextlib.suppress(Exception):
-                    fh.close()
-            shutil.rmtree(self._tmpdir, ignore_errors=True)
-
-    @property
-    def num_events(self) -> int:
-        return self._n
-
-    def __enter__(self) -> NpzWriter:
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
+    def _discard(self) -> None:
+        for fh in self._parts.values():
+            with contextlib.suppress(Exception):
+                fh.close()
+        shutil.rmtree(self._tmpdir, ignore_errors=True)
 
 
 def write_npz(path: str | Path, events: Events, **options: Any) -> None:

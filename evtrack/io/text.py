@@ -41,6 +41,7 @@ import numpy as np
 from evtrack.errors import EventFileError, EventsError, EvtrackError
 from evtrack.events import Events
 from evtrack.io.reader import EventReader, Locator, quick_valid
+from evtrack.io.writer import StreamingWriter
 from evtrack.utils import atomic_path
 
 __all__ = [
@@ -353,7 +354,7 @@ def _format_lines(t: np.ndarray, x: np.ndarray, y: np.ndarray, p01: np.ndarray) 
     return "".join(map("%s%d.%06d %d %d %d\n".__mod__, zip(sign, *cols, strict=True)))
 
 
-class TextWriter:
+class TextWriter(StreamingWriter):
     """Stream events into a ``t x y p`` text file; the file appears atomically on :meth:`close`.
 
     Args:
@@ -419,29 +420,10 @@ class TextWriter:
         self._closed = True
         self._stack.close()
 
-    def abort(self) -> None:
-        """Discard everything written; no file is created."""
-        if not self._closed:
-            self._abort_quietly()
-
-    def _abort_quietly(self) -> None:
-        self._closed = True
+    def _discard(self) -> None:
         with contextlib.suppress(Exception):
             self._fh.close()
         self._stack.__exit__(EvtrackError, EvtrackError("aborted"), None)
-
-    @property
-    def num_events(self) -> int:
-        return self._n
-
-    def __enter__(self) -> TextWriter:
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def write_text(path: str | Path, events: Events, **options: Any) -> None:
