@@ -28,7 +28,7 @@ import numpy as np
 
 from evtrack.errors import EventFileError, EventsError, EvtrackError
 from evtrack.events import Events
-from evtrack.io.reader import EventReader, Locator, check_events, quick_valid
+from evtrack.io.reader import EventReader, Locator, check_events
 from evtrack.io.writer import StreamingWriter
 from evtrack.utils import atomic_path
 
@@ -151,24 +151,10 @@ class EventWriter(StreamingWriter):
     # ----------------------------------------------------------------- writing
     def write(self, events: Events) -> None:
         """Append a chunk (must follow the previous chunk in time)."""
-        if self._closed:
-            raise EvtrackError(f"{self.path}: write() after close()")
-        if not len(events):
+        ev = self._checked_chunk(events)
+        if ev is None:
             return
-        if events.sensor_size is not None and tuple(events.sensor_size) != self.sensor_size:
-            raise EventsError(
-                f"{self.path}: chunk has sensor_size {events.sensor_size}, the file "
-                f"{self.sensor_size}"
-            )
-        ev = Events(events.x, events.y, events.t, events.p, self.sensor_size)
-        if not quick_valid(ev):
-            raise EventsError(f"{self.path}: cannot write invalid events: {ev.validate()}")
         t = ev.t.cpu().numpy()
-        if self._last_t is not None and t[0] < self._last_t:
-            raise EventsError(
-                f"{self.path}: chunks must be written in time order: chunk starts at "
-                f"t={int(t[0])} µs after {self._last_t} µs (event {self._n})"
-            )
         if self._t0 is None:
             self._t0 = int(t[0])
         elif self._n == 0 and self._t0 > int(t[0]):

@@ -38,9 +38,9 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from evtrack.errors import EventFileError, EventsError, EvtrackError
+from evtrack.errors import EventFileError, EvtrackError
 from evtrack.events import Events
-from evtrack.io.reader import EventReader, Locator, quick_valid
+from evtrack.io.reader import EventReader, Locator
 from evtrack.io.writer import StreamingWriter
 from evtrack.utils import atomic_path
 
@@ -383,26 +383,10 @@ class TextWriter(StreamingWriter):
 
     def write(self, events: Events) -> None:
         """Append a chunk (must follow the previous chunk in time)."""
-        if self._closed:
-            raise EvtrackError(f"{self.path}: write() after close()")
-        if not len(events):
+        ev = self._checked_chunk(events)
+        if ev is None:
             return
-        size = self.sensor_size if self.sensor_size is not None else events.sensor_size
-        if (events.sensor_size is not None and self.sensor_size is not None
-                and tuple(events.sensor_size) != self.sensor_size):
-            raise EventsError(
-                f"{self.path}: chunk has sensor_size {events.sensor_size}, the file "
-                f"{self.sensor_size}"
-            )
-        ev = Events(events.x, events.y, events.t, events.p, size)
-        if not quick_valid(ev):
-            raise EventsError(f"{self.path}: cannot write invalid events: {ev.validate()}")
         d = ev.numpy()
-        if self._last_t is not None and d["t"][0] < self._last_t:
-            raise EventsError(
-                f"{self.path}: chunks must be written in time order: chunk starts at "
-                f"t={int(d['t'][0])} µs after {self._last_t} µs (event {self._n})"
-            )
         self._fh.write(_format_lines(d["t"], d["x"], d["y"], (d["p"] > 0).astype(np.int8)))
         self._n += len(ev)
         self._last_t = int(d["t"][-1])
