@@ -1,0 +1,193 @@
+"""Run tracking methods over benchmark sequences and collect their errors.
+
+Each (sequence, run) pair is independent: a fresh :class:`~evtrack.Tracker` with a fresh pose
+source built from the same :class:`~evtrack.eval.pose_setup.PoseSourceSpec` (same seed), so
+every method sees the same pose measurements and results do not depend on the order or on how
+many worker processes run them. Each trajectory is saved as
+``<out>/trajectories/<sequence>/<run>.h5`` (:meth:`~evtrack.Trajectory.save`), so plots and
+tables can be redone without tracking again.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from evtrack.errors import ConfigError
+from evtrack.eval.metrics import TrackingErrors, tracking_errors
+from evtrack.eval.pose_setup import PoseSourceSpec, make_pose_source
+from evtrack.eval.sequences import BenchmarkSequence
+from evtrack.tracking_config import METHODS, TrackerConfig
+
+__all__ = ["RunSpec", "RunResult", "ABLATIONS", "DEFAULT_METHODS", "run_specs", "run_one",
+           "run_benchmark", "trajectory_path"]
+
+#: Methods in the default column order (the paper's "Ours (OF)" first).
+DEFAULT_METHODS = ("full", "velocity", "pose", "ge", "frame-flow")
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One column of the tables: a tracking method, possibly with config changes.
+
+    Attributes:
+        name: identifier, also the trajectory's file stem (``full``, ``full-no-weighting``).
+        method: :attr:`TrackerConfig.method`.
+        label: text for tables and legends.
+        overrides: nested config changes applied on top of the base config.
+    """
+
+    name: str
+    method: str
+    label: str
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+    def config(self, base: TrackerConfig, torch_threads: int | None = None) -> TrackerConfig:
+        changes: dict[str, Any] = {"method": self.method, **self.overrides}
+        if torch_threads is not None:
+            changes["torch_threads"] = torch_threads
+        # from_dict merges a section's fields into the base's section
+        return TrackerConfig.from_dict(changes, f"run {self.name}", base=base)
+
+
+#: Ablations of the full method (the paper's Table III).
+ABLATIONS = (
+    RunSpec("full-no-normal-flow", "full", "full w/o normal-flow constraint",
+            {"velocity_kf": {"normal_flow": False}}),
+    RunSpec("full-no-weighting", "full", "full w/o measurement weighting",
+            {"velocity_kf": {"weighting": False}}),
+)
+
+
+def run_specs(methods: Iterable[str] = DEFAULT_METHODS, ablation: bool = False
+              ) -> list[RunSpec]:
+    """The runs of an evaluation: one per method, plus the ablations of ``full``.
+
+    Raises:
+        ConfigError: an unknown or repeated method.
+    """
+    methods = list(methods)
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ConfigError(f"unknown method(s) {unknown}; known: {list(METHODS)}")
+    if len(set(methods)) != len(methods):
+        raise ConfigError(f"methods repeated: {methods}")
+    if not methods:
+        raise ConfigError("no method to evaluate")
+    runs = [RunSpec(m, m, m) for m in methods]
+    if ablation:
+        if "full" not in methods:
+            runs.insert(0, RunSpec("full", "full", "full"))
+        runs += list(ABLATIONS)
+    return runs
+
+
+@dataclass
+class RunResult:
+    """The outcome of one run on one sequence.
+
+    Attributes:
+        sequence: the sequence's name; object_name, speed: its labels.
+        run: :attr:`RunSpec.name`; method: the tracking method.
+        errors: RMSE and σ of the tracked samples (cm, deg).
+        trajectory: the saved trajectory file.
+        seconds: wall time of the tracking, seconds.
+        stats: the tracker's counters (:class:`~evtrack.tracker.TrackerStats` as a dict).
+    """
+
+    sequence: str
+    object_name: str
+    speed: str
+    run: str
+    method: str
+    errors: TrackingErrors
+    trajectory: Path
+    seconds: float
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def trajectory_path(out_dir: str | Path, sequence: BenchmarkSequence, run: str) -> Path:
+    """Where the trajectory of ``run`` on ``sequence`` is saved."""
+    return Path(out_dir) / "trajectories" / sequence.file_stem / f"{run}.h5"
+
+
+def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
+            pose: PoseSourceSpec, weights: Path | None, out_dir: str | Path,
+            torch_threads: int | None = None) -> RunResult:
+    """Track ``sequence`` with one run, save the trajectory, measure its errors."""
+    from evtrack.tracker import Tracker
+
+    seq = sequence.load()
+    cfg = spec.config(base, torch_threads)
+    tracker = Tracker.for_sequence(seq, cfg, make_pose_source(pose, seq, weights))
+    t0 = time.perf_counter()
+    traj = tracker.track(seq)
+    seconds = time.perf_counter() - t0
+    traj.meta.update({"sequence": sequence.name, "run": spec.name, "pose_source": pose.label})
+    path = trajectory_path(out_dir, sequence, spec.name)
+    traj.save(path)
+    return RunResult(sequence.name, sequence.object_name, sequence.speed, spec.name, spec.method,
+                     tracking_errors(traj, seq.ground_truth), path, seconds,
+                     tracker.stats.to_dict())
+
+
+def _run_job(args: tuple) -> RunResult:
+    import torch
+
+    threads = args[-1]
+    torch.set_num_threads(threads if threads else 1)
+    return run_one(*args)
+
+
+def run_benchmark(sequences: list[BenchmarkSequence], runs: list[RunSpec],
+                  base: TrackerConfig, pose: PoseSourceSpec, weights: dict[str, Path],
+                  out_dir: str | Path, *, jobs: int = 1, torch_threads: int | None = None,
+                  progress: bool = True) -> list[RunResult]:
+    """Every run on every sequence; results in (sequence, run) order.
+
+    Args:
+        sequences: from :func:`~evtrack.eval.sequences.find_sequences`.
+        runs: from :func:`run_specs`.
+        base: the tracker config every run starts from.
+        pose: the pose source of every run.
+        weights: object -> weights file (:func:`~evtrack.eval.pose_setup.resolve_weights`).
+        out_dir: results folder (trajectories go under ``trajectories/``).
+        jobs: worker processes (1: in this process).
+        torch_threads: torch CPU threads per run (``None``: the config's ``torch_threads``).
+        progress: show a tqdm bar.
+    """
+    from tqdm import tqdm
+
+    if jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    tasks = [(s, r, base, pose, weights.get(s.object_name), Path(out_dir), torch_threads)
+             for s in sequences for r in runs]
+    bar = tqdm(total=len(tasks), desc="evaluate", unit="run", disable=not progress)
+    results: list[RunResult | None] = [None] * len(tasks)
+    try:
+        if jobs == 1:
+            for i, task in enumerate(tasks):
+                bar.set_postfix_str(f"{task[0].name}: {task[1].name}")
+                results[i] = run_one(*task)
+                bar.update(1)
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            ctx = multiprocessing.get_context("spawn")
+            pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx)
+            try:
+                futures = {pool.submit(_run_job, task): i for i, task in enumerate(tasks)}
+                for fut in as_completed(futures):
+                    i = futures[fut]
+                    results[i] = fut.result()
+                    bar.set_postfix_str(f"{tasks[i][0].name}: {tasks[i][1].name}")
+                    bar.update(1)
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
+    finally:
+        bar.close()
+    return [r for r in results if r is not None]

@@ -1,0 +1,151 @@
+"""Which absolute poses the evaluated tracker gets: a pose network's, or the oracle's.
+
+* ``network``: per object, a weights file found in a folder (searched recursively, e.g.
+  ``runs/pose``) or in the shipped zoo (``models/weights``). The network sees the RGB frames
+  at its training resolution (``input_scale`` = training width / camera width).
+* ``oracle``: the sequence's ground-truth pose plus Gaussian noise
+  (:class:`~evtrack.pose_sources.OraclePoseSource`). **Not an estimator**: tables made with it
+  measure the filters and the velocity pipeline, not a pose network, and say so.
+
+Every run of every method on a sequence gets a fresh pose source built from the same
+:class:`PoseSourceSpec` (same seed), so the methods see identical pose measurements.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+from evtrack.errors import ConfigError
+from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource, PoseSource
+
+__all__ = ["PoseSourceSpec", "find_object_weights", "training_hint", "make_pose_source",
+           "resolve_weights"]
+
+
+@dataclass(frozen=True)
+class PoseSourceSpec:
+    """How to build the pose source of a sequence.
+
+    Attributes:
+        kind: ``"network"`` or ``"oracle"``.
+        weights_dir: folder searched for weights (recursively); ``None``: the shipped zoo.
+        weights: one weights file used for every sequence (overrides ``weights_dir``).
+        oracle_std_translation: oracle noise per axis, metres.
+        oracle_std_rotation: oracle noise per axis (rotation vector), radians.
+        seed: seed of the oracle's draws (the network is deterministic).
+    """
+
+    kind: str = "network"
+    weights_dir: Path | None = None
+    weights: Path | None = None
+    oracle_std_translation: float = 0.01
+    oracle_std_rotation: float = 0.03
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("network", "oracle"):
+            raise ConfigError(f"pose source kind must be 'network' or 'oracle', got {self.kind!r}")
+        for name in ("oracle_std_translation", "oracle_std_rotation"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"--oracle-noise: {name} must be finite and >= 0, got {value}")
+
+    @property
+    def label(self) -> str:
+        """One line for table captions."""
+        if self.kind == "oracle":
+            cm = 100 * self.oracle_std_translation
+            return (f"ORACLE (ground-truth poses + Gaussian noise {cm:g} cm, "
+                    f"{math.degrees(self.oracle_std_rotation):.3g} deg per axis, seed "
+                    f"{self.seed}): measures the tracker's filters, not a pose network")
+        if self.weights is not None:
+            return f"pose network {self.weights}"
+        where = self.weights_dir if self.weights_dir is not None else "the shipped zoo"
+        return f"pose network (weights per object from {where})"
+
+
+def training_hint(object_name: str) -> str:
+    """The command that trains weights for ``object_name``."""
+    from evtrack.sim.objects import PROCEDURAL_OBJECTS, YCB_OBJECTS
+
+    if object_name in YCB_OBJECTS:
+        return f"evtrack train --config configs/pose_ycb_{object_name}.yaml"
+    if object_name == "box":
+        return "evtrack train --config configs/pose_demo_box.yaml"
+    if object_name in PROCEDURAL_OBJECTS:
+        return (f"evtrack train --config configs/pose_demo_box.yaml "
+                f"--set object.name={object_name}")
+    return "evtrack train with a config for it (see configs/pose_*.yaml)"
+
+
+def find_object_weights(object_name: str, folder: str | Path | None = None,
+                        arch: str | None = None) -> Path:
+    """A weights file trained on ``object_name``, of any (or the given) architecture.
+
+    Searches ``folder`` recursively for ``*.pt`` weights files (default: the shipped zoo,
+    ``models/weights``). With several matches, the most recently created record wins (then
+    the path order).
+
+    Raises:
+        ConfigError: none found, saying how to train them or to use the oracle.
+    """
+    from evtrack.models.weights import WeightsError, load_weights_file, zoo_dir
+
+    root = Path(folder) if folder is not None else zoo_dir()
+    hits = []
+    if root.is_dir():
+        for path in sorted(root.rglob("*.pt")):
+            try:
+                record, _ = load_weights_file(path)
+            except WeightsError:
+                continue  # not a weights file (e.g. an unrelated tensor dump)
+            if record.object_name == object_name and (arch is None or record.arch == arch):
+                hits.append((record.created, str(path), path))
+    if not hits:
+        wanted = f"object {object_name!r}" + (f" and architecture {arch!r}" if arch else "")
+        raise ConfigError(
+            f"no pose-network weights for {wanted} in {root}; train them with "
+            f"'{training_hint(object_name)}' (then copy the .pt into models/weights or pass "
+            "its folder with --weights-dir), or pass --oracle to use ground-truth poses with "
+            "noise instead")
+    hits.sort(key=lambda h: (h[0], h[1]))
+    return hits[-1][2]
+
+
+def resolve_weights(spec: PoseSourceSpec, objects: list[str]) -> dict[str, Path]:
+    """The weights file of each object (empty for the oracle); raises before any work."""
+    if spec.kind == "oracle":
+        return {}
+    if spec.weights is not None:
+        if not Path(spec.weights).is_file():
+            raise ConfigError(f"--weights {spec.weights}: file not found")
+        return {name: Path(spec.weights) for name in objects}
+    return {name: find_object_weights(name, spec.weights_dir) for name in sorted(set(objects))}
+
+
+def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
+                     ) -> PoseSource:
+    """A fresh pose source for ``sequence`` (a :class:`~evtrack.Sequence`).
+
+    Args:
+        spec: the kind of source and its settings.
+        sequence: the sequence (its ground truth for the oracle, its RGB camera for a network).
+        weights: the network's weights file (from :func:`resolve_weights`).
+    """
+    if spec.kind == "oracle":
+        return OraclePoseSource.from_sequence(
+            sequence, std_translation=spec.oracle_std_translation,
+            std_rotation=spec.oracle_std_rotation, seed=spec.seed)
+    if weights is None:
+        raise ConfigError("a network pose source needs a weights file")
+    from evtrack.models import TorchPoseEstimator
+    from evtrack.models.weights import load_weights_file
+
+    cam = sequence.meta.rgb_camera or sequence.meta.event_camera
+    record, _ = load_weights_file(weights)
+    scale = record.input_size[1] / cam.width
+    est = TorchPoseEstimator.from_weights(weights, cam, object_name=sequence.meta.object_name,
+                                          input_scale=scale)
+    return NetworkPoseSource(est, sequence.meta.T_event_rgb)

@@ -1,0 +1,278 @@
+"""Benchmark tables like the method paper's Tables I–III, as Markdown and CSV.
+
+Input: one entry per (sequence, run) with the attributes ``sequence``, ``object_name``,
+``speed``, ``run`` and ``errors`` (:class:`~evtrack.eval.metrics.TrackingErrors`), e.g.
+:class:`~evtrack.eval.benchmark.RunResult`.
+
+* Table I: rows = sequences (object x speed), then averages per speed and over all sequences;
+  columns = runs; cells ``RMSE ± σ`` of the position error (cm) and the rotation error (deg).
+* Tracked samples: the share of each trajectory the RMSE is taken over (the rest is before the
+  first pose or while the object was lost).
+* Table II: the averages only (rows = runs, columns = speeds).
+* Table III (ablation): the full method against its ablations, averaged.
+
+Conventions: σ is the population standard deviation of a sequence's per-sample errors
+(:func:`~evtrack.eval.metrics.error_summary`). An average is the arithmetic mean of the
+per-sequence RMSEs (the paper's Table II averages them this way) and of the per-sequence σs;
+it is undefined (``—``, NaN in the CSV) when any of its sequences has no tracked sample.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+from evtrack.eval.metrics import TrackingErrors
+from evtrack.eval.sequences import SPEEDS
+
+__all__ = ["ErrorEntry", "Cell", "AverageRow", "average_rows", "markdown_tables", "csv_table",
+           "write_tables", "ALL"]
+
+ALL = "all"
+"""The speed group of the averages over every sequence."""
+
+CSV_COLUMNS = ("table", "sequence", "object", "speed", "run", "label", "position_rmse_cm",
+               "position_std_cm", "rotation_rmse_deg", "rotation_std_deg", "samples", "total",
+               "tracked_fraction", "sequences")
+
+
+class ErrorEntry(Protocol):
+    """What the tables read from each (sequence, run) result."""
+
+    sequence: str
+    object_name: str
+    speed: str
+    run: str
+    errors: TrackingErrors
+
+
+@dataclass(frozen=True)
+class Cell:
+    """An ``RMSE ± σ`` pair (cm or deg)."""
+
+    rmse: float
+    std: float
+
+    def text(self, digits: int = 2) -> str:
+        if not (math.isfinite(self.rmse) and math.isfinite(self.std)):
+            return "—"
+        return f"{self.rmse:.{digits}f} ± {self.std:.{digits}f}"
+
+
+@dataclass(frozen=True)
+class AverageRow:
+    """The average of one run over a group of sequences.
+
+    Attributes:
+        run: the run's name; speed: the group (a speed, or :data:`ALL`).
+        position, rotation: mean RMSE and mean σ (cm, deg).
+        samples, total: tracked and all samples summed over the group.
+        sequences: sequences averaged.
+    """
+
+    run: str
+    speed: str
+    position: Cell
+    rotation: Cell
+    samples: int
+    total: int
+    sequences: int
+
+
+def _speed_groups(entries: Sequence[ErrorEntry]) -> list[str]:
+    speeds = {e.speed for e in entries}
+    ordered = [s for s in SPEEDS if s in speeds]
+    ordered += sorted(s for s in speeds if s not in SPEEDS)
+    return ordered
+
+
+def _mean(values: list[float]) -> float:
+    if not values or not all(math.isfinite(v) for v in values):
+        return math.nan
+    return sum(values) / len(values)
+
+
+def _average(run: str, speed: str, group: list[ErrorEntry]) -> AverageRow:
+    errs = [e.errors for e in group]
+    return AverageRow(
+        run, speed,
+        Cell(_mean([x.position_rmse_cm for x in errs]), _mean([x.position_std_cm for x in errs])),
+        Cell(_mean([x.rotation_rmse_deg for x in errs]), _mean([x.rotation_std_deg for x in errs])),
+        sum(x.samples for x in errs), sum(x.total for x in errs), len(errs))
+
+
+def average_rows(entries: Sequence[ErrorEntry], runs: Sequence[str]) -> list[AverageRow]:
+    """Averages of each run per speed group and over all sequences (run-major order)."""
+    rows = []
+    groups = _speed_groups(entries)
+    for run in runs:
+        mine = [e for e in entries if e.run == run]
+        if not mine:
+            continue
+        for speed in groups:
+            rows.append(_average(run, speed, [e for e in mine if e.speed == speed]))
+        rows.append(_average(run, ALL, mine))
+    return rows
+
+
+def _sequences(entries: Sequence[ErrorEntry]) -> list[tuple[str, str, str]]:
+    """(sequence, object, speed) in first-seen order."""
+    seen: dict[str, tuple[str, str, str]] = {}
+    for e in entries:
+        seen.setdefault(e.sequence, (e.sequence, e.object_name, e.speed))
+    return list(seen.values())
+
+
+def _md_row(cells: list[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def _md_header(names: list[str], align: list[str]) -> list[str]:
+    return [_md_row(names), "|" + "|".join(align) + "|"]
+
+
+def _object_labels(seqs: list[tuple[str, str, str]]) -> dict[str, str]:
+    """Object name per sequence; with the sequence name when object and speed repeat."""
+    count: dict[tuple[str, str], int] = {}
+    for _, obj, speed in seqs:
+        count[(obj, speed)] = count.get((obj, speed), 0) + 1
+    return {name: obj if count[(obj, speed)] == 1 else f"{obj} ({name})"
+            for name, obj, speed in seqs}
+
+
+def _table_one(entries, runs, labels, avgs) -> list[str]:
+    seqs = _sequences(entries)
+    objects = _object_labels(seqs)
+    by_key = {(e.sequence, e.run): e.errors for e in entries}
+    head = ["object", "speed"]
+    for run in runs:
+        head += [f"{labels[run]} e_p (cm)", f"{labels[run]} e_r (deg)"]
+    lines = _md_header(head, [":--", ":--"] + ["--:"] * (2 * len(runs)))
+    for name, _, speed in seqs:
+        cells = [objects[name], speed or "?"]
+        for run in runs:
+            err = by_key.get((name, run))
+            if err is None:
+                cells += ["", ""]
+            else:
+                cells += [Cell(err.position_rmse_cm, err.position_std_cm).text(),
+                          Cell(err.rotation_rmse_deg, err.rotation_std_deg).text()]
+        lines.append(_md_row(cells))
+    by_avg = {(a.run, a.speed): a for a in avgs}
+    for speed in [*_speed_groups(entries), ALL]:
+        cells = ["**average**", speed or "?"]
+        for run in runs:
+            a = by_avg.get((run, speed))
+            cells += ["", ""] if a is None else [a.position.text(), a.rotation.text()]
+        lines.append(_md_row(cells))
+    return lines
+
+
+def _tracked_table(entries, runs, labels) -> list[str]:
+    by_key = {(e.sequence, e.run): e.errors for e in entries}
+    lines = _md_header(["sequence", *[labels[r] for r in runs]], [":--"] + ["--:"] * len(runs))
+    for name, _, _ in _sequences(entries):
+        cells = [name]
+        for run in runs:
+            err = by_key.get((name, run))
+            cells.append("" if err is None else f"{100 * err.tracked_fraction:.0f}%")
+        lines.append(_md_row(cells))
+    return lines
+
+
+def _average_table(avgs, runs, labels, groups) -> list[str]:
+    by_avg = {(a.run, a.speed): a for a in avgs}
+    head = ["run"]
+    for g in groups:
+        head += [f"{g} e_p (cm)", f"{g} e_r (deg)"]
+    lines = _md_header(head, [":--"] + ["--:"] * (2 * len(groups)))
+    for run in runs:
+        cells = [labels[run]]
+        for g in groups:
+            a = by_avg.get((run, g))
+            cells += ["", ""] if a is None else [a.position.text(), a.rotation.text()]
+        lines.append(_md_row(cells))
+    return lines
+
+
+def markdown_tables(entries: Sequence[ErrorEntry], methods: Sequence[str],
+                    labels: dict[str, str] | None = None, ablations: Sequence[str] = (),
+                    caption: str = "") -> str:
+    """Tables I, tracked samples, II and (with ``ablations``) III as Markdown.
+
+    Args:
+        entries: one per (sequence, run).
+        methods: the runs of Tables I and II, in column order.
+        labels: run name -> display label (default: the name).
+        ablations: the runs of Table III after ``full`` (empty: no Table III).
+        caption: a line under the title (e.g. the pose source).
+    """
+    labels = {**{e.run: e.run for e in entries}, **(labels or {})}
+    runs = list(dict.fromkeys([*methods, *(["full", *ablations] if ablations else [])]))
+    avgs = average_rows(entries, runs)
+    groups = [*_speed_groups(entries), ALL]
+    n = len(_sequences(entries))
+    out = ["# evtrack benchmark", ""]
+    if caption:
+        out += [f"Pose source: {caption}", ""]
+    out += [f"Sequences: {n}. Cells: RMSE ± σ over the tracked samples of each sequence, "
+            "position e_p in cm (Euclidean), rotation e_r in deg (geodesic); averages are "
+            "means of the per-sequence values.", ""]
+    out += ["## Table I: tracking error per sequence", ""]
+    out += _table_one(entries, list(methods), labels, avgs) + [""]
+    out += ["## Tracked samples (share of each trajectory in the RMSE)", ""]
+    out += _tracked_table(entries, list(methods), labels) + [""]
+    out += ["## Table II: average tracking error", ""]
+    out += _average_table(avgs, list(methods), labels, groups) + [""]
+    if ablations:
+        out += ["## Table III: ablation of the full method", ""]
+        out += _average_table(avgs, ["full", *ablations], labels, groups) + [""]
+    return "\n".join(out)
+
+
+def _num(value: float) -> str:
+    return repr(float(value)) if math.isfinite(value) else "nan"
+
+
+def csv_table(entries: Sequence[ErrorEntry], runs: Sequence[str],
+              labels: dict[str, str] | None = None) -> str:
+    """Long-format CSV: one row per (sequence, run), then one per (run, speed group) average.
+
+    Columns: :data:`CSV_COLUMNS`; ``table`` is ``sequence`` or ``average``.
+    """
+    labels = {**{e.run: e.run for e in entries}, **(labels or {})}
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    order = {r: i for i, r in enumerate(runs)}
+    for e in sorted((e for e in entries if e.run in order), key=lambda e: order[e.run]):
+        x = e.errors
+        writer.writerow(["sequence", e.sequence, e.object_name, e.speed, e.run, labels[e.run],
+                         _num(x.position_rmse_cm), _num(x.position_std_cm),
+                         _num(x.rotation_rmse_deg), _num(x.rotation_std_deg), x.samples,
+                         x.total, _num(x.tracked_fraction), 1])
+    for a in average_rows(entries, list(runs)):
+        frac = a.samples / a.total if a.total else math.nan
+        writer.writerow(["average", "", ALL, a.speed, a.run, labels[a.run],
+                         _num(a.position.rmse), _num(a.position.std), _num(a.rotation.rmse),
+                         _num(a.rotation.std), a.samples, a.total, _num(frac), a.sequences])
+    return buf.getvalue()
+
+
+def write_tables(entries: Sequence[ErrorEntry], out_dir: str | Path, methods: Sequence[str],
+                 labels: dict[str, str] | None = None, ablations: Sequence[str] = (),
+                 caption: str = "") -> str:
+    """Write ``results.md`` and ``results.csv`` to ``out_dir`` atomically; return the Markdown."""
+    from evtrack.utils import atomic_write_text
+
+    out_dir = Path(out_dir)
+    text = markdown_tables(entries, methods, labels, ablations, caption)
+    runs = list(dict.fromkeys([*methods, *(["full", *ablations] if ablations else [])]))
+    atomic_write_text(out_dir / "results.md", text)
+    atomic_write_text(out_dir / "results.csv", csv_table(entries, runs, labels))
+    return text
