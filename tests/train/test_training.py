@@ -58,7 +58,8 @@ def test_tiny_overfit_loss_decreases_below_the_all_zero_baseline():
                         enable_model_summary=False, callbacks=[recorder])
     trainer.fit(module, loader)
     batch = next(iter(loader))
-    zero_loss = float((batch["belief"] ** 2).mean() + (batch["affinity"] ** 2).mean())
+    zeros = [(torch.zeros_like(batch["belief"]), torch.zeros_like(batch["affinity"]))]
+    zero_loss = float(module.compute_loss(zeros, batch["belief"], batch["affinity"])[0])
     first, last = recorder.losses[0], float(np.mean(recorder.losses[-5:]))
     assert len(recorder.losses) == 60
     assert last < 0.1 * first
@@ -79,7 +80,8 @@ def test_loss_is_the_stage_sum_of_mses():
     module = PoseLightningModule(create("dope_lite_tiny"),
                                  WeightsRecord(arch="dope_lite_tiny", object_name="b",
                                                cuboid=CUBOID),
-                                 loss=LossConfig(affinity_weight=0.5, last_stage_weight=2.0))
+                                 loss=LossConfig(affinity_weight=0.5, last_stage_weight=2.0,
+                                                 positive_weight=0.0))
     b, a = torch.ones(1, 9, 2, 2), torch.zeros(1, 16, 2, 2)
     stages = [(torch.zeros_like(b), torch.ones_like(a)), (torch.full_like(b, 3.0),
                                                           torch.full_like(a, 2.0))]
@@ -87,6 +89,35 @@ def test_loss_is_the_stage_sum_of_mses():
     assert float(lb) == pytest.approx(1 + 2 * 4)
     assert float(la) == pytest.approx(1 + 2 * 4)
     assert float(total) == pytest.approx(9 + 0.5 * 9)
+
+
+def test_positive_weighting_matches_a_cell_by_cell_sum():
+    pw = 7.0
+    module = PoseLightningModule(create("dope_lite_tiny"),
+                                 WeightsRecord(arch="dope_lite_tiny", object_name="b",
+                                               cuboid=CUBOID),
+                                 loss=LossConfig(positive_weight=pw))
+    g = torch.Generator().manual_seed(0)
+    b = torch.rand(2, 9, 3, 4, generator=g)
+    a = torch.randn(2, 16, 3, 4, generator=g)
+    a[:, :, 1:] = 0.0                      # only row 0 is inside the discs
+    a[0, 2, 0, 1] = 0.0                    # a cell where dx = 0 but dy != 0 is still in the disc
+    pb, pa = torch.rand(2, 9, 3, 4, generator=g), torch.randn(2, 16, 3, 4, generator=g)
+    _, lb, la = module.compute_loss([(pb, pa)], b, a)
+    expect_b = expect_a = 0.0
+    for n, c, i, j in np.ndindex(*b.shape):
+        expect_b += (1 + pw * float(b[n, c, i, j])) * float(pb[n, c, i, j] - b[n, c, i, j]) ** 2
+    for n, c, i, j in np.ndindex(*a.shape):
+        k = c // 2
+        inside = bool(a[n, 2 * k, i, j] != 0 or a[n, 2 * k + 1, i, j] != 0)
+        expect_a += (1 + pw * inside) * float(pa[n, c, i, j] - a[n, c, i, j]) ** 2
+    assert float(lb) == pytest.approx(expect_b / b.numel(), rel=1e-5)
+    assert float(la) == pytest.approx(expect_a / a.numel(), rel=1e-5)
+
+
+def test_negative_loss_weights_are_refused():
+    with pytest.raises(ConfigError, match="loss"):
+        LossConfig(positive_weight=-1.0)
 
 
 @pytest.fixture(scope="module")
@@ -147,7 +178,8 @@ def test_train_and_export_commands(trained_run, tmp_path, capsys):
     assert main(["train", "--config", str(tmp_path / "none.yaml")]) == 1
     assert "config file not found" in capsys.readouterr().err
     onnx_path = tmp_path / "box.onnx"
-    assert main(["export", "pose", "--weights", str(result.best_checkpoint),
+    # last.ckpt: the resume test (same run folder) may have replaced the best checkpoint
+    assert main(["export", "pose", "--weights", str(result.last_checkpoint),
                  "--out", str(onnx_path)]) == 0
     assert "exported dope_lite_tiny for object 'box'" in capsys.readouterr().out
     est = OnnxPoseEstimator(onnx_path, np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]))
