@@ -23,7 +23,7 @@ from evtrack.models.cuboid import Cuboid
 from evtrack.models.decode import DecodeConfig, PoseDetection, decode_poses
 from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD, WeightsRecord
 
-__all__ = ["PoseEstimator", "TorchPoseEstimator", "preprocess"]
+__all__ = ["PoseEstimator", "TorchPoseEstimator", "preprocess", "training_input_scale"]
 
 
 def preprocess(
@@ -168,10 +168,28 @@ class PoseEstimator(abc.ABC):
         return self.estimate_batch([rgb], camera)[0]
 
 
-def _record_kwargs(record: WeightsRecord | None, cuboid: Cuboid | None, object_name: str | None):
+def training_input_scale(record: WeightsRecord | None, camera: PinholeCamera | np.ndarray
+                         ) -> float:
+    """The resize factor that shows the network images at its training resolution.
+
+    ``record.input_size`` width / camera width for a :class:`PinholeCamera` (e.g. 0.5 for a
+    network trained at 320x240 on a 640x480 camera: the training renders keep the camera's
+    field of view, so objects then appear at the size the network learned); 1.0 without a
+    record or for a bare intrinsic matrix (image size unknown).
+    """
+    if record is None or not isinstance(camera, PinholeCamera):
+        return 1.0
+    return record.input_size[1] / camera.width
+
+
+def _record_kwargs(record: WeightsRecord | None, cuboid: Cuboid | None, object_name: str | None,
+                   camera: PinholeCamera | np.ndarray, input_scale: float | None = None):
     if record is None and cuboid is None:
         raise ConfigError("the network has no weights record: pass cuboid=... (and object_name)")
+    if input_scale is None:
+        input_scale = training_input_scale(record, camera)
     return {
+        "input_scale": input_scale,
         "cuboid": cuboid if cuboid is not None else record.cuboid,
         "object_name": object_name if object_name is not None else (
             record.object_name if record else ""),
@@ -190,7 +208,9 @@ class TorchPoseEstimator(PoseEstimator):
         camera: see :class:`PoseEstimator`.
         device: torch device to run on.
         cuboid, object_name: override (or supply, for a network without a record).
-        **kwargs: ``decode`` and ``input_scale`` as in :class:`PoseEstimator`.
+        input_scale: resize factor before the network; ``None`` (default): the network's
+            training resolution (:func:`training_input_scale`).
+        **kwargs: ``decode`` as in :class:`PoseEstimator`.
     """
 
     def __init__(
@@ -201,10 +221,12 @@ class TorchPoseEstimator(PoseEstimator):
         device: str | torch.device = "cpu",
         cuboid: Cuboid | None = None,
         object_name: str | None = None,
+        input_scale: float | None = None,
         **kwargs,
     ) -> None:
         record = getattr(net, "weights_record", None)
-        super().__init__(camera, **_record_kwargs(record, cuboid, object_name), **kwargs)
+        super().__init__(camera, **_record_kwargs(record, cuboid, object_name, camera,
+                                                  input_scale), **kwargs)
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
 

@@ -33,7 +33,9 @@ class OnnxPoseEstimator(PoseEstimator):
         providers: onnxruntime execution providers (default: :func:`default_providers`).
         threads: intra-op threads for the CPU provider (default: onnxruntime's choice).
         cuboid, object_name: override (or supply, for a model without a record).
-        **kwargs: ``decode`` and ``input_scale`` as in :class:`PoseEstimator`.
+        input_scale: resize factor before the network; ``None`` (default): the network's
+            training resolution (:func:`~evtrack.models.estimator.training_input_scale`).
+        **kwargs: ``decode`` as in :class:`PoseEstimator`.
     """
 
     def __init__(
@@ -45,13 +47,15 @@ class OnnxPoseEstimator(PoseEstimator):
         threads: int | None = None,
         cuboid: Cuboid | None = None,
         object_name: str | None = None,
+        input_scale: float | None = None,
         **kwargs,
     ) -> None:
         import onnxruntime as ort
 
         self.path = Path(path)
         record, self.precision = read_onnx_record(self.path)
-        super().__init__(camera, **_record_kwargs(record, cuboid, object_name), **kwargs)
+        super().__init__(camera, **_record_kwargs(record, cuboid, object_name, camera,
+                                                  input_scale), **kwargs)
         self.record = record
         options = ort.SessionOptions()
         if threads is not None:

@@ -98,3 +98,20 @@ def test_torch_estimator_runs_a_real_network():
     belief, affinity, scale = est.predict_maps([np.zeros((240, 320, 3), np.uint8)])
     assert belief.shape == (1, 9, 30, 40) and affinity.shape == (1, 16, 30, 40)
     assert isinstance(est(np.zeros((240, 320, 3), np.uint8)), list)
+
+
+def test_default_input_scale_is_the_training_resolution(tmp_path):
+    from evtrack.models import WeightsRecord, save_weights
+
+    net = create("dope_lite_tiny")
+    record = WeightsRecord(arch="dope_lite_tiny", object_name="box", cuboid=CUBOID,
+                           input_size=(120, 160))
+    path = save_weights(tmp_path / "w.pt", net, record)
+    cam640 = PinholeCamera(800.0, 800.0, 319.5, 239.5, 640, 480)
+    est = TorchPoseEstimator.from_weights(path, cam640)
+    assert est.input_scale == pytest.approx(0.25)
+    belief, _, (sx, sy) = est.predict_maps([np.zeros((480, 640, 3), np.uint8)])
+    assert belief.shape == (1, 9, 15, 20) and (sx, sy) == (0.25, 0.25)
+    assert TorchPoseEstimator.from_weights(path, cam640, input_scale=1.0).input_scale == 1.0
+    # a bare K: the image size is unknown, so images are used as they come
+    assert TorchPoseEstimator.from_weights(path, CAM.K().numpy()).input_scale == 1.0
