@@ -124,8 +124,18 @@ class SensorDepth(DepthSource):
         self.same_camera = (self.rgb_camera == event_camera) and np.allclose(T, np.eye(4))
 
     def check_frame(self, t_us: int, depth: np.ndarray) -> np.ndarray:
-        """The frame as float32 (H, W); raises ValueError when its size is not the camera's."""
-        d = np.asarray(depth, np.float32)
+        """The frame as float32 (H, W).
+
+        Raises:
+            ValueError: a frame whose size is not the camera's, or of integer type (raw sensor
+                units such as millimetres, which read as metres would put every pixel outside
+                the object's depth range: convert to metres first).
+        """
+        raw = np.asarray(depth)
+        if not np.issubdtype(raw.dtype, np.floating):
+            raise ValueError(f"depth frame at t={t_us} µs has dtype {raw.dtype}; depth must be "
+                             "float metres (convert raw sensor units, e.g. millimetres / 1000)")
+        d = raw.astype(np.float32, copy=False)
         expected = (self.rgb_camera.height, self.rgb_camera.width)
         if d.shape != expected:
             raise ValueError(f"depth frame at t={t_us} µs is {d.shape}"

@@ -28,11 +28,17 @@ from torch import Tensor
 from evtrack.errors import ConfigError
 
 __all__ = [
+    "ROTATION_TOLERANCE",
     "PoseMeasurement",
     "PoseSource",
     "NetworkPoseSource",
     "OraclePoseSource",
 ]
+
+
+ROTATION_TOLERANCE = 1e-3
+"""Largest ``|RᵀR - I|`` entry (and ``|det R - 1|``) of a pose's rotation block accepted by
+:class:`PoseMeasurement`: float32 round-off passes, a scaled or sheared matrix does not."""
 
 
 @dataclass
@@ -41,10 +47,15 @@ class PoseMeasurement:
 
     Attributes:
         t_us: time of the image it was computed from (µs).
-        pose: (4, 4) float64 object-to-event-camera transform.
-        cov: (6, 6) float64 covariance of ``[δt (m), δθ (rad)]``, or ``None`` for the filter's
-            default measurement noise.
+        pose: (4, 4) float64 object-to-event-camera transform: finite, a rotation block
+            (within :data:`ROTATION_TOLERANCE`) and last row ``[0, 0, 0, 1]``.
+        cov: (6, 6) float64 covariance of ``[δt (m), δθ (rad)]``, finite and symmetric, or
+            ``None`` for the filter's default measurement noise.
         confidence: the detector's confidence (1 when unknown).
+
+    Raises:
+        ValueError: a pose or covariance of the wrong shape, not finite, or not a rigid
+            transform (one NaN pose would otherwise poison the filter state for good).
     """
 
     t_us: int
@@ -55,12 +66,29 @@ class PoseMeasurement:
     def __post_init__(self) -> None:
         self.t_us = int(self.t_us)
         self.pose = torch.as_tensor(self.pose, dtype=torch.float64)
+        where = f"pose measurement at t={self.t_us} µs"
         if self.pose.shape != (4, 4):
-            raise ValueError(f"pose must be (4, 4), got {tuple(self.pose.shape)}")
+            raise ValueError(f"{where}: pose must be (4, 4), got {tuple(self.pose.shape)}")
+        if not bool(torch.isfinite(self.pose).all()):
+            raise ValueError(f"{where}: pose is not finite")
+        R = self.pose[:3, :3]
+        ortho = float((R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max())
+        det = float(torch.linalg.det(R))
+        if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+            raise ValueError(f"{where}: the rotation block is not a rotation "
+                             f"(max |RᵀR - I| = {ortho:.2g}, det = {det:.4g})")
+        bottom = self.pose[3].tolist()
+        if bottom != [0.0, 0.0, 0.0, 1.0]:
+            raise ValueError(f"{where}: last row must be [0, 0, 0, 1], got {bottom}")
         if self.cov is not None:
             self.cov = torch.as_tensor(self.cov, dtype=torch.float64)
             if self.cov.shape != (6, 6):
-                raise ValueError(f"pose covariance must be (6, 6), got {tuple(self.cov.shape)}")
+                raise ValueError(f"{where}: covariance must be (6, 6), got "
+                                 f"{tuple(self.cov.shape)}")
+            if not bool(torch.isfinite(self.cov).all()):
+                raise ValueError(f"{where}: covariance is not finite")
+            if not torch.allclose(self.cov, self.cov.T, rtol=1e-9, atol=1e-12):
+                raise ValueError(f"{where}: covariance is not symmetric")
 
 
 @runtime_checkable
@@ -80,6 +108,10 @@ class NetworkPoseSource:
         T_event_rgb: (4, 4) maps RGB-camera points into the event camera (identity default).
         min_confidence: detections below it are ignored.
         cov: (6, 6) measurement covariance handed to the filter, or ``None`` for its default.
+
+    A detection whose pose is not a finite rigid transform (see :class:`PoseMeasurement`)
+    gives no measurement (the tracker counts the call as a miss) and is counted in
+    :attr:`invalid`.
     """
 
     def __init__(self, estimator: Callable[[np.ndarray], Sequence],
@@ -92,6 +124,7 @@ class NetworkPoseSource:
             raise ConfigError(f"T_event_rgb must be (4, 4), got {tuple(self.T_event_rgb.shape)}")
         self.min_confidence = float(min_confidence)
         self.cov = cov
+        self.invalid = 0
 
     def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None = None
                  ) -> PoseMeasurement | None:
@@ -100,9 +133,12 @@ class NetworkPoseSource:
             return None
         best = max(detections, key=lambda d: d.confidence)
         pose = torch.as_tensor(np.asarray(best.pose), dtype=torch.float64)
-        if not bool(torch.isfinite(pose).all()):
+        try:
+            return PoseMeasurement(t_us, self.T_event_rgb @ pose, self.cov,
+                                   float(best.confidence))
+        except ValueError:
+            self.invalid += 1
             return None
-        return PoseMeasurement(t_us, self.T_event_rgb @ pose, self.cov, float(best.confidence))
 
 
 class OraclePoseSource:

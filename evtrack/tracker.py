@@ -28,10 +28,24 @@ at or after its end arrives) and by :meth:`Tracker.advance` / :meth:`Tracker.pus
 time order, as one merged stream: events, then the frame at ``t`` once the events before ``t``
 were pushed. The tracker outputs a pose and a twist at the end of every step.
 
-Lost object: when the predicted silhouette stays outside the image for ``lost_after_ms``, the
-pose filter forgets its state and the next pose re-initialises it (meanwhile the last pose is
-held and flagged). The pose filter also re-initialises itself after ``reinit_after`` gated
-poses in a row (:class:`~evtrack.filters.PoseUKF`).
+Lost object: the object counts as lost when its predicted silhouette stays outside the image
+for ``lost_after_ms``, or when ``lost_after_misses`` pose-source calls in a row found nothing
+(a detector finds nothing when the object has left the image, while the prediction, with no
+events to follow, may stop short inside it; a miss counts when its result would have been
+available, ``pose_latency_ms`` after the frame). The pose filter then forgets its state and the
+next pose re-initialises it (meanwhile the last pose is held and flagged). The pose filter also
+re-initialises itself after ``reinit_after`` gated poses in a row
+(:class:`~evtrack.filters.PoseUKF`).
+
+Event bursts: a step whose events outside the object's predicted silhouette (plus
+``mask_margin_px``) exceed ``burst_rate_hz`` per pixel over the image outside it is an event
+burst (flicker, a sensor glitch, camera shake): none of its events is used, the velocity filter
+only predicts, and the step is counted in :attr:`TrackerStats.burst_steps`. The test needs a
+predicted silhouette and at least ``_BURST_MIN_OUTSIDE`` of the image outside it. Independently,
+at most ``max_events_per_step`` events of a step enter the flow (or the GE model): above it they
+are thinned, deterministically and independently of how the events were chunked (the events
+with the smallest hash of their index in the stream are kept), and counted, so that the work
+per step is bounded whatever the event rate.
 
 Depth fallback: a RoI without a valid depth (no depth frame yet, a frame older than
 ``max_depth_age_ms``, a pushed frame without depth and no earlier one, or only missing or
@@ -80,6 +94,12 @@ object's (noise, pose error)."""
 _EVENTS_CHUNK_US = 50_000
 """Offline tracking reads the events in windows of this length."""
 
+_BURST_MIN_OUTSIDE = 0.1
+"""The burst test needs at least this share of the image outside the object's silhouette."""
+
+_HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
+"""Fibonacci hashing of event indices (thinning keeps the smallest hashes)."""
+
 FrameInput = np.ndarray | Callable[[], np.ndarray] | None
 
 
@@ -90,13 +110,17 @@ class TrackerStats:
     Attributes:
         steps: velocity steps processed.
         events: events pushed.
-        events_on_object: events inside the predicted silhouette (used by the flow).
+        events_on_object: events inside the predicted silhouette.
+        events_in_bursts: of those, events of burst steps (not used); burst_steps: steps
+            found to be event bursts (see the module docstring).
+        events_thinned: events of a step beyond ``max_events_per_step`` (not used).
         roi_flows: RoI flows given to the velocity filter.
         velocity_updates: steps with at least one RoI flow (or GE row).
         depth_fallbacks: RoIs that took the fallback depth (see the module docstring).
         frames: frames pushed; frames_without_depth: of those, without a depth frame.
         pose_calls: pose-source calls; poses: measurements returned; poses_late: dropped
-            because older than ``history_ms``.
+            because older than ``history_ms``; pose_misses: calls that returned nothing or a
+            pose below ``pose_min_confidence``.
         poses_rejected: poses rejected by the gate; reinitialisations: filter re-inits after
             rejections; lost: times the object was declared lost.
         twist_measurements: frame-flow twist measurements fused.
@@ -106,6 +130,9 @@ class TrackerStats:
     steps: int = 0
     events: int = 0
     events_on_object: int = 0
+    events_in_bursts: int = 0
+    burst_steps: int = 0
+    events_thinned: int = 0
     roi_flows: int = 0
     velocity_updates: int = 0
     depth_fallbacks: int = 0
@@ -114,6 +141,7 @@ class TrackerStats:
     pose_calls: int = 0
     poses: int = 0
     poses_late: int = 0
+    pose_misses: int = 0
     poses_rejected: int = 0
     reinitialisations: int = 0
     lost: int = 0
@@ -122,6 +150,13 @@ class TrackerStats:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+@dataclass
+class _Miss:
+    """A pose-source call on the frame at ``t_us`` that found nothing."""
+
+    t_us: int
 
 
 class _Timer:
@@ -289,12 +324,14 @@ class Tracker:
         self.stats = TrackerStats()
         self._t: int | None = None
         self._ev_buf: list[Events] = []
+        self._ev_buf_index = 0  # index in the stream of the first buffered event
         self._last_event_t: int | None = None
-        self._pending: list[tuple[int, int, PoseMeasurement | tuple]] = []
+        self._pending: list[tuple[int, int, PoseMeasurement | _Miss | tuple]] = []
         self._pending_seq = 0
         self._next_pose_slot: int | None = None
         self._ever_lost = False
         self._out_of_view_us = 0
+        self._misses = 0  # pose-source misses in a row
         self._held: np.ndarray | None = None
         self._out_t: list[int] = []
         self._out_tq: list[np.ndarray] = []
@@ -450,8 +487,13 @@ class Tracker:
             image = image if image is not None else get_rgb()
             with _Timer(self.stats.time_s, "pose_source"):
                 m = self.pose_source(t_us, image, None)
-            if m is not None:
-                self.push_pose(m, available_us=t_us + self.config.pose_latency_us)
+            available = t_us + self.config.pose_latency_us
+            if m is not None and m.confidence >= self.config.pose_min_confidence:
+                self.push_pose(m, available_us=available)
+            else:
+                self.stats.pose_misses += 1
+                self._schedule(max(available, self._t), _Miss(t_us))
+                self._apply_due(self._t)
 
     def push_pose(self, measurement: PoseMeasurement, available_us: int | None = None) -> None:
         """Add a pose measurement (e.g. from a pose network running in another thread).
@@ -467,7 +509,7 @@ class Tracker:
         self._schedule(avail, measurement)
         self._apply_due(self._t)
 
-    def _schedule(self, available_us: int, item: PoseMeasurement | tuple) -> None:
+    def _schedule(self, available_us: int, item: PoseMeasurement | _Miss | tuple) -> None:
         self._pending_seq += 1
         heapq.heappush(self._pending, (available_us, self._pending_seq, item))
 
@@ -499,14 +541,16 @@ class Tracker:
         while g_start < end:
             g_end = min((g_start // group + 1) * group, end)
             k = int(torch.searchsorted(ev.t, torch.tensor([g_end]))[0]) if len(ev) else 0
-            self._group(g_start, g_end, ev[:k])
+            self._group(g_start, g_end, ev[:k], self._ev_buf_index)
             ev = ev[k:]
+            self._ev_buf_index += k
             g_start = g_end
         self._ev_buf = [ev] if len(ev) else []
 
-    def _group(self, t0: int, t_end: int, ev: Events) -> None:
+    def _group(self, t0: int, t_end: int, ev: Events, first_index: int) -> None:
         """Process the steps of ``[t0, t_end)``: one flow call for all of them (the mask is the
-        silhouette predicted at ``t0``), then the filters step by step."""
+        silhouette predicted at ``t0``), then the filters step by step. ``first_index``: the
+        index in the stream of the first event of ``ev``."""
         cfg = self.config
         st = self.stats
         step = cfg.velocity_step_us
@@ -515,12 +559,18 @@ class Tracker:
         poly = self.silhouette.polygon(pose) if pose is not None else None
         events_based = self.method in ("full", "velocity", "ge")
         if events_based:
+            index = np.arange(first_index, first_index + len(ev), dtype=np.int64)
             if poly is not None and len(ev):
                 xy = np.stack([ev.x.numpy(), ev.y.numpy()], 1)
-                ev = ev[torch.from_numpy(poly.contains(xy, cfg.mask_margin_px))]
-                st.events_on_object += len(ev)
+                keep = poly.contains(xy, cfg.mask_margin_px)
+                st.events_on_object += int(keep.sum())
+                if cfg.burst_rate_hz > 0:
+                    keep &= ~self._in_burst(ev.t.numpy(), keep, poly, t0, t_end)
+                ev, index = ev[torch.from_numpy(keep)], index[keep]
             elif not (pose is None and self._velocity_before_pose and self.method != "ge"):
-                ev = ev[:0]
+                ev, index = ev[:0], index[:0]
+            if cfg.max_events_per_step and len(ev) > cfg.max_events_per_step:
+                ev = self._thin(ev, index, t0)
         res: FlowResult | None = None
         if self.method in ("full", "velocity"):
             with _Timer(st.time_s, "flow"):
@@ -559,6 +609,52 @@ class Tracker:
             st.steps += 1
             self._check_view(b)
             self._record(b)
+
+    def _in_burst(self, t: np.ndarray, on_object: np.ndarray, poly: SilhouettePolygon, t0: int,
+                  t_end: int) -> np.ndarray:
+        """(N,) bool: the events of the steps of ``[t0, t_end)`` that are event bursts (see
+        the module docstring); counts them."""
+        cfg = self.config
+        step = cfg.velocity_step_us
+        w, h = self.camera.size
+        margin = cfg.mask_margin_px
+        v = poly.vertices
+        area = 0.5 * abs(float(np.dot(v[:, 0], np.roll(v[:, 1], -1))
+                               - np.dot(v[:, 1], np.roll(v[:, 0], -1))))
+        perimeter = float(np.linalg.norm(v - np.roll(v, -1, 0), axis=1).sum())
+        # the mask: the silhouette grown by the margin (Steiner's formula), the part in the image
+        mask_area = poly.visible_fraction * (area + perimeter * margin + np.pi * margin ** 2)
+        outside = w * h - min(mask_area, w * h)
+        none = np.zeros(len(t), bool)
+        if outside < _BURST_MIN_OUTSIDE * w * h or not len(t):
+            return none
+        steps = (t_end - t0) // step
+        k = np.clip((t - t0) // step, 0, steps - 1)
+        rate = np.bincount(k[~on_object], minlength=steps) / (outside * step * 1e-6)
+        burst = rate > cfg.burst_rate_hz
+        if not burst.any():
+            return none
+        hit = burst[k]
+        self.stats.burst_steps += int(burst.sum())
+        self.stats.events_in_bursts += int((hit & on_object).sum())
+        return hit
+
+    def _thin(self, ev: Events, index: np.ndarray, t0: int) -> Events:
+        """At most ``max_events_per_step`` events per step: those with the smallest hash of
+        their stream index (in time order); the others are counted."""
+        cap = self.config.max_events_per_step
+        step = self.config.velocity_step_us
+        k = (ev.t.numpy() - t0) // step
+        bounds = np.flatnonzero(np.diff(k)) + 1
+        keep = np.ones(len(ev), bool)
+        with np.errstate(over="ignore"):
+            hashed = index.astype(np.uint64) * _HASH_MULTIPLIER
+        for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(ev)], strict=True):
+            if hi - lo > cap:
+                drop = np.argsort(hashed[lo:hi], kind="stable")[cap:]
+                keep[lo + drop] = False
+        self.stats.events_thinned += int((~keep).sum())
+        return ev[torch.from_numpy(keep)]
 
     def _fallback_depth(self, pose: np.ndarray | None) -> float:
         return float(pose[2, 3]) if pose is not None else float("nan")
@@ -610,10 +706,19 @@ class Tracker:
             _, _, item = heapq.heappop(self._pending)
             if isinstance(item, PoseMeasurement):
                 self._fuse_pose(item)
+            elif isinstance(item, _Miss):
+                self._on_miss(t_now)
             else:
                 self._fuse_twist(*item)
 
+    def _on_miss(self, t_now: int) -> None:
+        self._misses += 1
+        limit = self.config.lost_after_misses
+        if limit and self._misses >= limit and self.initialized:
+            self._lose(t_now)
+
     def _fuse_pose(self, m: PoseMeasurement) -> None:
+        self._misses = 0
         if self.method == "velocity" and self.initialized:
             return  # the velocity baseline uses poses only to (re-)initialise
         rejected = int(self.ukf.rejected[0])
@@ -678,15 +783,19 @@ class Tracker:
             return
         self._out_of_view_us += self.config.velocity_step_us
         if self._out_of_view_us >= self.config.lost_after_ms * 1e3:
-            self._held = self._current_pose()
-            self._ever_lost = True
-            self.stats.lost += 1
-            self._out_of_view_us = 0
-            self.ukf.reset(1)
-            self.vkf.reset(1)
-            self.timeline.start(t1)
-            if self.method == "ge":
-                self.ge.reset()
+            self._lose(t1)
+
+    def _lose(self, t_now: int) -> None:
+        """The object is lost: hold the last pose, forget the filters' states."""
+        self._held = self._current_pose()
+        self._ever_lost = True
+        self.stats.lost += 1
+        self._out_of_view_us = 0
+        self.ukf.reset(1)
+        self.vkf.reset(1)
+        self.timeline.start(t_now)
+        if self.method == "ge":
+            self.ge.reset()
 
     def _record(self, t1: int) -> None:
         status = self.status

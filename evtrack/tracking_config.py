@@ -179,10 +179,25 @@ class TrackerConfig:
             ``flow_batch_steps`` steps in live use).
         mask_margin_px: events are kept when they lie within this distance (pixels) of the
             object's predicted silhouette (the convex hull of the projected mesh).
+        burst_rate_hz: a velocity step whose events outside the (grown) silhouette exceed this
+            rate per pixel of the image outside it (events per pixel per second) is an event
+            burst (flicker, a sensor glitch): its events are not used and the velocity filter
+            only predicts; 0 disables. The object's own events cannot reach it (at 640x480 a
+            fast object gives ~6 events per pixel per second over the whole image); sensor
+            background activity is 0.1 to a few Hz per pixel.
+        max_events_per_step: at most this many events of one velocity step enter the flow (or
+            the GE model); above it they are thinned deterministically and counted, which
+            bounds the work per step; 0: no cap. The default is ~5x the peak rate of the fast
+            640x480 simulated sequences (3.8k events per ms on the whole sensor).
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed
             outside the image (less than ``min_visible_fraction`` of its hull area inside) for
             this long; the pose filter then waits for the next pose to re-initialise.
         min_visible_fraction: see ``lost_after_ms``.
+        lost_after_misses: the object also counts as lost when this many pose-source calls in
+            a row found nothing (or only detections below ``pose_min_confidence``), counted when
+            each result would have been available; 0 disables. A detector finds nothing once
+            the object has left the image, while the prediction, without events to follow,
+            can stop short inside it. With the default 3 at 5 Hz: 0.6 s without a detection.
         depth_source: ``"sensor"`` (the RGB-D depth frames, carried into the event camera) or
             ``"model"`` (depth rendered from the mesh at the predicted pose).
         depth_patch_px: the depth of a RoI is the median of the valid depths within this
@@ -198,7 +213,8 @@ class TrackerConfig:
             filter at ``t + latency`` (simulated offline, as in the paper; the filter rolls back
             to ``t`` to fuse it). Default: one pose period (a network just fast enough for its
             rate).
-        pose_min_confidence: detections below this confidence are ignored.
+        pose_min_confidence: detections below this confidence are ignored (they count as
+            misses, see ``lost_after_misses``).
         history_ms: how far back the pose filter keeps its past states for late poses; a pose
             older than that is dropped and counted.
         velocity_before_pose: before the first pose (and after losing the object) run the
@@ -226,8 +242,11 @@ class TrackerConfig:
     velocity_step_us: int = 1000
     flow_batch_steps: int = 5
     mask_margin_px: float = 8.0
+    burst_rate_hz: float = 100.0
+    max_events_per_step: int = 20_000
     lost_after_ms: float = 100.0
     min_visible_fraction: float = 0.05
+    lost_after_misses: int = 3
     depth_source: str = "sensor"
     depth_patch_px: int = 16
     depth_stride_px: int = 4
@@ -257,10 +276,13 @@ class TrackerConfig:
             raise ConfigError(f"tracker config field 'depth_source' must be one of "
                               f"{DEPTH_SOURCES}, got {self.depth_source!r}")
         for name in ("torch_threads", "velocity_step_us", "flow_batch_steps", "depth_patch_px",
-                     "depth_stride_px", "model_depth_interval_us"):
-            _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads") else 1)
+                     "depth_stride_px", "model_depth_interval_us", "lost_after_misses",
+                     "max_events_per_step"):
+            _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads",
+                                                "lost_after_misses", "max_events_per_step")
+                      else 1)
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
-                     "pose_min_confidence"):
+                     "pose_min_confidence", "burst_rate_hz"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"tracker config field {name!r} must be finite and >= 0, "
