@@ -101,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
+    if args.jobs < 1:
+        raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
     spec = pose_spec(args)
     runs = run_specs(args.methods, args.ablation)
     base = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()

@@ -95,6 +95,7 @@ class RunResult:
         errors: RMSE and σ of the tracked samples (cm, deg).
         trajectory: the saved trajectory file.
         seconds: wall time of the tracking, seconds.
+        cpu_seconds: CPU time of the tracking process meanwhile, seconds.
         stats: the tracker's counters (:class:`~evtrack.tracker.TrackerStats` as a dict).
     """
 
@@ -106,6 +107,7 @@ class RunResult:
     errors: TrackingErrors
     trajectory: Path
     seconds: float
+    cpu_seconds: float = 0.0
     stats: dict[str, Any] = field(default_factory=dict)
 
 
@@ -123,14 +125,14 @@ def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
     seq = sequence.load()
     cfg = spec.config(base, torch_threads)
     tracker = Tracker.for_sequence(seq, cfg, make_pose_source(pose, seq, weights))
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     traj = tracker.track(seq)
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     traj.meta.update({"sequence": sequence.name, "run": spec.name, "pose_source": pose.label})
     path = trajectory_path(out_dir, sequence, spec.name)
     traj.save(path)
     return RunResult(sequence.name, sequence.object_name, sequence.speed, spec.name, spec.method,
-                     tracking_errors(traj, seq.ground_truth), path, seconds,
+                     tracking_errors(traj, seq.ground_truth), path, seconds, cpu,
                      tracker.stats.to_dict())
 
 

@@ -115,7 +115,8 @@ def plot_tracking_curves(trajectories: Mapping[str, Trajectory], ground_truth,
     axes[0, 0].legend(fontsize=7)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    # fixed margins: tight_layout would draw the 9 axes once more (seconds on a busy CPU)
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.06, top=0.94, wspace=0.25, hspace=0.12)
     return _save(fig, path)
 
 

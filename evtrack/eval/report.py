@@ -66,7 +66,7 @@ def write_manifest(path: Path, results: Sequence[RunResult],
         "results": [{
             "sequence": r.sequence, "run": r.run, "method": r.method,
             "errors": r.errors.to_dict(), "trajectory": _rel(r.trajectory, root),
-            "seconds": round(r.seconds, 3),
+            "seconds": round(r.seconds, 3), "cpu_seconds": round(r.cpu_seconds, 3),
             "counters": {k: v for k, v in r.stats.items() if k != "time_s"},
         } for r in results],
     }

@@ -1,0 +1,157 @@
+"""``evtrack evaluate`` end to end on a tiny simulated benchmark, and its input errors."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+
+import numpy as np
+import pytest
+import yaml
+from eval_helpers import reference_errors, save_tiny_weights
+
+from evtrack import Sequence
+from evtrack.cli import main
+from evtrack.trajectory import Trajectory
+
+
+def rows_of(path):
+    return list(csv.DictReader(path.open()))
+
+
+@pytest.fixture(scope="module")
+def evaluated(tiny_benchmark, tiny_tracker_yaml, tmp_path_factory):
+    out = tmp_path_factory.mktemp("evaluate") / "results"
+    code = main(["evaluate", "--benchmark", str(tiny_benchmark), "--oracle", "--config",
+                 str(tiny_tracker_yaml), "--methods", "full", "pose", "--ablation", "--video",
+                 "--out", str(out), "--quiet"])
+    assert code == 0
+    return out
+
+
+def test_evaluate_writes_everything(evaluated, tiny_benchmark):
+    import imageio.v3 as iio
+
+    out = evaluated
+    for name in ("results.md", "results.csv", "results.yaml"):
+        assert (out / name).stat().st_size > 100
+    runs = {"full", "pose", "full-no-normal-flow", "full-no-weighting"}
+    for seq in ("box_regular", "box_faster"):
+        assert {p.stem for p in (out / "trajectories" / seq).glob("*.h5")} == runs
+        assert (out / "plots" / f"{seq}_tracking.png").stat().st_size > 5000
+        frames = iio.imread(out / "videos" / f"{seq}.mp4")
+        assert frames.shape[0] == Sequence.load(tiny_benchmark / seq).num_rgb
+    for name in ("error_vs_pixel_velocity.png", "pixel_velocity_cdf.png"):
+        assert (out / "plots" / name).stat().st_size > 5000
+    text = (out / "results.md").read_text()
+    assert "ORACLE" in text and "Table III" in text
+    manifest = yaml.safe_load((out / "results.yaml").read_text())
+    assert len(manifest["results"]) == 8 and manifest["tracker_config"]["pose_rate_hz"] == 10.0
+    assert not list(out.rglob(".*tmp*"))
+
+
+def test_evaluate_numbers_match_an_independent_computation(evaluated, tiny_benchmark):
+    rows = rows_of(evaluated / "results.csv")
+    per_seq = {}
+    for r in (r for r in rows if r["table"] == "sequence"):
+        seq = Sequence.load(tiny_benchmark / r["sequence"])
+        traj = Trajectory.load(evaluated / "trajectories" / r["sequence"] / f"{r['run']}.h5")
+        use = traj.tracked.numpy()
+        assert use.sum() > 50 and int(r["samples"]) == use.sum()
+        assert int(r["total"]) == len(traj)
+        est = traj.poses.numpy()[use]
+        true = seq.ground_truth.pose_at(traj.t_us[use]).numpy()
+        ref = reference_errors(est, true)
+        for key, value in ref.items():
+            assert float(r[key]) == pytest.approx(value, rel=1e-6, abs=1e-9), (r["run"], key)
+        per_seq.setdefault(r["run"], []).append(ref)
+        assert r["speed"] == r["sequence"].split("_")[1] and r["object"] == "box"
+    for r in (r for r in rows if r["table"] == "average" and r["speed"] == "all"):
+        refs = per_seq[r["run"]]
+        assert float(r["position_rmse_cm"]) == pytest.approx(
+            np.mean([x["position_rmse_cm"] for x in refs]), rel=1e-6)
+        assert float(r["rotation_std_deg"]) == pytest.approx(
+            np.mean([x["rotation_std_deg"] for x in refs]), rel=1e-6)
+
+
+def test_each_run_is_reproducible_on_its_own(evaluated, tiny_benchmark, tiny_tracker_yaml,
+                                             tmp_path):
+    """The pose run alone (same oracle seed) gives the trajectory it gave among the others."""
+    out = tmp_path / "again"
+    assert main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--oracle",
+                 "--config", str(tiny_tracker_yaml), "--methods", "pose", "--out", str(out),
+                 "--quiet"]) == 0
+    a = Trajectory.load(out / "trajectories" / "box_faster" / "pose.h5")
+    b = Trajectory.load(evaluated / "trajectories" / "box_faster" / "pose.h5")
+    assert np.array_equal(a.poses.numpy(), b.poses.numpy(), equal_nan=True)
+    assert np.array_equal(a.status.numpy(), b.status.numpy())
+
+
+def test_evaluate_with_network_weights(tiny_benchmark, tiny_tracker_yaml, tmp_path, capsys):
+    weights = save_tiny_weights(tmp_path / "w" / "sub" / "box_tiny.pt")
+    out = tmp_path / "net"
+    assert main(["evaluate", "--benchmark", str(tiny_benchmark / "box_regular"),
+                 "--weights-dir", str(tmp_path / "w"), "--config", str(tiny_tracker_yaml),
+                 "--methods", "pose", "--out", str(out), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert f"weights for box: {weights}" in printed and "ORACLE" not in printed
+    manifest = yaml.safe_load((out / "results.yaml").read_text())
+    assert manifest["weights"] == {"box": str(weights)}
+    assert manifest["results"][0]["counters"]["pose_calls"] > 0
+
+
+def test_missing_weights_is_a_clear_error(tiny_benchmark, tmp_path, capsys):
+    save_tiny_weights(tmp_path / "w" / "can.pt", object_name="can")
+    code = main(["evaluate", "--benchmark", str(tiny_benchmark), "--weights-dir",
+                 str(tmp_path / "w"), "--out", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "no pose-network weights for object 'box'" in err
+    assert "evtrack train --config configs/pose_demo_box.yaml" in err and "--oracle" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_benchmark_folders(tmp_path, tiny_benchmark, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["evaluate", "--benchmark", str(empty), "--oracle"]) == 1
+    assert "no sequence folders found" in capsys.readouterr().err
+    assert main(["evaluate", "--benchmark", str(tmp_path / "nope"), "--oracle"]) == 1
+    assert "benchmark folder not found" in capsys.readouterr().err
+    # one sequence without ground truth among good ones: named, nothing run
+    bench = tmp_path / "bench"
+    shutil.copytree(tiny_benchmark / "box_regular", bench / "a" / "good")
+    shutil.copytree(tiny_benchmark / "box_faster", bench / "b" / "no_gt")
+    (bench / "b" / "no_gt" / "groundtruth.h5").unlink()
+    assert main(["evaluate", "--benchmark", str(bench), "--oracle", "--out",
+                 str(tmp_path / "o")]) == 1
+    err = capsys.readouterr().err
+    assert "no ground truth" in err and str(bench / "b" / "no_gt") in err
+    assert str(bench / "a" / "good") not in err and not (tmp_path / "o").exists()
+    # a broken meta.yaml is named too
+    (bench / "a" / "good" / "meta.yaml").write_text("format_version: 1\n")
+    assert main(["evaluate", "--benchmark", str(bench), "--oracle"]) == 1
+    assert "meta.yaml" in capsys.readouterr().err
+
+
+def test_bad_options(tiny_benchmark, capsys):
+    bench = str(tiny_benchmark)
+    assert main(["evaluate", "--benchmark", bench, "--oracle-noise", "0.01", "0.02"]) == 1
+    assert "--oracle-noise needs --oracle" in capsys.readouterr().err
+    assert main(["evaluate", "--benchmark", bench, "--oracle", "--oracle-noise", "-1", "0"]) == 1
+    assert "must be finite and >= 0" in capsys.readouterr().err
+    assert main(["evaluate", "--benchmark", bench, "--oracle", "--jobs", "0"]) == 1
+    assert "--jobs must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--benchmark", bench, "--methods", "teleport"])
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--benchmark", bench, "--oracle", "--weights-dir", bench])
+
+
+def test_help_explains(capsys):
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--help"])
+    text = capsys.readouterr().out
+    for word in ("--benchmark", "--ablation", "--oracle", "--weights-dir", "RMSE", "ORACLE",
+                 "results.csv", "--jobs"):
+        assert word in text

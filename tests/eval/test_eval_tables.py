@@ -1,0 +1,165 @@
+"""Benchmark tables: numbers against plain numpy computations, Markdown and CSV layout."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+
+from evtrack.eval.metrics import TrackingErrors, error_summary
+from evtrack.eval.tables import Cell, average_rows, csv_table, markdown_tables, write_tables
+
+
+@dataclass
+class Entry:
+    sequence: str
+    object_name: str
+    speed: str
+    run: str
+    errors: TrackingErrors
+
+
+SEQUENCES = [("obj_a_regular", "obj_a", "regular"), ("obj_a_faster", "obj_a", "faster"),
+             ("obj_b_regular", "obj_b", "regular"), ("obj_b_faster", "obj_b", "faster")]
+RUNS = ["full", "pose", "full-no-weighting"]
+
+
+def make_entries(seed: int = 0):
+    """Entries from random per-sample errors, and the samples (cm, deg) per (sequence, run)."""
+    rng = np.random.default_rng(seed)
+    entries, samples = [], {}
+    for name, obj, speed in SEQUENCES:
+        for run in RUNS:
+            n = int(rng.integers(50, 200))
+            p_cm = np.abs(rng.normal(2.0, 1.0, n))
+            r_deg = np.abs(rng.normal(8.0, 3.0, n))
+            err = error_summary(torch.from_numpy(p_cm / 100.0), torch.from_numpy(np.deg2rad(r_deg)),
+                                total=n + 10)
+            entries.append(Entry(name, obj, speed, run, err))
+            samples[(name, run)] = (p_cm, r_deg, n)
+    return entries, samples
+
+
+def rmse(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(x ** 2)))
+
+
+def read_csv(text: str) -> list[dict[str, str]]:
+    return list(csv.DictReader(io.StringIO(text)))
+
+
+def test_cell_text():
+    assert Cell(1.954, 1.0949).text() == "1.95 ± 1.09"
+    assert Cell(12.0, 3.0).text(1) == "12.0 ± 3.0"
+    assert Cell(math.nan, 1.0).text() == "—"
+
+
+def test_csv_sequence_rows_match_numpy():
+    entries, samples = make_entries()
+    rows = read_csv(csv_table(entries, RUNS))
+    seq_rows = [r for r in rows if r["table"] == "sequence"]
+    assert len(seq_rows) == len(SEQUENCES) * len(RUNS)
+    for r in seq_rows:
+        p, q, n = samples[(r["sequence"], r["run"])]
+        assert float(r["position_rmse_cm"]) == pytest.approx(rmse(p), rel=1e-9)
+        assert float(r["position_std_cm"]) == pytest.approx(p.std(), rel=1e-9)
+        assert float(r["rotation_rmse_deg"]) == pytest.approx(rmse(q), rel=1e-9)
+        assert float(r["rotation_std_deg"]) == pytest.approx(q.std(), rel=1e-9)
+        assert int(r["samples"]) == n and int(r["total"]) == n + 10
+        assert float(r["tracked_fraction"]) == pytest.approx(n / (n + 10))
+
+
+def test_csv_averages_are_means_of_the_sequences():
+    entries, samples = make_entries(1)
+    rows = read_csv(csv_table(entries, RUNS))
+    avg = {(r["run"], r["speed"]): r for r in rows if r["table"] == "average"}
+    assert set(avg) == {(run, s) for run in RUNS for s in ("regular", "faster", "all")}
+    for run in RUNS:
+        for speed in ("regular", "faster", "all"):
+            names = [n for n, _, s in SEQUENCES if speed in ("all", s)]
+            r = avg[(run, speed)]
+            p = [samples[(n, run)][0] for n in names]
+            q = [samples[(n, run)][1] for n in names]
+            assert float(r["position_rmse_cm"]) == pytest.approx(np.mean([rmse(x) for x in p]))
+            assert float(r["position_std_cm"]) == pytest.approx(np.mean([x.std() for x in p]))
+            assert float(r["rotation_rmse_deg"]) == pytest.approx(np.mean([rmse(x) for x in q]))
+            assert float(r["rotation_std_deg"]) == pytest.approx(np.mean([x.std() for x in q]))
+            assert int(r["sequences"]) == len(names)
+            assert int(r["samples"]) == sum(samples[(n, run)][2] for n in names)
+
+
+def test_markdown_layout_and_cells():
+    entries, samples = make_entries(2)
+    text = markdown_tables(entries, ["full", "pose"], {"full": "Ours (OF)"},
+                           ablations=["full-no-weighting"], caption="ORACLE test")
+    assert "Pose source: ORACLE test" in text
+    lines = text.splitlines()
+    header = next(ln for ln in lines if ln.startswith("| object"))
+    assert "Ours (OF) e_p (cm)" in header and "pose e_r (deg)" in header
+    # the row of obj_b faster: cells in column order
+    row = next(ln for ln in lines if ln.startswith("| obj_b | faster"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    p, q, _ = samples[("obj_b_faster", "full")]
+    assert cells[2] == f"{rmse(p):.2f} ± {p.std():.2f}"
+    assert cells[3] == f"{rmse(q):.2f} ± {q.std():.2f}"
+    p, q, _ = samples[("obj_b_faster", "pose")]
+    assert cells[4] == f"{rmse(p):.2f} ± {p.std():.2f}"
+    # average over all sequences of the full method
+    row = next(ln for ln in lines if ln.startswith("| **average** | all"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    ps = [samples[(n, "full")][0] for n, _, _ in SEQUENCES]
+    mean_rmse, mean_std = np.mean([rmse(x) for x in ps]), np.mean([x.std() for x in ps])
+    assert cells[2] == f"{mean_rmse:.2f} ± {mean_std:.2f}"
+    # Table III has the full method and the ablation; Table I does not show the ablation
+    assert "## Table III" in text
+    table_one = text.split("## Tracked samples")[0]
+    assert "full-no-weighting" not in table_one
+    table_three = text.split("## Table III")[1]
+    assert "| Ours (OF) |" in table_three and "| full-no-weighting |" in table_three
+
+
+def test_no_ablation_table_without_ablations():
+    entries, _ = make_entries()
+    assert "Table III" not in markdown_tables(entries, ["full", "pose"])
+
+
+def test_untracked_sequence_makes_its_averages_undefined():
+    entries, _ = make_entries()
+    nan = math.nan
+    entries[0] = Entry(entries[0].sequence, entries[0].object_name, entries[0].speed,
+                       entries[0].run, TrackingErrors(nan, nan, nan, nan, 0, 100))
+    run, speed = entries[0].run, entries[0].speed
+    avgs = {(a.run, a.speed): a for a in average_rows(entries, RUNS)}
+    assert math.isnan(avgs[(run, speed)].position.rmse)
+    assert math.isnan(avgs[(run, "all")].rotation.rmse)
+    other = "faster" if speed == "regular" else "regular"
+    assert math.isfinite(avgs[(run, other)].position.rmse)
+    text = markdown_tables(entries, RUNS[:2])
+    assert "—" in text
+    rows = read_csv(csv_table(entries, RUNS))
+    first = next(r for r in rows if r["table"] == "sequence" and r["sequence"] == SEQUENCES[0][0]
+                 and r["run"] == run)
+    assert first["position_rmse_cm"] == "nan" and first["samples"] == "0"
+
+
+def test_repeated_object_and_speed_are_told_apart():
+    entries, _ = make_entries()
+    extra = Entry("other/obj_a_regular", "obj_a", "regular", "full", entries[0].errors)
+    text = markdown_tables([*entries, extra], ["full"])
+    assert "| obj_a (other/obj_a_regular) | regular |" in text
+    assert "| obj_a (obj_a_regular) | regular |" in text
+
+
+def test_write_tables_writes_both_files(tmp_path):
+    entries, _ = make_entries()
+    text = write_tables(entries, tmp_path / "res", ["full", "pose"],
+                        ablations=["full-no-weighting"])
+    assert (tmp_path / "res" / "results.md").read_text() == text
+    rows = read_csv((tmp_path / "res" / "results.csv").read_text())
+    assert {r["run"] for r in rows} == {"full", "pose", "full-no-weighting"}
+    assert not [p for p in (tmp_path / "res").iterdir() if p.name.startswith(".")]
