@@ -39,9 +39,11 @@ re-initialises itself after ``reinit_after`` gated poses in a row
 
 Event bursts: a step whose events outside the object's predicted silhouette (plus
 ``mask_margin_px``) exceed ``burst_rate_hz`` per pixel over the image outside it is an event
-burst (flicker, a sensor glitch, camera shake): none of its events is used, the velocity filter
-only predicts, and the step is counted in :attr:`TrackerStats.burst_steps`. The test needs a
-predicted silhouette and at least ``_BURST_MIN_OUTSIDE`` of the image outside it. Independently,
+burst (flicker, a sensor glitch): none of its events is used, the velocity filter only
+predicts, and the step is counted in :attr:`TrackerStats.burst_steps`. The test needs a
+predicted silhouette and at least ``_BURST_MIN_OUTSIDE`` of the image outside it, and assumes
+a static camera (as the method does): a moving camera's textured background can exceed the
+rate by itself, and then ``burst_rate_hz: 0`` turns the test off. Independently,
 at most ``max_events_per_step`` events of a step enter the flow (or the GE model): above it they
 are thinned, deterministically and independently of how the events were chunked (the events
 with the smallest hash of their index in the stream are kept), and counted, so that the work

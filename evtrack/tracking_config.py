@@ -184,7 +184,8 @@ class TrackerConfig:
             burst (flicker, a sensor glitch): its events are not used and the velocity filter
             only predicts; 0 disables. The object's own events cannot reach it (at 640x480 a
             fast object gives ~6 events per pixel per second over the whole image); sensor
-            background activity is 0.1 to a few Hz per pixel.
+            background activity is 0.1 to a few Hz per pixel. Assumes a static camera: a
+            moving camera's textured background can reach it by itself (set 0 then).
         max_events_per_step: at most this many events of one velocity step enter the flow (or
             the GE model); above it they are thinned deterministically and counted, which
             bounds the work per step; 0: no cap. The default is ~5x the peak rate of the fast
