@@ -96,8 +96,11 @@ def keypoint_metrics(
 ) -> tuple[int, int, list[float]]:
     """Compare predicted and target keypoint peaks of a batch.
 
-    Target peaks are the keypoints' Gaussians; each is matched to the nearest predicted peak of
-    the same channel.
+    Target peaks are the keypoints' Gaussians. With one target peak in a channel (one object
+    instance), it is matched to the channel's *strongest* predicted peak — the one a
+    single-instance decoder uses — so a network that puts a peak on every corner without
+    knowing which corner is which does not score; with several instances, each target peak is
+    matched to the nearest predicted peak of the channel.
 
     Args:
         pred_belief, target_belief: (B, 9, h, w).
@@ -115,7 +118,10 @@ def keypoint_metrics(
                 total += 1
                 if len(pp[c]) == 0:
                     continue
-                d = np.hypot(pp[c][:, 0] - x, pp[c][:, 1] - y).min() * stride
+                cand = pp[c]
+                if len(tp[c]) == 1:
+                    cand = cand[np.argmax(cand[:, 2])][None]
+                d = np.hypot(cand[:, 0] - x, cand[:, 1] - y).min() * stride
                 if d <= match_px:
                     found += 1
                     errors.append(float(d))

@@ -14,6 +14,7 @@ import numpy as np
 __all__ = [
     "random_color",
     "printed_panel",
+    "spread_colors",
     "label_band",
     "background_texture",
     "checker_texture",
@@ -32,6 +33,18 @@ def random_color(rng: np.random.Generator, saturated: bool = True) -> tuple[int,
     hsv = np.array([[[rng.integers(0, 180), rng.integers(150, 256), rng.integers(140, 256)]]],
                    dtype=np.uint8)
     return tuple(int(v) for v in cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0])
+
+
+def spread_colors(rng: np.random.Generator, count: int) -> list[tuple[int, int, int]]:
+    """``count`` vivid sRGB colours with hues evenly spread around the wheel, in a seeded
+    order from a seeded start (distinct faces of one object)."""
+    start = int(rng.integers(0, 180))
+    hues = (start + np.arange(count) * 180 // count) % 180
+    colors = []
+    for h in rng.permutation(hues):
+        hsv = np.array([[[h, rng.integers(150, 256), rng.integers(140, 256)]]], dtype=np.uint8)
+        colors.append(tuple(int(v) for v in cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0]))
+    return colors
 
 
 def _contrasting(color: tuple[int, int, int]) -> tuple[int, int, int]:

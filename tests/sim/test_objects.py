@@ -102,3 +102,21 @@ def test_mesh_errors(tmp_path) -> None:
         resolve_object("teapot")
     with pytest.raises(ConfigError, match="needs the YCB meshes"):
         resolve_object("003_cracker_box", ycb_dir=tmp_path / "missing")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 7])
+def test_box_faces_have_distinct_base_colours(seed):
+    """Every face of the procedural box is printed on its own hue (corners can be told apart)."""
+    from evtrack.sim.objects import make_box
+
+    atlas = make_box(seed=seed).texture
+    cell = atlas.shape[0] // 2
+    hues = []
+    for row in range(2):
+        for col in range(3):
+            panel = atlas[row * cell:(row + 1) * cell, col * cell:(col + 1) * cell]
+            hsv = cv2.cvtColor(np.ascontiguousarray(panel), cv2.COLOR_RGB2HSV)
+            hist = np.bincount(hsv[..., 0].ravel(), minlength=180)
+            hues.append(int(np.argmax(hist)))  # the dominant hue: the panel's base colour
+    gaps = [min(abs(a - b), 180 - abs(a - b)) for i, a in enumerate(hues) for b in hues[i + 1:]]
+    assert min(gaps) >= 20, hues  # evenly spread hues are 30 apart (OpenCV hue: 0..180)

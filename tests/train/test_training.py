@@ -189,3 +189,25 @@ def test_train_and_export_commands(trained_run, tmp_path, capsys):
                  str(tmp_path / "x.onnx"), "--object", "mug"]) == 1
     assert "not 'mug'" in capsys.readouterr().err
     assert main(["export"]) == 2
+
+
+def test_keypoint_metrics_judge_the_strongest_peak_of_each_channel():
+    from evtrack.train.module import keypoint_metrics
+
+    def blob(h, w, cx, cy, amp=1.0):
+        yy, xx = np.mgrid[0:h, 0:w]
+        return amp * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / 2.0)
+
+    target = np.zeros((1, 9, 20, 20), np.float32)
+    target[0, 0] = blob(20, 20, 5, 5)
+    # right corner, strongest peak: found, at 0 px
+    pred = np.zeros_like(target)
+    pred[0, 0] = np.maximum(blob(20, 20, 5, 5, 0.9), blob(20, 20, 15, 15, 0.5))
+    assert keypoint_metrics(pred, target, 8, 0.1, 8.0)[:2] == (1, 1)
+    # a peak on the right corner but a stronger one elsewhere: the decoder would pick the wrong
+    # one, so it is not found
+    pred[0, 0] = np.maximum(blob(20, 20, 5, 5, 0.5), blob(20, 20, 15, 15, 0.9))
+    assert keypoint_metrics(pred, target, 8, 0.1, 8.0)[:2] == (0, 1)
+    # two instances: each target peak takes the nearest predicted peak
+    target[0, 0] = np.maximum(blob(20, 20, 5, 5), blob(20, 20, 15, 15))
+    assert keypoint_metrics(pred, target, 8, 0.1, 8.0)[:2] == (2, 2)
