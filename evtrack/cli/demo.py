@@ -59,6 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from evtrack.demo import DEMO_LABELS, DemoOptions, run_demo, summary_table
+    from evtrack.eval.benchmark import pose_warnings
 
     if args.weights is not None and not args.weights.is_file():
         raise ConfigError(f"--weights {args.weights}: file not found")
@@ -71,6 +72,8 @@ def run(args: argparse.Namespace) -> int:
     print()
     print(f"Error against ground truth ({res.pose_source}):")
     print(summary_table(res.results, DEMO_LABELS))
+    for line in pose_warnings(res.results):
+        print(line)
     print()
     print(f"outputs in {out}/ (took {s['total']:.0f} s: simulate {s['simulate']:.0f} s, "
           f"track {s['track']:.0f} s, plots and video {s['report']:.0f} s):")

@@ -93,7 +93,7 @@ def pose_spec(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from evtrack.eval.benchmark import run_benchmark, run_specs
+    from evtrack.eval.benchmark import pose_warnings, run_benchmark, run_specs
     from evtrack.eval.pose_setup import resolve_weights
     from evtrack.eval.report import write_report
     from evtrack.eval.sequences import find_sequences, require_ground_truth
@@ -123,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
                          video=args.video, progress=not args.quiet)
     print()
     print(files.markdown)
+    for line in pose_warnings(results):
+        print(line)
     print(f"wrote {out}/: results.md, results.csv, results.yaml, trajectories/ "
           f"({len(results)} files), plots/ ({len(files.plots)} PNG)"
           + (f", videos/ ({len(files.videos)} MP4)" if files.videos else ""))

@@ -23,7 +23,7 @@ from evtrack.eval.sequences import BenchmarkSequence
 from evtrack.tracking_config import METHODS, TrackerConfig
 
 __all__ = ["RunSpec", "RunResult", "ABLATIONS", "DEFAULT_METHODS", "run_specs", "run_one",
-           "run_benchmark", "trajectory_path"]
+           "run_benchmark", "trajectory_path", "pose_warnings"]
 
 #: Methods in the default column order (the paper's "Ours (OF)" first).
 DEFAULT_METHODS = ("full", "velocity", "pose", "ge", "frame-flow")
@@ -193,3 +193,17 @@ def run_benchmark(sequences: list[BenchmarkSequence], runs: list[RunSpec],
     finally:
         bar.close()
     return [r for r in results if r is not None]
+
+
+def pose_warnings(results: Iterable[RunResult]) -> list[str]:
+    """One line per sequence whose pose source returned no pose at all (nothing can be
+    tracked then: every method starts from a pose)."""
+    lines, seen = [], set()
+    for r in results:
+        calls, poses = r.stats.get("pose_calls", 0), r.stats.get("poses", 0)
+        if calls and not poses and r.sequence not in seen:
+            seen.add(r.sequence)
+            lines.append(f"warning: {r.sequence}: the pose source found the object in none of "
+                         f"its {calls} frames, so no method tracked anything (check the pose "
+                         "network's weights, or use --oracle)")
+    return lines

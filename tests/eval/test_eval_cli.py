@@ -12,6 +12,10 @@ from eval_helpers import reference_errors, save_tiny_weights
 
 from evtrack import Sequence
 from evtrack.cli import main
+from evtrack.eval.benchmark import run_benchmark, run_one, run_specs
+from evtrack.eval.pose_setup import PoseSourceSpec, resolve_weights
+from evtrack.eval.sequences import find_sequences
+from evtrack.tracking_config import TrackerConfig
 from evtrack.trajectory import Trajectory
 
 
@@ -77,27 +81,28 @@ def test_evaluate_numbers_match_an_independent_computation(evaluated, tiny_bench
 def test_each_run_is_reproducible_on_its_own(evaluated, tiny_benchmark, tiny_tracker_yaml,
                                              tmp_path):
     """The pose run alone (same oracle seed) gives the trajectory it gave among the others."""
-    out = tmp_path / "again"
-    assert main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--oracle",
-                 "--config", str(tiny_tracker_yaml), "--methods", "pose", "--out", str(out),
-                 "--quiet"]) == 0
-    a = Trajectory.load(out / "trajectories" / "box_faster" / "pose.h5")
+    seqs = find_sequences(tiny_benchmark / "box_faster")
+    base = TrackerConfig.from_yaml(tiny_tracker_yaml)
+    res = run_one(seqs[0], run_specs(["pose"])[0], base, PoseSourceSpec("oracle"), None, tmp_path)
+    a = Trajectory.load(res.trajectory)
     b = Trajectory.load(evaluated / "trajectories" / "box_faster" / "pose.h5")
     assert np.array_equal(a.poses.numpy(), b.poses.numpy(), equal_nan=True)
     assert np.array_equal(a.status.numpy(), b.status.numpy())
 
 
-def test_evaluate_with_network_weights(tiny_benchmark, tiny_tracker_yaml, tmp_path, capsys):
+def test_network_pose_source(tiny_benchmark, tiny_tracker_yaml, tmp_path):
+    """Weights found recursively by object; the network runs in the tracker (no plots here)."""
     weights = save_tiny_weights(tmp_path / "w" / "sub" / "box_tiny.pt")
-    out = tmp_path / "net"
-    assert main(["evaluate", "--benchmark", str(tiny_benchmark / "box_regular"),
-                 "--weights-dir", str(tmp_path / "w"), "--config", str(tiny_tracker_yaml),
-                 "--methods", "pose", "--out", str(out), "--quiet"]) == 0
-    printed = capsys.readouterr().out
-    assert f"weights for box: {weights}" in printed and "ORACLE" not in printed
-    manifest = yaml.safe_load((out / "results.yaml").read_text())
-    assert manifest["weights"] == {"box": str(weights)}
-    assert manifest["results"][0]["counters"]["pose_calls"] > 0
+    save_tiny_weights(tmp_path / "w" / "can_tiny.pt", object_name="can")
+    spec = PoseSourceSpec("network", weights_dir=tmp_path / "w")
+    seqs = find_sequences(tiny_benchmark)
+    found = resolve_weights(spec, [s.object_name for s in seqs])
+    assert found == {"box": weights}
+    base = TrackerConfig.from_yaml(tiny_tracker_yaml)
+    (res,) = run_benchmark(seqs[:1], run_specs(["pose"]), base, spec, found, tmp_path / "o",
+                           progress=False)
+    assert res.stats["pose_calls"] > 0 and res.trajectory.is_file()
+    assert "pose network" in spec.label and "ORACLE" not in spec.label
 
 
 def test_missing_weights_is_a_clear_error(tiny_benchmark, tmp_path, capsys):
@@ -155,3 +160,19 @@ def test_help_explains(capsys):
     for word in ("--benchmark", "--ablation", "--oracle", "--weights-dir", "RMSE", "ORACLE",
                  "results.csv", "--jobs"):
         assert word in text
+
+
+def test_pose_warnings_name_sequences_without_any_pose(tmp_path):
+    from evtrack.eval.benchmark import RunResult, pose_warnings
+    from evtrack.eval.metrics import TrackingErrors
+
+    nan = float("nan")
+    err = TrackingErrors(nan, nan, nan, nan, 0, 10)
+
+    def result(seq, run, calls, poses):
+        return RunResult(seq, "box", "faster", run, run, err, tmp_path / "x.h5", 1.0, 1.0,
+                         {"pose_calls": calls, "poses": poses})
+
+    lines = pose_warnings([result("a", "full", 10, 0), result("a", "pose", 10, 0),
+                           result("b", "full", 10, 3), result("c", "full", 0, 0)])
+    assert len(lines) == 1 and lines[0].startswith("warning: a:") and "10 frames" in lines[0]

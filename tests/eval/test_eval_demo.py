@@ -1,0 +1,76 @@
+"""``evtrack demo`` end to end on a tiny size with the oracle, and its errors."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+from eval_helpers import save_tiny_weights
+
+import evtrack.models.weights as weights_module
+from evtrack import Sequence
+from evtrack.cli import main
+from evtrack.demo import DemoOptions, demo_tracker_config, demo_weights
+from evtrack.errors import ConfigError
+
+TINY = ["--size", "64x48", "--duration", "0.6", "--jobs", "1", "--quiet"]
+
+
+def test_demo_with_the_oracle(tmp_path, capsys):
+    import imageio.v3 as iio
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--oracle", *TINY]) == 0
+    printed = capsys.readouterr().out
+    for text in ("velocity (events only)", "pose (5 Hz poses only)", "full (events + poses)",
+                 "ORACLE", "position (cm)", str(out / "videos" / "box_faster.mp4")):
+        assert text in printed
+    seq = Sequence.load(out / "box_faster")
+    assert seq.meta.object_name == "box" and seq.meta.event_camera.size == (64, 48)
+    assert seq.meta.extra["config"]["trajectory"]["preset"] == "faster"
+    assert seq.meta.extra["object"]["source"] == "procedural:box:seed=0"
+    assert iio.imread(out / "videos" / "box_faster.mp4").shape[0] == seq.num_rgb
+    rows = [r for r in csv.DictReader((out / "results.csv").open()) if r["table"] == "sequence"]
+    assert [r["run"] for r in rows] == ["velocity", "pose", "full"]
+    for r in rows:  # the table printed holds the CSV's numbers
+        assert f"{float(r['position_rmse_cm']):.2f} ± {float(r['position_std_cm']):.2f}" in printed
+    for name in ("box_faster_tracking.png", "error_vs_pixel_velocity.png",
+                 "pixel_velocity_cdf.png"):
+        assert (out / "plots" / name).stat().st_size > 5000
+    # a second run refuses to mix its outputs with the first's, unless told to replace them
+    assert main(["demo", "--out", str(out), "--oracle", *TINY]) == 1
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_demo_without_weights_says_what_to_do(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(weights_module, "zoo_dir", lambda: tmp_path / "empty_zoo")
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), *TINY]) == 1
+    err = capsys.readouterr().err
+    assert "no shipped pose-network weights for the demo object 'box'" in err
+    assert "evtrack train --config configs/pose_demo_box.yaml" in err and "--oracle" in err
+    assert not out.exists()  # stopped before simulating
+
+
+def test_demo_weights_lookup(tmp_path, monkeypatch):
+    zoo = tmp_path / "zoo"
+    save_tiny_weights(zoo / "can_dope_lite_tiny.pt", object_name="can")
+    box = save_tiny_weights(zoo / "box_dope_lite_tiny.pt")
+    monkeypatch.setattr(weights_module, "zoo_dir", lambda: zoo)
+    assert demo_weights() == box
+    assert demo_weights(box) == box
+    with pytest.raises(ConfigError, match="trained on 'can'"):
+        demo_weights(zoo / "can_dope_lite_tiny.pt")
+
+
+def test_demo_options_are_checked(tmp_path, capsys):
+    with pytest.raises(ConfigError, match="--duration"):
+        DemoOptions(duration=0.2)
+    with pytest.raises(ConfigError, match="--size"):
+        DemoOptions(size=(16, 12))
+    assert main(["demo", "--out", str(tmp_path / "x"), "--weights", str(tmp_path / "no.pt")]) == 1
+    assert "file not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["demo", "--size", "big"])
+    assert demo_tracker_config(320).flow.roi_size == 16
+    assert demo_tracker_config(64).flow.roi_size == 8
