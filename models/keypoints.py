@@ -28,20 +28,16 @@ def pixel_to_grid(p: np.ndarray | float, stride: int) -> np.ndarray | float:
     return (p - (stride - 1) / 2.0) / stride
 
 
-def _log_quadratic_offset(
-    lm: np.ndarray, l0: np.ndarray, lp: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Vertex of the parabola through (-1, lm), (0, l0), (1, lp): (offset, rise above l0).
+def _log_quadratic_offset(lm: np.ndarray, l0: np.ndarray, lp: np.ndarray) -> np.ndarray:
+    """Vertex offset (in [-0.5, 0.5]) of the parabola through (-1, lm), (0, l0), (1, lp).
 
-    Both are 0 where the parabola is not concave. On log-values this is exact for a sampled
-    Gaussian (its logarithm is a parabola).
+    0 where the parabola is not concave. On log-values this is exact for a sampled Gaussian
+    (its logarithm is a parabola).
     """
     denom = lm - 2.0 * l0 + lp  # twice the quadratic coefficient
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.where(denom < 0, 0.5 * (lm - lp) / denom, 0.0)
-    off = np.clip(off, -0.5, 0.5)
-    rise = 0.5 * (lp - lm) * off + 0.5 * denom * off**2
-    return off, np.where(denom < 0, np.maximum(rise, 0.0), 0.0)
+    return np.clip(off, -0.5, 0.5)
 
 
 def _refine(
@@ -60,11 +56,12 @@ def _refine(
         inner_y = (ys > 0) & (ys < h - 1)
         xm, xp = np.clip(xs - 1, 0, w - 1), np.clip(xs + 1, 0, w - 1)
         ym, yp = np.clip(ys - 1, 0, h - 1), np.clip(ys + 1, 0, h - 1)
-        ox, rx = _log_quadratic_offset(logm[ys, xm], logm[ys, xs], logm[ys, xp])
-        oy, ry = _log_quadratic_offset(logm[ym, xs], logm[ys, xs], logm[yp, xs])
-        rise = np.where(inner_x, rx, 0.0) + np.where(inner_y, ry, 0.0)
-        return (fx + np.where(inner_x, ox, 0.0), fy + np.where(inner_y, oy, 0.0),
-                vals * np.exp(rise))
+        ox = _log_quadratic_offset(logm[ys, xm], logm[ys, xs], logm[ys, xp])
+        oy = _log_quadratic_offset(logm[ym, xs], logm[ys, xs], logm[yp, xs])
+        # the value stays the cell's: the fitted height extrapolates wildly on flat-topped or
+        # one-sided peaks (a neighbour near zero makes its logarithm huge), and a ranking by
+        # it let spurious border peaks outrank the real keypoint
+        return fx + np.where(inner_x, ox, 0.0), fy + np.where(inner_y, oy, 0.0), vals
     # weighted centroid of the positive values in a (2r+1)^2 window
     out_x, out_y = fx.copy(), fy.copy()
     for n, (y, x) in enumerate(zip(ys, xs, strict=True)):
@@ -95,8 +92,8 @@ def find_peaks(
     Sub-cell refinement: ``"log_quadratic"`` fits a parabola to the logarithms of the peak and
     its two neighbours along x and along y (exact for a Gaussian blob); ``"centroid"`` takes the
     value-weighted mean position over the ``(2c+1)^2`` window, ``c = centroid_radius``;
-    ``"none"`` keeps the cell. With
-    ``"log_quadratic"`` the reported value is the fitted peak height, otherwise the cell's.
+    ``"none"`` keeps the cell. The reported value is always the peak cell's (never a fitted
+    height, which is unreliable on flat-topped or one-sided peaks).
 
     Args:
         maps: (C, h, w) belief maps.

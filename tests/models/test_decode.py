@@ -91,7 +91,9 @@ def test_single_instance_recovers_pose(seed):
     assert det.num_points == 9
     assert det.object_name == "box"
     assert det.reprojection_error_px < 0.05
-    assert det.confidence > 0.95
+    # scores are the peak cells' values: a keypoint half a cell off the grid in x and y
+    # samples its unit Gaussian (sigma 1 cell) at exp(-0.25) = 0.78 at worst
+    assert det.confidence > 0.78
     np.testing.assert_allclose(det.keypoints.numpy(), project(truth), atol=0.05)
 
 
@@ -114,7 +116,9 @@ def test_missing_corners_still_give_the_pose():
     assert np.isnan(det.keypoints[[1, 4, 6]].numpy()).all()
     assert det.keypoint_scores[[1, 4, 6]].abs().sum() == 0
     assert_pose_close(det, truth)
-    assert det.confidence == pytest.approx(6 / 9, abs=0.02)
+    # the mean over 9 keypoints of the peak cells' values, the dropped ones counting 0
+    kept = [c for c in range(9) if c not in (1, 4, 6)]
+    assert det.confidence == pytest.approx(sum(belief[c].max() for c in kept) / 9, abs=0.01)
 
 
 def test_too_few_keypoints_give_no_pose():
@@ -202,3 +206,13 @@ def test_find_peaks_plateau_and_threshold():
     m[0, 8, 1] = 0.05  # below threshold
     (peaks,) = find_peaks(m, 0.1, subpixel="none")
     assert peaks.tolist() == [[4.0, 4.0, 0.5]]
+
+
+def test_find_peaks_values_are_cell_values_even_for_one_sided_peaks():
+    """A flat-topped peak next to a zero cell must not get an extrapolated, inflated value."""
+    m = np.zeros((1, 8, 8), np.float32)
+    m[0, 3, 2] = m[0, 3, 3] = 0.4   # flat top, zero on the left: a fit would extrapolate high
+    m[0, 6, 6], m[0, 6, 5], m[0, 6, 7], m[0, 5, 6], m[0, 7, 6] = 0.6, 0.3, 0.3, 0.3, 0.3
+    (peaks,) = find_peaks(m, 0.1, subpixel="log_quadratic")
+    assert peaks[:, 2].tolist() == pytest.approx([0.6, 0.4])   # strongest first, cell values
+    assert peaks[0, :2].tolist() == pytest.approx([6.0, 6.0])

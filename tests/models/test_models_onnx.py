@@ -22,7 +22,7 @@ from evtrack.models import (
     read_onnx_record,
 )
 from evtrack.train.cuboid_source import CuboidSourceOptions, SyntheticCuboidSource
-from evtrack.train.targets import make_targets
+from evtrack.train.targets import TargetConfig, make_targets
 
 CUBOID = Cuboid((0.1, 0.16, 0.07))
 MEAN, STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
@@ -36,7 +36,8 @@ def fit_output_layers(net, images, keypoints):
     are meaningful and well conditioned, made in well under a second instead of by training.
     """
     x = torch.stack([torch.from_numpy(preprocess(im, MEAN, STD)[0]) for im in images])
-    targets = torch.stack([torch.from_numpy(np.concatenate(make_targets(kp, im.shape[:2])))
+    sharp = TargetConfig(sigma_px=8.0)  # one-cell blobs: sharp, well-separated peaks
+    targets = torch.stack([torch.from_numpy(np.concatenate(make_targets(kp, im.shape[:2], sharp)))
                            for im, kp in zip(images, keypoints, strict=True)])
     y = targets.permute(0, 2, 3, 1).reshape(-1, 25).double()
     with torch.no_grad():
