@@ -4,7 +4,10 @@
 2. Every centroid peak starts an instance. Every corner peak reads its affinity vector (the
    predicted direction towards its object's centroid) and joins the centroid whose direction
    from the corner makes the smallest angle with it, if that angle is below
-   ``max_angle_deg``; per instance and corner the best-aligned peak wins.
+   ``max_angle_deg``; per instance and corner the strongest peak wins (ties: the
+   best-aligned). The affinity only says *which instance* a peak belongs to: every corner's
+   field points at the centroid, so alignment cannot tell one corner of an object from
+   another, while the belief value says how sure the network is that this is *this* corner.
 3. PnP with OpenCV on the instance's keypoints and the object's cuboid: EPnP (inside RANSAC
    when asked) and SQPnP as a second start, each refined with Levenberg-Marquardt; the
    solution with the smaller reprojection error is kept.
@@ -173,7 +176,7 @@ def extract_instances(
             cos = np.where(d_norm < 1e-9, 1.0, cos)  # a corner on its centroid agrees with any
             angle = np.arccos(np.clip(cos, -1.0, 1.0))
             j = int(np.argmin(angle))
-            better = angle[j] < best_angle[j] or (angle[j] == best_angle[j] and score > sc[j, k])
+            better = score > sc[j, k] or (score == sc[j, k] and angle[j] < best_angle[j])
             if angle[j] <= max_angle and better:
                 best_angle[j] = angle[j]
                 kp[j, k] = (x, y)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from evtrack.models import Cuboid, DecodeConfig, decode_poses, find_peaks
+from evtrack.models import Cuboid, DecodeConfig, decode_poses, find_peaks, pixel_to_grid
 
 STRIDE = 8
 H, W = 480, 640
@@ -216,3 +216,24 @@ def test_find_peaks_values_are_cell_values_even_for_one_sided_peaks():
     (peaks,) = find_peaks(m, 0.1, subpixel="log_quadratic")
     assert peaks[:, 2].tolist() == pytest.approx([0.6, 0.4])   # strongest first, cell values
     assert peaks[0, :2].tolist() == pytest.approx([6.0, 6.0])
+
+
+def test_strongest_peak_of_a_channel_wins_within_an_instance():
+    """A weaker peak of channel 0 on another corner of the same object (its affinity also
+    points at the centroid) must not replace the strong one."""
+    truth = make_pose(2)
+    kp = project(truth)
+    belief, affinity = synth_maps([kp])
+    h, w = belief.shape[1:]
+    gy, gx = np.mgrid[0:h, 0:w]
+    c, s_ = np.cos(np.radians(5)), np.sin(np.radians(5))   # the true corner's field: 5° off
+    ax, ay = affinity[0].copy(), affinity[1].copy()
+    affinity[0], affinity[1] = c * ax - s_ * ay, s_ * ax + c * ay
+    gx_c, gy_c = pixel_to_grid(kp[3], STRIDE)   # corner 3's place, seen weakly as corner 0
+    belief[0] = np.maximum(belief[0], 0.4 * np.exp(-((gx - gx_c) ** 2 + (gy - gy_c) ** 2) / 2))
+    v = (kp[8] - kp[3]) / np.linalg.norm(kp[8] - kp[3])     # its affinity points at the centroid
+    disc = np.hypot(gx - gx_c, gy - gy_c) <= 2.0
+    affinity[0][disc], affinity[1][disc] = v[0], v[1]
+    (det,) = decode_poses(belief, affinity, CUBOID, K)
+    np.testing.assert_allclose(det.keypoints[0].numpy(), kp[0], atol=0.05)
+    assert_pose_close(det, truth)
