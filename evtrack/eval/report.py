@@ -131,7 +131,8 @@ def write_report(results: Sequence[RunResult], sequences: Sequence[BenchmarkSequ
                              title=f"{s.name} ({s.object_name}, {s.speed or '?'})",
                              pixel_speed=(t_grid, speed))
         files.plots.append(out / "plots" / f"{s.file_stem}_tracking.png")
-        for label, traj in trajs.items():
+        for name in (m for m in methods if m in mine):  # the ablations are in Table III
+            label, traj = labels[name], trajs[labels[name]]
             err = sample_errors(traj, gt)
             sp = pixel_speed_at(err.t_us, gt, vertices, seq.meta.event_camera)
             pooled.setdefault(label, []).append((sp, err.position_cm, err.rotation_deg))
