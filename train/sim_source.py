@@ -42,6 +42,10 @@ class SimSourceOptions:
         z_range: depth range of the object centre, metres.
         margin: fraction of the image size kept between the object centre and the border.
         max_distractors: most static distractor objects per scene.
+        distractor_kinds: procedural kinds of the distractors; ``None`` (default): all of
+            ``box``, ``can``, ``bottle`` but the object's own kind when the object is one of
+            them — a look-alike box next to the box to learn makes its corners ambiguous
+            (the network then marks every box's corners).
         blur_probability: probability that a sample is motion-blurred.
         blur_renders: renders averaged over the exposure of a blurred sample.
         exposure_s: exposure time, seconds.
@@ -56,6 +60,7 @@ class SimSourceOptions:
     z_range: tuple[float, float] = (0.35, 1.2)
     margin: float = 0.1
     max_distractors: int = 4
+    distractor_kinds: tuple[str, ...] | None = None
     blur_probability: float = 0.5
     blur_renders: int = 8
     exposure_s: float = 1.0 / 60.0
@@ -173,6 +178,13 @@ class SimSource:
         state.update(_mesh=None, _renderer=None, _scene_index=-1, _pid=-1)
         return state
 
+    def _distractor_kinds(self) -> tuple[str, ...]:
+        """The distractor kinds (see :attr:`SimSourceOptions.distractor_kinds`)."""
+        if self.options.distractor_kinds is not None:
+            return tuple(self.options.distractor_kinds)
+        own = self.object_spec.split(":")[0].lower()
+        return tuple(k for k in ("box", "can", "bottle") if k != own)
+
     def close(self) -> None:
         """Release the current renderer (its GL context)."""
         if self._renderer is not None and self._pid == os.getpid():
@@ -192,7 +204,8 @@ class SimSource:
             self.close()
             rng = np.random.default_rng([self.seed, scene_index])
             scene = build_scene(
-                SceneConfig(randomize=True, max_distractors=self.options.max_distractors),
+                SceneConfig(randomize=True, max_distractors=self.options.max_distractors,
+                            distractor_kinds=self._distractor_kinds()),
                 self.camera, rng)
             renderer = Renderer(self.camera)
             scene.apply(renderer)

@@ -95,6 +95,9 @@ class SceneConfig:
             strength, and ``0..max_distractors`` static distractor objects.
         max_distractors: most distractors when ``randomize`` is set.
         distractor_depth: z range of distractors, metres (behind or among the object's range).
+        distractor_kinds: procedural kinds distractors are drawn from (``box``, ``can``,
+            ``bottle``); training data for a procedural object leaves its own kind out, so that
+            no look-alike of the object is in view.
     """
 
     background_depth: float = 2.0
@@ -106,6 +109,7 @@ class SceneConfig:
     randomize: bool = False
     max_distractors: int = 4
     distractor_depth: tuple[float, float] = (0.9, 1.8)
+    distractor_kinds: tuple[str, ...] = ("box", "can", "bottle")
 
 
 @dataclass

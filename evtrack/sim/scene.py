@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError
 from evtrack.sim import textures
 from evtrack.sim.config import SceneConfig
 from evtrack.sim.objects import ObjectMesh, make_bottle, make_box, make_can
@@ -105,8 +106,13 @@ def build_scene(config: SceneConfig, camera: PinholeCamera, rng: np.random.Gener
     tex_h = max(8, int(round(_BACKGROUND_TEXTURE_WIDTH * camera.height / camera.width)))
     texture = textures.background_texture(rng, _BACKGROUND_TEXTURE_WIDTH, tex_h, contrast)
     parts = [background_plane(camera, config.background_depth, texture, brightness)]
-    if config.randomize and config.max_distractors > 0:
-        makers = (make_box, make_can, make_bottle)
+    if config.randomize and config.max_distractors > 0 and config.distractor_kinds:
+        by_kind = {"box": make_box, "can": make_can, "bottle": make_bottle}
+        unknown = sorted(set(config.distractor_kinds) - set(by_kind))
+        if unknown:
+            raise ConfigError(f"scene.distractor_kinds: unknown kind(s) {unknown}; known: "
+                              f"{sorted(by_kind)}")
+        makers = tuple(by_kind[k] for k in config.distractor_kinds)
         for k in range(int(rng.integers(0, config.max_distractors + 1))):
             maker = makers[int(rng.integers(0, len(makers)))]
             mesh = maker(seed=int(rng.integers(0, 2 ** 31)), name=f"distractor{k}")

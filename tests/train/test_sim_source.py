@@ -132,3 +132,35 @@ def test_demo_config_trains_end_to_end_on_renders(gl, tmp_path, monkeypatch, cap
 
     _, record = load_model(tmp_path / "runs/pose/box_dope_lite_tiny/box_dope_lite_tiny.pt")
     assert record.object_name == "box" and "evtrack.sim renders" in record.training_data
+
+
+def _distractor_sources(kinds, seeds=range(12)):
+    from evtrack.camera import PinholeCamera
+    from evtrack.sim.config import SceneConfig
+    from evtrack.sim.scene import build_scene
+
+    cam = PinholeCamera(150.0, 150.0, 79.5, 59.5, 160, 120)
+    found = set()
+    for seed in seeds:
+        scene = build_scene(SceneConfig(randomize=True, max_distractors=4,
+                                        distractor_kinds=kinds), cam,
+                            np.random.default_rng(seed))
+        found |= {p.mesh.source.split(":")[1] for p in scene.parts
+                  if p.mesh.name.startswith("distractor")}
+    return found
+
+
+def test_training_scenes_of_a_procedural_object_have_no_look_alike_distractors():
+    assert _distractor_sources(("box", "can", "bottle")) == {"box", "can", "bottle"}
+    assert _distractor_sources(("can", "bottle")) == {"can", "bottle"}
+    assert _distractor_sources(()) == set()
+    with pytest.raises(ConfigError, match="distractor_kinds"):
+        _distractor_sources(("cube",), seeds=[0, 1, 2])
+    spec = SourceSpec(options={}, object_name="box", cuboid=sim_object_cuboid("box"),
+                      mesh=None, num_samples=4, image_size=(64, 96), seed=0)
+    box_source = build_source("sim", spec)
+    assert box_source._distractor_kinds() == ("can", "bottle")
+    spec = SourceSpec(options={"distractor_kinds": ["box"]}, object_name="box",
+                      cuboid=sim_object_cuboid("box"), mesh=None, num_samples=4,
+                      image_size=(64, 96), seed=0)
+    assert build_source("sim", spec)._distractor_kinds() == ("box",)
