@@ -61,3 +61,12 @@ def test_load_errors(tmp_path) -> None:
     ok.write_text("duration: 0.5\ntrajectory:\n  preset: faster\n")
     cfg = load_config(ok)
     assert cfg.duration == 0.5 and cfg.trajectory.linear_speed == 0.8
+
+
+def test_distractor_kinds_load_from_yaml_as_a_list():
+    from evtrack.sim.config import SimConfig
+
+    cfg = SimConfig.from_dict({"scene": {"distractor_kinds": ["can"]}})
+    assert cfg.scene.distractor_kinds == ("can",)
+    with pytest.raises(ConfigError, match="distractor_kinds"):
+        SimConfig.from_dict({"scene": {"distractor_kinds": "can"}})
