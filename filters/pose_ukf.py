@@ -26,7 +26,10 @@ results are exactly ``P' = A P Aᵀ + Q dt`` and ``S = P + R`` (pinned to the si
 constant-velocity filter always does in its predict, which is nonlinear in the state.
 
 Every step is branch-free on tensor values (``torch.where``), so it exports to ONNX
-(:mod:`onnx_export`); :meth:`compile_steps` opts into ``torch.compile``.
+(:mod:`onnx_export`); :meth:`compile_steps` opts into ``torch.compile``. One track (B = 1) of
+float64 on CPU runs the closed-form steps (``PoseUKF.predict`` and the pose update of both
+filters) through :mod:`fast_path` (Python floats and NumPy, equal to the torch steps to
+rounding), unless ``fast_path=False``.
 """
 
 from __future__ import annotations
@@ -34,9 +37,11 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
+from evtrack.filters import fast_path as fp
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig
 from evtrack.filters.lie import pose_boxminus, pose_boxplus, quat_mul, quat_rotate, se3_exp
@@ -44,6 +49,8 @@ from evtrack.filters.linalg import spd_inverse, spd_solve, symmetrize
 from evtrack.filters.ukf import merwe_weights, quat_mean, sigma_offsets, weighted_cov
 
 __all__ = ["PoseUKF", "PoseTwistUKF"]
+
+_NO_EXTRA = np.zeros(0)  # the further state of PoseUKF in the fast path: none
 
 
 class _PoseFilter(CompilableSteps, nn.Module):
@@ -74,10 +81,12 @@ class _PoseFilter(CompilableSteps, nn.Module):
         batch_size: int,
         dtype: torch.dtype,
         device: str | torch.device | None,
+        fast_path: bool = True,
     ) -> None:
         super().__init__()
         self.config = config
         self.n = n
+        self.fast_path = fast_path
         kw: dict[str, Any] = {"dtype": dtype, "device": device}
         w = merwe_weights(n, config.sigma_alpha, config.sigma_beta, config.sigma_kappa)
         # Scalars as tensors: exported graphs would keep Python floats as float32 constants.
@@ -159,6 +168,27 @@ class _PoseFilter(CompilableSteps, nn.Module):
             valid: (B,) bool, False for tracks without a pose this time (default all True).
                 Non-finite poses or covariances count as missing.
         """
+        t_meas, q_meas, R, valid = self._update_inputs(t_meas, q_meas, cov_meas, valid)
+        if self._fast((t_meas, q_meas, R, valid)):
+            try:
+                return self._update_fast(t_meas, q_meas, R, valid)
+            except np.linalg.LinAlgError:  # S not positive definite: torch gives its NaNs
+                pass
+        t, q, extra, P = self._state()
+        t, q, extra, P, self.initialized, self.rejected_run, used, rejected, reinit = (
+            self.step_function("update_pose_state")(
+                t, q, extra, P, self.initialized, self.rejected_run, t_meas, q_meas, R, valid
+            )
+        )
+        self._set_state(t, q, extra, P)
+        self.rejected = self.rejected + rejected
+        self.reinitialised = self.reinitialised + reinit
+        return used
+
+    def _update_inputs(
+        self, t_meas: Tensor, q_meas: Tensor, cov_meas: Tensor | None, valid: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Checked :meth:`update` inputs of the filter's dtype and device, defaults filled in."""
         B = self.batch_size
         kw = {"dtype": self.t.dtype, "device": self.t.device}
         t_meas = _checked(t_meas, (B, 3), "t_meas", kw, copy=False)
@@ -170,16 +200,64 @@ class _PoseFilter(CompilableSteps, nn.Module):
         if valid is None:
             valid = torch.ones(B, dtype=torch.bool, device=kw["device"])
         valid = _checked(valid, (B,), "valid", {"device": kw["device"]}, copy=False)
-        t, q, extra, P = self._state()
-        t, q, extra, P, self.initialized, self.rejected_run, used, rejected, reinit = (
-            self.step_function("update_pose_state")(
-                t, q, extra, P, self.initialized, self.rejected_run, t_meas, q_meas, R, valid
-            )
+        return t_meas, q_meas, R, valid
+
+    # ------------------------------------------------------------------ fast path (B = 1)
+    # Buffers are read from and written to ``_buffers`` directly: nn.Module's attribute
+    # access and assignment cost ~1 and ~3 µs per buffer, as much as the arithmetic here.
+    def _fast(self, inputs: tuple[object, ...]) -> bool:
+        if not self.fast_path or self.config.sigma_points or self.__dict__.get("_compiled_steps"):
+            return False
+        buf = self._buffers
+        return fp.applies(buf["t"], (buf["q"], buf["cov"], *inputs))
+
+    def _fast_dt(self, dt: float | Tensor) -> float:
+        if isinstance(dt, Tensor) and dt.ndim > 0:
+            self._dt(dt)  # raises unless (B,)
+        return float(dt)
+
+    def _update_fast(self, t_meas: Tensor, q_meas: Tensor, R: Tensor, valid: Tensor) -> Tensor:
+        """:meth:`update` of one float64 CPU track through :func:`fast_path.pose_update`."""
+        buf = self._buffers
+        extra = buf["twist"].numpy()[0] if self.n > 6 else _NO_EXTRA
+        out = fp.pose_update(
+            tuple(buf["t"].tolist()[0]),
+            tuple(buf["q"].tolist()[0]),
+            extra,
+            buf["cov"].numpy()[0],
+            buf["initialized"].tolist()[0],
+            buf["rejected_run"].tolist()[0],
+            tuple(t_meas.tolist()[0]),
+            tuple(q_meas.tolist()[0]),
+            R.numpy()[0],
+            bool(valid.tolist()[0]),
+            buf["gate"].tolist(),
+            self.config.reinit_after,
         )
-        self._set_state(t, q, extra, P)
-        self.rejected = self.rejected + rejected
-        self.reinitialised = self.reinitialised + reinit
-        return used
+        self._set_state_fast(out.t, out.q, out.extra if self.n > 6 else None, out.cov)
+        buf.update(
+            initialized=torch.from_numpy(np.array([out.initialized])),
+            rejected_run=torch.from_numpy(np.array([out.rejected_run], dtype=np.int64)),
+        )
+        if out.rejected or out.reinitialised:
+            buf.update(
+                rejected=buf["rejected"] + out.rejected,
+                reinitialised=buf["reinitialised"] + out.reinitialised,
+            )
+        return torch.from_numpy(np.array([out.used]))
+
+    def _set_state_fast(
+        self, t: fp.Vec3, q: fp.Quat, extra: np.ndarray | None, cov: np.ndarray
+    ) -> None:
+        """Store one track's state from :mod:`fast_path` results (``extra``: the twist of
+        :class:`PoseTwistUKF`, or ``None``)."""
+        self._buffers.update(
+            t=torch.from_numpy(np.array([t])),
+            q=torch.from_numpy(np.array([q])),
+            cov=torch.from_numpy(cov[None]),
+        )
+        if extra is not None:
+            self._buffers["twist"] = torch.from_numpy(extra[None])
 
     def update_pose_state(
         self,
@@ -311,6 +389,9 @@ class PoseUKF(_PoseFilter):
         batch_size: number of tracks B.
         config: :class:`PoseUKFConfig` (defaults documented there).
         dtype: float64 by default. device: where the state lives.
+        fast_path: let :meth:`predict`, :meth:`update` and :meth:`forward` of one float64 CPU
+            track run through :mod:`fast_path` (closed form only; equal to the torch steps to
+            rounding); also the attribute ``fast_path``.
 
     Buffers (all in ``state_dict``): ``t`` (B,3), ``q`` (B,4), ``cov`` (B,6,6),
     ``initialized`` (B,) bool, ``rejected_run`` (B,) consecutive rejections, and cumulative
@@ -331,11 +412,12 @@ class PoseUKF(_PoseFilter):
         config: PoseUKFConfig | None = None,
         dtype: torch.dtype = torch.float64,
         device: str | torch.device | None = None,
+        fast_path: bool = True,
     ) -> None:
         cfg = config if config is not None else PoseUKFConfig()
         qd = [cfg.q_translation] * 3 + [cfg.q_rotation] * 3
         var = [cfg.init_std_translation**2] * 3 + [cfg.init_std_rotation**2] * 3
-        super().__init__(cfg, 6, qd, var, batch_size, dtype, device)
+        super().__init__(cfg, 6, qd, var, batch_size, dtype, device, fast_path)
         self.reset(batch_size)
 
     def reset(
@@ -358,6 +440,18 @@ class PoseUKF(_PoseFilter):
             {"dtype": self.t.dtype, "device": self.t.device},
             copy=False,
         )
+        if self._fast((twist, dt)):
+            buf = self._buffers
+            t, q, cov = fp.pose_predict(
+                tuple(buf["t"].tolist()[0]),
+                tuple(buf["q"].tolist()[0]),
+                buf["cov"].numpy()[0],
+                twist.tolist()[0],
+                self._fast_dt(dt),
+                buf["q_matrix"].numpy(),
+            )
+            self._set_state_fast(t, q, None, cov)
+            return self.t, self.q
         self.t, self.q, self.cov = self.step_function("predict_state")(
             self.t, self.q, self.cov, twist, self._dt(dt)
         )
@@ -438,7 +532,8 @@ class PoseTwistUKF(_PoseFilter):
     every sigma point by its own twist (then decays it by ``alpha ** (dt / alpha_dt)``; the
     default ``alpha = 1`` is the constant-velocity model); :meth:`update` fuses poses (gated as
     :class:`PoseUKF`), :meth:`update_twist` fuses twist measurements (e.g. the output of
-    :class:`VelocityKF`, ungated).
+    :class:`VelocityKF`, ungated). Arguments as :class:`PoseUKF`; ``fast_path`` concerns the
+    closed-form pose update only (the predict always propagates sigma points in torch).
 
     Buffers: those of :class:`PoseUKF` plus ``twist`` (B,6); ``cov`` is (B,12,12).
     """
@@ -455,6 +550,7 @@ class PoseTwistUKF(_PoseFilter):
         config: PoseTwistUKFConfig | None = None,
         dtype: torch.dtype = torch.float64,
         device: str | torch.device | None = None,
+        fast_path: bool = True,
     ) -> None:
         cfg = config if config is not None else PoseTwistUKFConfig()
         qd = (
@@ -469,7 +565,7 @@ class PoseTwistUKF(_PoseFilter):
             + [cfg.init_std_linear**2] * 3
             + [cfg.init_std_angular**2] * 3
         )
-        super().__init__(cfg, 12, qd, var, batch_size, dtype, device)
+        super().__init__(cfg, 12, qd, var, batch_size, dtype, device, fast_path)
         tw = [cfg.meas_std_linear**2] * 3 + [cfg.meas_std_angular**2] * 3
         self.register_buffer(
             "decay_rate",

@@ -26,6 +26,9 @@ The weights' residuals are taken against a reference twist (by default the last 
 see :class:`VelocityKFConfig.weighting_reference`) and refined over
 ``weighting_iterations`` passes, each against the previous pass's posterior.
 
+One track (B = 1) of float64 on CPU runs the stateful methods through :mod:`fast_path`
+(NumPy; equal to the torch steps to rounding), unless ``fast_path=False``.
+
 Tracks with different numbers of RoIs share a batch through padding and a ``mask``. A RoI
 whose depth is missing, zero, negative or NaN is skipped and counted in ``skipped_depth``; one
 whose flow or pixel is not finite, or whose normal flow is zero (no direction), is skipped and
@@ -37,10 +40,12 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import fast_path as fp
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.interaction import undistort_flow
@@ -62,6 +67,10 @@ class VelocityKF(CompilableSteps, nn.Module):
         dtype: float64 by default. A float32 filter keeps its state and the per-RoI work in
             float32 but sums the information and does the 6x6 algebra in float64.
         device: where the state lives (``.to(device)`` moves it later too).
+        fast_path: let :meth:`predict`, :meth:`update` and :meth:`forward` run one float64 CPU
+            track through :mod:`fast_path` (NumPy, equal to the torch steps to rounding, several
+            times faster at B = 1); also settable later as the attribute ``fast_path``. Batches,
+            other dtypes and devices, gradients and compiled steps always run torch.
 
     Buffers (all in ``state_dict``): the state ``twist`` (B,6), ``cov`` (B,6,6) and
     ``reference`` (B,6) (the last posterior twist, which the weighting compares flows with);
@@ -100,10 +109,12 @@ class VelocityKF(CompilableSteps, nn.Module):
         config: VelocityKFConfig | None = None,
         dtype: torch.dtype = torch.float64,
         device: str | torch.device | None = None,
+        fast_path: bool = True,
     ) -> None:
         super().__init__()
         self.config = config if config is not None else VelocityKFConfig()
         self.camera = camera
+        self.fast_path = fast_path
         cfg = self.config
         kw: dict[str, Any] = {"dtype": dtype, "device": device}
         self.register_buffer("focal", torch.tensor([camera.fx, camera.fy], **kw))
@@ -172,6 +183,8 @@ class VelocityKF(CompilableSteps, nn.Module):
     # ------------------------------------------------------------------ stateful steps
     def predict(self, dt: float | Tensor) -> Tensor:
         """Decay the twist over ``dt`` seconds (float or (B,)); returns the prediction (B,6)."""
+        if self._fast((dt,)):
+            return self._predict_fast(dt)
         self.twist, self.cov = self.step_function("predict_state")(
             self.twist, self.cov, self._dt(dt)
         )
@@ -195,6 +208,11 @@ class VelocityKF(CompilableSteps, nn.Module):
                 (aperture problem); default: ``config.assume_normal`` for every RoI.
             mask: (B,N) bool, False on padding; default all True.
         """
+        if self._fast((uv, depth, flow, normal_only, mask)):
+            try:
+                return self._update_fast(uv, depth, flow, normal_only, mask)
+            except np.linalg.LinAlgError:  # a 6x6 not positive definite: torch gives its NaNs
+                pass
         uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
             uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
@@ -218,6 +236,69 @@ class VelocityKF(CompilableSteps, nn.Module):
         """One predict over ``dt`` seconds then one update (arguments as in :meth:`update`)."""
         self.predict(dt)
         return self.update(uv, depth, flow, normal_only, mask)
+
+    # ------------------------------------------------------------------ fast path (B = 1)
+    # Buffers are read from and written to ``_buffers`` directly: nn.Module's attribute
+    # access and assignment cost ~1 and ~3 µs per buffer, as much as the arithmetic here.
+    def _fast(self, inputs: tuple[object, ...]) -> bool:
+        if not self.fast_path or self.__dict__.get("_compiled_steps"):
+            return False
+        buf = self._buffers
+        return fp.applies(buf["twist"], (buf["cov"], buf["reference"], *inputs))
+
+    def _fast_dt(self, dt: float | Tensor) -> float:
+        if isinstance(dt, Tensor) and dt.ndim > 0:
+            self._dt(dt)  # raises unless (B,)
+        return float(dt)
+
+    def _predict_fast(self, dt: float | Tensor) -> Tensor:
+        buf = self._buffers
+        twist, cov = fp.velocity_predict(
+            buf["twist"].numpy()[0],
+            buf["cov"].numpy()[0],
+            self._fast_dt(dt),
+            buf["consts"].tolist()[0],
+            buf["q_matrix"].numpy(),
+        )
+        V = torch.from_numpy(twist[None])
+        buf.update(twist=V, cov=torch.from_numpy(cov[None]))
+        return V
+
+    def _update_fast(
+        self,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor | None,
+        mask: Tensor | None,
+    ) -> Tensor:
+        self._check_inputs(uv, depth, flow, normal_only, mask)
+        if self.camera.dist is not None:
+            uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
+            uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
+        buf = self._buffers
+        twist, cov, skipped_depth, skipped_flow = fp.velocity_update(
+            self.config,
+            buf["consts"].tolist(),
+            buf["focal"].numpy(),
+            buf["principal"].numpy(),
+            buf["twist"].numpy()[0],
+            buf["cov"].numpy()[0],
+            buf["reference"].numpy()[0],
+            fp.as_array(uv)[0],
+            fp.as_array(depth)[0],
+            fp.as_array(flow)[0],
+            None if normal_only is None else fp.as_bool_array(normal_only)[0],
+            None if mask is None else fp.as_bool_array(mask)[0],
+        )
+        V = torch.from_numpy(twist[None])
+        buf.update(twist=V, cov=torch.from_numpy(cov[None]), reference=V)
+        if skipped_depth or skipped_flow:
+            buf.update(
+                skipped_depth=buf["skipped_depth"] + skipped_depth,
+                skipped_flow=buf["skipped_flow"] + skipped_flow,
+            )
+        return V
 
     @property
     def skipped_measurements(self) -> Tensor:
@@ -372,6 +453,33 @@ class VelocityKF(CompilableSteps, nn.Module):
             )
         return d
 
+    def _check_inputs(
+        self,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor | None,
+        mask: Tensor | None,
+    ) -> None:
+        """Raise ValueError unless the shapes (and the bool flags' dtype) fit :meth:`update`."""
+        B = self._buffers["twist"].shape[0]
+        if depth.ndim != 2 or depth.shape[0] != B:
+            raise ValueError(
+                f"VelocityKF.update: depth must be (B={B}, N), got {tuple(depth.shape)}"
+            )
+        N = depth.shape[1]
+        for name, t in (("uv", uv), ("flow", flow)):
+            if t.shape != (B, N, 2):
+                raise ValueError(
+                    f"VelocityKF.update: {name} must be ({B}, {N}, 2), got {tuple(t.shape)}"
+                )
+        for name, t in (("normal_only", normal_only), ("mask", mask)):
+            if t is not None and (t.shape != (B, N) or t.dtype is not torch.bool):
+                raise ValueError(
+                    f"VelocityKF.update: {name} must be a ({B}, {N}) bool tensor, "
+                    f"got {tuple(t.shape)} {t.dtype}"
+                )
+
     def _inputs(
         self,
         uv: Tensor,
@@ -380,17 +488,8 @@ class VelocityKF(CompilableSteps, nn.Module):
         normal_only: Tensor | None,
         mask: Tensor | None,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        B = self.batch_size
-        if depth.ndim != 2 or depth.shape[0] != B:
-            raise ValueError(
-                f"VelocityKF.update: depth must be (B={B}, N), got {tuple(depth.shape)}"
-            )
-        N = depth.shape[1]
-        for name, t in (("uv", uv), ("flow", flow)):
-            if tuple(t.shape) != (B, N, 2):
-                raise ValueError(
-                    f"VelocityKF.update: {name} must be ({B}, {N}, 2), got {tuple(t.shape)}"
-                )
+        self._check_inputs(uv, depth, flow, normal_only, mask)
+        B, N = depth.shape
         kw = {"dtype": self.twist.dtype, "device": self.twist.device}
         dev = self.twist.device
         if normal_only is None:
@@ -399,12 +498,6 @@ class VelocityKF(CompilableSteps, nn.Module):
             )
         if mask is None:
             mask = torch.ones(B, N, dtype=torch.bool, device=dev)
-        for name, t in (("normal_only", normal_only), ("mask", mask)):
-            if tuple(t.shape) != (B, N) or t.dtype != torch.bool:
-                raise ValueError(
-                    f"VelocityKF.update: {name} must be a ({B}, {N}) bool tensor, "
-                    f"got {tuple(t.shape)} {t.dtype}"
-                )
         return uv.to(**kw), depth.to(**kw), flow.to(**kw), normal_only.to(dev), mask.to(dev)
 
 

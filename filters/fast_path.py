@@ -1,0 +1,498 @@
+"""The single-track fast path: one track's float64 steps on CPU in NumPy and Python floats.
+
+A tracker steps its filters once per ~1 ms velocity step with one track (B = 1). The torch
+steps then cost the dispatch of ~150 tiny ops (a few µs each) rather than arithmetic. The
+stateful methods of :class:`~evtrack.filters.VelocityKF` and :class:`~evtrack.filters.PoseUKF`
+(and the pose update of :class:`~evtrack.filters.PoseTwistUKF`) therefore run these kernels
+when :func:`applies` says so: the same model as the torch steps, written for one track —
+quaternion and SE(3) algebra on Python floats, per-RoI work on the usable RoIs only
+(gathered once, so no masks) as rows of (k, N) arrays, 6x6 algebra through LAPACK (SciPy's
+``potrf``/``potri``/``posv``, the routines torch calls). Results equal the torch path to
+rounding (``tests/filters/test_fast_path.py``: 1e-12, measured in the covariance's metric for
+the velocity filter; a steep fixed Laplacian scale makes the weights amplify rounding, as
+much in the torch path itself); batches, CUDA, float32, autograd, ``compile_steps`` and ONNX
+export keep the torch steps. A 6x6 that is not positive definite raises
+``numpy.linalg.LinAlgError``, on which the filters rerun the step in torch (which returns
+its NaNs instead of raising).
+
+The formulas are those of :mod:`velocity_kf`, :mod:`pose_ukf`, :mod:`lie` and
+:mod:`weighting`; see there for the derivations and units. Shapes here drop the batch
+dimension: a twist is (6,), a covariance (n, n), RoI inputs (N, 2) and (N,).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from scipy.linalg.lapack import dposv as _posv
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotri as _potri
+from torch import Tensor
+
+from evtrack.filters.config import VelocityKFConfig
+from evtrack.filters.lie import _LOG_SMALL, _TINY_ANGLE
+from evtrack.filters.linalg import use_portable
+
+__all__ = [
+    "applies",
+    "as_array",
+    "as_bool_array",
+    "PoseUpdate",
+    "pose_predict",
+    "pose_update",
+    "velocity_predict",
+    "velocity_update",
+]
+
+Quat = tuple[float, float, float, float]
+Vec3 = tuple[float, float, float]
+
+_ACROSS = np.array([-1.0, 1.0])  # n⊥ = (-ny, nx) scales (ny, nx) by these
+_TINY = float(np.finfo(np.float64).tiny)
+
+
+def applies(state: Tensor, others: Iterable[object]) -> bool:
+    """Whether a stateful call of a filter (that allows the fast path) may take it.
+
+    Args:
+        state: the filter's first state tensor (B, ...).
+        others: its other state tensors and the call's inputs.
+
+    Returns:
+        True when ``state`` is one track (B = 1) of float64 on CPU, every other entry is a
+        tensor, a number or ``None`` (anything else goes to the torch path, which reports it),
+        none needs gradients, and nothing is being exported, traced or compiled.
+    """
+    if state.shape[0] != 1 or state.dtype is not torch.float64 or not state.is_cpu:
+        return False
+    if use_portable() or torch.compiler.is_compiling():
+        return False
+    grad = torch.is_grad_enabled()
+    if grad and state.requires_grad:
+        return False
+    for x in others:
+        if isinstance(x, Tensor):
+            if grad and x.requires_grad:
+                return False
+        elif x is not None and not isinstance(x, float | int):
+            return False
+    return True
+
+
+def as_array(x: Tensor) -> np.ndarray:
+    """A CPU float64 NumPy view (or copy, for another dtype or device) of a tensor."""
+    if x.dtype is not torch.float64 or not x.is_cpu:
+        x = x.to(dtype=torch.float64, device="cpu")
+    return (x.detach() if x.requires_grad else x).numpy()
+
+
+def as_bool_array(x: Tensor) -> np.ndarray:
+    """A CPU NumPy view (or copy) of a bool tensor."""
+    if not x.is_cpu:
+        x = x.cpu()
+    return (x.detach() if x.requires_grad else x).numpy()
+
+
+# ---------------------------------------------------------------------------- VelocityKF
+def velocity_predict(
+    twist: np.ndarray, cov: np.ndarray, dt: float, log_rate: float, q_matrix: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``V' = a V``, ``P' = a² P + Q dt`` with ``a = exp(dt · ln(alpha)/alpha_dt)``.
+
+    Args:
+        twist: (6,). cov: (6,6). dt: seconds. log_rate: ``ln(alpha)/alpha_dt`` (1/s).
+        q_matrix: (6,6) process-noise density.
+    """
+    decay = math.exp(dt * log_rate)
+    return twist * decay, cov * (decay * decay) + dt * q_matrix
+
+
+def velocity_update(
+    cfg: VelocityKFConfig,
+    consts: list[float],
+    focal: np.ndarray,
+    principal: np.ndarray,
+    twist: np.ndarray,
+    cov: np.ndarray,
+    reference: np.ndarray,
+    uv: np.ndarray,
+    depth: np.ndarray,
+    flow: np.ndarray,
+    normal_only: np.ndarray | None,
+    mask: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """One track's weighted information-form update from RoI flows (see :mod:`velocity_kf`).
+
+    Args:
+        cfg: the filter's config. consts: the filter's ``consts`` buffer as floats
+            ``[ln(alpha)/alpha_dt, 1/σ_F², b or 0, b_min, floor]``. focal: (2,) ``[fx, fy]``;
+            principal: (2,) ``[cx, cy]`` (px).
+        twist (6,), cov (6,6): the prior. reference (6,): the last posterior twist.
+        uv (N,2) ideal pinhole px, depth (N,) m, flow (N,2) px/s; normal_only (N,) bool or
+        ``None`` (``cfg.assume_normal`` everywhere); mask (N,) bool or ``None`` (all True).
+
+    Returns:
+        ``(twist, cov, skipped_depth, skipped_flow)``: the posterior and this update's counts
+        of RoIs skipped for a bad depth and for a bad flow or pixel.
+
+    Raises:
+        numpy.linalg.LinAlgError: if a 6x6 information matrix is not positive definite.
+    """
+    _, flow_info, scale, scale_min, floor = consts
+    N = depth.shape[0]
+    normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
+    if (
+        mask is None
+        and np.isfinite(uv).all()
+        and np.isfinite(flow).all()
+        and depth.min() > 0  # False for NaN too
+        and depth.max() < math.inf
+    ):  # every RoI usable (the common case)
+        n_mask = n_depth = N
+    else:
+        depth_ok = (depth > 0) & (depth < math.inf)  # False for NaN too
+        if mask is not None:
+            depth_ok &= mask
+        n_mask = N if mask is None else int(np.count_nonzero(mask))
+        n_depth = int(np.count_nonzero(depth_ok))
+        usable = depth_ok & np.isfinite(uv).all(1) & np.isfinite(flow).all(1)
+        uv, depth, flow, normal = uv[usable], depth[usable], flow[usable], normal[usable]
+    # Per-RoI values as rows of one (6, N) array (NumPy broadcasts a trailing axis of 2
+    # slowly): roi = [x, y, 1/Z, nx, ny, |F|] with n = F/|F| (the image axes for a zero flow).
+    roi = np.empty((6, depth.shape[0]))
+    f2 = flow * flow
+    mag = np.sqrt(f2[:, 0] + f2[:, 1], out=roi[5])
+    moving = mag > 0
+    all_moving = bool(moving.all())
+    if cfg.normal_flow and not all_moving:  # a zero normal flow has no direction
+        keep = moving | ~normal
+        uv, depth, flow, normal, moving = (a[keep] for a in (uv, depth, flow, normal, moving))
+        roi = roi[:, keep]
+        mag = roi[5]
+    n_valid = depth.shape[0]
+    np.subtract(uv.T, principal[:, None], out=roi[:2])
+    np.divide(roi[:2], focal[:, None], out=roi[:2])
+    np.divide(1.0, depth, out=roi[2])
+    if all_moving:
+        np.multiply(flow.T, 1.0 / mag, out=roi[3:5])
+    else:
+        np.multiply(flow.T, 1.0 / np.where(moving, mag, 1.0), out=roi[3:5])
+        roi[3, ~moving] = 1.0
+
+    # Rows (see VelocityKF._measurement_rows): along n for every RoI, then across n⊥ for the
+    # full flows (every RoI without the normal-flow constraint); a row with unit direction e
+    # has a = e_u fx, b = e_v fy, its RoI's x, y, 1/Z, and the value z = |F| along, 0 across.
+    full = np.flatnonzero(~normal) if cfg.normal_flow else None
+    if full is not None and full.shape[0] == 0:  # along rows only
+        ab, xyz, z = roi[3:5] * focal[:, None], roi[:3], mag
+    else:
+        across = roi if full is None else roi.take(full, axis=1)
+        ab = np.empty((2, n_valid + across.shape[1]))
+        # along: a = nx fx, b = ny fy; across: a = -ny fx, b = nx fy
+        np.multiply(roi[3:5], focal[:, None], out=ab[:, :n_valid])
+        np.multiply(across[4:2:-1], (focal * _ACROSS)[:, None], out=ab[:, n_valid:])
+        xyz = np.concatenate((roi[:3], across[:3]), axis=1)
+        z = np.zeros(ab.shape[1])
+        z[:n_valid] = mag
+    xy, iz = xyz[:2], xyz[2]
+    # Hᵀ = [a/Z, b/Z, −p/Z, −(b + y p), a + x p, b x − a y] with p = a x + b y, (6, M)
+    HT = np.empty((6, z.shape[0]))
+    np.multiply(ab, iz, out=HT[:2])
+    t = ab * xy  # [a x, b y]
+    p = t[0] + t[1]
+    np.multiply(p, iz, out=HT[2])
+    np.negative(HT[2], out=HT[2])
+    np.multiply(xy, p, out=HT[4:2:-1])  # [x p, y p] into rows 4, 3
+    HT[4:2:-1] += ab
+    np.negative(HT[3], out=HT[3])
+    np.multiply(ab, xy[::-1], out=t)  # [a y, b x]
+    np.subtract(t[1], t[0], out=HT[5])
+
+    # Λ = P⁻¹ + Hᵀ W H;  P⁺ = Λ⁻¹;  V⁺ = V + P⁺ Hᵀ W (z − H V)
+    prior_info = spd_inverse(cov)
+    if cfg.weighting and cfg.weighting_reference == "previous":
+        innovation, residual = z - twist @ HT, z - reference @ HT
+    else:
+        innovation = residual = z - twist @ HT
+    passes = cfg.weighting_iterations if cfg.weighting else 1
+    rho: np.ndarray | None = None
+    post_twist, post_cov = twist, cov
+    for i in range(passes):
+        if cfg.weighting:
+            rho = laplacian_weights(
+                residual, None if cfg.laplace_scale is None else scale, scale_min, floor, rho
+            )
+            HTw = HT * (rho * flow_info)  # Hᵀ W, (6, M)
+        else:
+            HTw = HT * flow_info
+        info = HTw @ HT.T
+        info += prior_info
+        post_cov = spd_inverse(info)
+        post_twist = twist + post_cov @ (HTw @ innovation)
+        if i + 1 < passes:
+            residual = z - post_twist @ HT
+    return post_twist, post_cov, n_mask - n_depth, n_depth - n_valid
+
+
+def laplacian_weights(
+    residuals: np.ndarray,
+    scale: float | None,
+    scale_min: float,
+    floor: float,
+    previous: np.ndarray | None,
+) -> np.ndarray:
+    """:func:`weighting.laplacian_weights` for the valid rows (M,) of one track."""
+    M = residuals.shape[0]
+    if M == 0:
+        return residuals.copy()
+    k = (M - 1) // 2
+    dev = residuals - np.partition(residuals, k)[k]  # minus the lower median
+    np.abs(dev, out=dev)
+    if scale is None:
+        if previous is None:
+            b = float(dev.sum()) / M
+        else:
+            b = float(previous @ dev) / max(float(previous.sum()), _TINY)
+        b = max(b, scale_min)
+    else:
+        b = scale
+    # ρ = max(e, min(2b·floor, 1)) with e = exp(-|r - M|/b)
+    np.divide(dev, -b, out=dev)
+    np.exp(dev, out=dev)
+    return np.maximum(dev, min(2.0 * b * floor, 1.0), out=dev)
+
+
+def spd_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A⁻¹ B`` for a symmetric positive-definite ``A`` (n,n) and ``B`` (n,) or (n,k).
+
+    Raises:
+        numpy.linalg.LinAlgError: if ``A`` is not positive definite (the callers then run the
+            torch path, which returns NaN instead of raising).
+    """
+    _, X, info = _posv(A, B, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"LAPACK posv: info {info}")
+    return X
+
+
+def spd_inverse(A: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive-definite matrix from its Cholesky factor (LAPACK potrf,
+    potri: what ``torch.cholesky_inverse`` runs), exactly symmetric.
+
+    Raises:
+        numpy.linalg.LinAlgError: if ``A`` is not positive definite (see :func:`spd_solve`).
+    """
+    L, info = _potrf(A, lower=1, clean=1)  # clean: zeros above the diagonal
+    if info == 0:
+        X, info = _potri(L, lower=1)  # the lower triangle of A⁻¹; zeros above
+    if info != 0:
+        raise np.linalg.LinAlgError(f"LAPACK potrf/potri: info {info}")
+    X = X + X.T
+    X.flat[:: X.shape[0] + 1] *= 0.5  # the diagonal was doubled
+    return X
+
+
+# ---------------------------------------------------------------------------- quaternions
+def quat_mul(a: Quat, b: Quat) -> Quat:
+    """Hamilton product ``a ⊗ b`` (wxyz)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        ax * bw + aw * bx - az * by + ay * bz,
+        ay * bw + az * bx + aw * by - ax * bz,
+        az * bw - ay * bx + ax * by + aw * bz,
+    )
+
+
+def cross(a: Vec3, b: Vec3) -> Vec3:
+    """``a × b``."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def quat_rotate(q: Quat, p: Vec3) -> Vec3:
+    """``R(q) p`` as ``p + 2 (w c + v × c)``, ``c = v × p``."""
+    w, v = q[0], q[1:]
+    c = cross(v, p)  # type: ignore[arg-type]
+    d = cross(v, c)  # type: ignore[arg-type]
+    return (
+        p[0] + 2.0 * (w * c[0] + d[0]),
+        p[1] + 2.0 * (w * c[1] + d[1]),
+        p[2] + 2.0 * (w * c[2] + d[2]),
+    )
+
+
+def rotation_matrix(q: Quat) -> list[list[float]]:
+    """The 3x3 rotation matrix of a unit quaternion."""
+    w, x, y, z = q
+    return [
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+    ]
+
+
+def normalized(q: Quat) -> Quat:
+    """``q / |q|``."""
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return (w / n, x / n, y / n, z / n)
+
+
+def _exp_parts(phi: Vec3) -> tuple[Quat, float, float, float]:
+    """``exp(φ)``, ``θ``, ``sin(θ/2)/θ`` and ``θ`` safe to divide by (as in :mod:`lie`)."""
+    theta = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    half = 0.5 * theta
+    if theta > _TINY_ANGLE:
+        theta_safe, k = theta, math.sin(half) / theta
+    else:
+        theta_safe, k = 1.0, 0.5
+    return (math.cos(half), k * phi[0], k * phi[1], k * phi[2]), theta, k, theta_safe
+
+
+def quat_exp(phi: Vec3) -> Quat:
+    """Rotation vector (rad) -> unit quaternion."""
+    return _exp_parts(phi)[0]
+
+
+def quat_log(q: Quat) -> Vec3:
+    """Unit quaternion -> the shortest rotation vector (either sign of ``q``)."""
+    w, x, y, z = q
+    s = math.sqrt(x * x + y * y + z * z)
+    aw = abs(w)
+    ratio = 2.0 / aw if s < _LOG_SMALL else 2.0 * math.atan2(s, aw) / s
+    if w < 0:
+        ratio = -ratio
+    return (ratio * x, ratio * y, ratio * z)
+
+
+def se3_exp(rho: Vec3, phi: Vec3) -> tuple[Quat, Vec3]:
+    """The rigid motion ``(q_Δ, p_Δ)`` of the constant twist ``[ρ, φ] = dt·[v_o, ω]``."""
+    q, theta, k, theta_safe = _exp_parts(phi)
+    a = 2.0 * k * k
+    b = (theta - math.sin(theta)) / (theta_safe * theta_safe * theta_safe)
+    c1 = cross(phi, rho)
+    c2 = cross(phi, c1)
+    return q, (
+        rho[0] + a * c1[0] + b * c2[0],
+        rho[1] + a * c1[1] + b * c2[1],
+        rho[2] + a * c1[2] + b * c2[2],
+    )
+
+
+# ---------------------------------------------------------------------------- PoseUKF
+def pose_predict(
+    t: Vec3, q: Quat, cov: np.ndarray, twist: list[float], dt: float, q_matrix: np.ndarray
+) -> tuple[Vec3, Quat, np.ndarray]:
+    """The closed-form unscented predict of :meth:`PoseUKF.predict_state`.
+
+    ``t' = R_Δ t + p_Δ``, ``q' = q_Δ ⊗ q`` (normalised), ``P' = A P Aᵀ + Q dt`` with
+    ``A = diag(R_Δ, R_Δ)``, made exactly symmetric before ``Q dt`` is added.
+    """
+    rho = (twist[0] * dt, twist[1] * dt, twist[2] * dt)
+    phi = (twist[3] * dt, twist[4] * dt, twist[5] * dt)
+    qd, pd = se3_exp(rho, phi)
+    r = quat_rotate(qd, t)
+    t = (r[0] + pd[0], r[1] + pd[1], r[2] + pd[2])
+    q = normalized(quat_mul(qd, q))
+    R = np.array(rotation_matrix(qd))
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    rotated = A @ cov @ A.T
+    return t, q, 0.5 * (rotated + rotated.T) + dt * q_matrix
+
+
+class PoseUpdate(NamedTuple):
+    """The result of :func:`pose_update` (one track)."""
+
+    t: Vec3
+    q: Quat
+    extra: np.ndarray  # (k,) further state (the twist of PoseTwistUKF), or (0,)
+    cov: np.ndarray  # (n, n)
+    initialized: bool
+    rejected_run: int
+    used: bool
+    rejected: int
+    reinitialised: int
+
+
+def pose_update(
+    t: Vec3,
+    q: Quat,
+    extra: np.ndarray,
+    cov: np.ndarray,
+    initialized: bool,
+    rejected_run: int,
+    t_meas: Vec3,
+    q_meas: Quat,
+    R: np.ndarray,
+    valid: bool,
+    gate: float,
+    reinit_after: int,
+) -> PoseUpdate:
+    """The gated closed-form pose update of :meth:`_PoseFilter.update_pose_state`.
+
+    ``h(x) = pose``: ``S = P_pp + R``, ``Pxz = P[:, :6]``, ``ν = (t_m, q_m) ⊟ (t, q)``;
+    accepted when the track is fresh (``take`` the pose) or ``νᵀ S⁻¹ ν <= gate`` (fuse);
+    after ``reinit_after`` rejections in a row the next rejected pose is taken.
+
+    Raises:
+        numpy.linalg.LinAlgError: if ``S`` is not positive definite (the callers fall back to
+            torch).
+    """
+    finite = math.isfinite(sum(t_meas) + sum(q_meas)) and bool(np.isfinite(R).all())
+    if not (valid and finite):  # a missing pose: the state stays (q renormalised)
+        return PoseUpdate(
+            t, normalized(q), extra.copy(), cov.copy(), initialized, rejected_run, False, 0, 0
+        )
+    q_meas = normalized(q_meas)
+    if not initialized:
+        accept, d2 = True, 0.0
+    else:
+        n = cov.shape[0]
+        Pxz = cov[:, :6]
+        S = cov[:6, :6] + R
+        dq = quat_log(quat_mul(q_meas, (q[0], -q[1], -q[2], -q[3])))
+        nu = np.array([t_meas[0] - t[0], t_meas[1] - t[1], t_meas[2] - t[2], *dq])
+        # One solve gives Kᵀ = S⁻¹ Pxzᵀ and S⁻¹ ν.
+        X = spd_solve(S, np.concatenate([Pxz.T, nu[:, None]], axis=1))
+        S_inv_nu = X[:, n]
+        d2 = float(nu @ S_inv_nu)
+        accept = d2 <= gate
+    reinit = not accept and rejected_run >= reinit_after - 1
+    if not initialized or reinit:  # take the pose: state = pose, covariance = R
+        if cov.shape[0] == 6:
+            cov_new = R.copy()
+        else:
+            cov_new = np.zeros_like(cov)
+            cov_new[:6, :6] = R
+            cov_new[6:, 6:] = cov[6:, 6:]
+        t_new, q_new, extra_new = t_meas, q_meas, extra.copy()
+    elif accept:  # fuse: x ⊞ K ν, P − Pxz S⁻¹ Pxzᵀ
+        delta = Pxz @ S_inv_nu
+        dq = quat_exp((delta[3], delta[4], delta[5]))
+        t_new = (t[0] + delta[0], t[1] + delta[1], t[2] + delta[2])
+        q_new = quat_mul(dq, q)
+        extra_new = extra + delta[6:]
+        down = cov - Pxz @ X[:, :n]
+        cov_new = 0.5 * (down + down.T)
+    else:  # rejected: the state stays
+        t_new, q_new, extra_new, cov_new = t, q, extra.copy(), cov.copy()
+    rejected = not accept
+    run = rejected_run + 1 if rejected and not reinit else 0
+    return PoseUpdate(
+        t_new,
+        normalized(q_new),
+        extra_new,
+        cov_new,
+        True,
+        run,
+        accept or reinit,
+        int(rejected),
+        int(reinit),
+    )
