@@ -1,6 +1,6 @@
 """Wall and CPU time of ``evtrack demo`` per stage, against its 5-minute budget on 2 CPU cores.
 
-    python benchmarks/bench_evaluate.py [--size 320x240] [--duration 2.0] [--jobs 1 2]
+    python benchmarks/bench_evaluate.py [--size 320x240] [--duration 1.5] [--jobs 1 2]
                                         [--weights W.pt]
 
 Runs the demo (simulate, track velocity/pose/full, tables, plots, video) once per ``--jobs``
@@ -52,7 +52,7 @@ def _run(size, duration, jobs, weights, root: Path) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--size", default="320x240", help="camera size WxH (demo default)")
-    ap.add_argument("--duration", type=float, default=2.0, help="seconds (demo default)")
+    ap.add_argument("--duration", type=float, default=1.5, help="seconds (demo default)")
     ap.add_argument("--jobs", type=int, nargs="+", default=[2, 1])
     ap.add_argument("--weights", type=Path, default=None,
                     help="pose-network weights for 'box' (default: the oracle)")

@@ -9,7 +9,7 @@ Steps (each reusing the library):
 3. Write the tables, trajectories, plots and an overlay video (:mod:`evtrack.eval.report`)
    and print the RMSE of each method against the ground truth.
 
-The defaults (320x240, 2 s) keep the whole demo within a few minutes on 2 CPU cores; the flow's
+The defaults (320x240, 1.5 s) keep the whole demo within a few minutes on 2 CPU cores; the flow's
 RoI size is scaled with the image width (32 px at 640 px wide).
 """
 
@@ -62,7 +62,7 @@ class DemoOptions:
     """
 
     out: Path = Path("evtrack-demo")
-    duration: float = 2.0
+    duration: float = 1.5
     size: tuple[int, int] = (320, 240)
     weights: Path | None = None
     oracle: bool = False
