@@ -62,7 +62,10 @@ class FlowConfig:
             the previous event of its pixel has the same polarity and is at most this old
             (chained through skipped events). A moving edge fires a burst of same-polarity
             events per pixel; keeping the onsets makes the history hold edge arrival times,
-            which the triplet timing test needs. 0 disables the filter.
+            which the triplet timing test needs. The default (20 ms) keeps one onset per edge
+            down to about 50 px/s for edges a pixel wide (a slower or blurred edge whose burst
+            has gaps longer than this gives several onsets at different intensity levels,
+            whose times do not move rigidly with the edge). 0 disables the filter.
         tolerance_us: absolute part of the constant-velocity tolerance ξ, in µs.
         tolerance_rel: relative part of ξ, as a fraction of ``t_k - t_i``; used at per-mille
             resolution (``round(1000 * tolerance_rel)``).
@@ -74,6 +77,13 @@ class FlowConfig:
             absolute time (window ``w`` covers ``[w * window_us, (w + 1) * window_us)``).
         min_support: a RoI window is reported only when at least this many of its events
             have a candidate.
+        min_inlier_fraction: a RoI window is reported only when at least this fraction of
+            the events in its data term agree with the registered flow (their candidate
+            nearest to it lies within ``line_gate * |F|``; see
+            :mod:`evtrack.flow.registration`). Events not caused by one rigid motion
+            (shading changes on textureless faces, flicker, the first window after a reset)
+            give unrelated candidates that rarely agree; their windows are refused instead
+            of reported with an arbitrary flow. 0 reports every window.
         max_events_per_roi: cap on the events whose candidates enter the registration cost
             of one RoI window (the data term of Eq. 3). Above it, the events with the
             smallest hash of their stream index are kept: deterministic, independent of
@@ -104,7 +114,7 @@ class FlowConfig:
     sensor_size: tuple[int, int] | None = None
     radius: int = 3
     history: int = 2
-    refractory_us: int = 2_000
+    refractory_us: int = 20_000
     tolerance_us: int = 20
     tolerance_rel: float = 0.1
     min_speed: float = 20.0
@@ -112,6 +122,7 @@ class FlowConfig:
     roi_size: int = 32
     window_us: int = 2_000
     min_support: int = 5
+    min_inlier_fraction: float = 0.5
     max_events_per_roi: int = 64
     max_hypotheses: int = 48
     aperture_ratio: float = 0.05
@@ -155,6 +166,8 @@ class FlowConfig:
              f"must exceed min_speed ({self.min_speed}), got {self.max_speed}")
         need(isinstance(self.refine, bool), "refine", f"expected true/false, got {self.refine!r}")
         need(float(self.line_gate) > 0.0, "line_gate", f"must be > 0, got {self.line_gate}")
+        need(0.0 <= float(self.min_inlier_fraction) <= 1.0, "min_inlier_fraction",
+             f"expected a fraction in [0, 1], got {self.min_inlier_fraction!r}")
         need(0.0 <= float(self.aperture_ratio) <= 1.0, "aperture_ratio",
              f"expected a value in [0, 1], got {self.aperture_ratio}")
         longest = 2.0 * math.hypot(self.radius, self.radius) * US_PER_S / float(self.min_speed)
@@ -198,6 +211,7 @@ class FlowConfig:
                  "max_hypotheses": int, "chunk_size": int, "pass_repeats": int,
                  "pair_budget": int, "tolerance_rel": float, "min_speed": float,
                  "max_speed": float, "aperture_ratio": float, "line_gate": float,
+                 "min_inlier_fraction": float,
                  "refine_iters": int}
         for name, kind in types.items():
             if name in data:

@@ -35,6 +35,12 @@ fit below, the 2x2 scatter ``A = sum_i w_i n_i n_i^T`` has eigenvalues ``l_min <
   one candidate, whose direction is quantised to the integer displacements (up to ~9° off for
   radius 3); the intersection removes that quantisation. ``full_flow`` keeps the Eq. 3
   solution.
+
+Consensus. An event *agrees* with ``F`` (is an inlier) when its candidate nearest to ``F`` lies
+within ``line_gate * max(|F|, 1)`` of it; ``inliers`` counts them per group. Where the events
+were not caused by one rigid motion (illumination changes on a textureless face, flicker,
+noise) their candidates are unrelated and few agree with any ``F``: the caller may refuse
+such groups (``FlowConfig.min_inlier_fraction``).
 """
 
 from __future__ import annotations
@@ -97,6 +103,8 @@ class Registration:
         normal: (G,) bool aperture flag.
         normal_dir: (G, 2) float32 unit normal ``n`` where ``normal``, else NaN.
         lines: (G,) int64 events that gave a constraint line.
+        inliers: (G,) int64 events of the data term that agree with ``full_flow`` (their
+            candidate nearest to it lies within ``line_gate * max(|F|, 1)``).
     """
 
     flow: Tensor
@@ -107,6 +115,7 @@ class Registration:
     normal: Tensor
     normal_dir: Tensor
     lines: Tensor
+    inliers: Tensor
 
 
 def _runs(values: Tensor) -> tuple[Tensor, Tensor]:
@@ -151,7 +160,8 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                        ratio=torch.ones(g_count, device=dev),
                        normal=torch.zeros(g_count, dtype=torch.bool, device=dev),
                        normal_dir=nan2.clone(),
-                       lines=torch.zeros(g_count, dtype=torch.int64, device=dev))
+                       lines=torch.zeros(g_count, dtype=torch.int64, device=dev),
+                       inliers=torch.zeros(g_count, dtype=torch.int64, device=dev))
     if group.numel() == 0 or g_count == 0:
         return out
     # --- data term: cap the events per group by the hash of their stream index
@@ -207,6 +217,7 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                            / ev_per_group.clamp_min(1), torch.nan).to(torch.float32)
     # --- constraint lines, aperture test and refinement
     lines = _event_lines(c_group, c_run, c_flow, full, n_ev_total, ev_group, line_gate)
+    out.inliers = torch.bincount(ev_group[lines["agree"]], minlength=g_count)
     fit = _fit_lines(lines, full, g_count, refine_iters)
     ratio = fit["ratio"]
     normal = has & (fit["count"] >= 2) & (ratio < aperture_ratio)
@@ -258,7 +269,7 @@ def _event_lines(c_group: Tensor, c_run: Tensor, c_flow: Tensor, full: Tensor, n
     offset = (normal * a).sum(1)
     flip = torch.where(offset < 0, -1.0, 1.0)
     return {"normal": (normal * flip[:, None])[ok], "offset": (offset * flip)[ok],
-            "group": ev_group[ok]}
+            "group": ev_group[ok], "agree": dist[i1] <= limit}
 
 
 def _fit_lines(lines: dict[str, Tensor], start: Tensor, g_count: int, iters: int

@@ -243,7 +243,9 @@ class TripletFlow(nn.Module):
                               cfg.aperture_ratio, cfg.pair_budget, cfg.refine, cfg.line_gate,
                               cfg.refine_iters)
         support = p.g_support[done_g]
-        reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0])
+        agree = reg.inliers.to(torch.float64) >= (float(cfg.min_inlier_fraction)
+                                                  * reg.used_events.to(torch.float64))
+        reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0]) & agree
         result = self._rows(keys, reported, reg, support, p.g_events[done_g])
         if self.return_event_flow:
             result.event_flow = self._event_flows(

@@ -132,3 +132,37 @@ def test_a_single_edge_is_flagged_as_normal_flow():
     direction = reg.normal_dir[0].numpy()
     assert abs(abs(float(direction @ n)) - 1.0) < 1e-4
     assert np.allclose(reg.flow[0].numpy(), 700.0 * n, rtol=1e-3)
+
+
+def test_inliers_count_the_events_near_the_solution_like_brute_force():
+    gate = 0.35
+    for seed in range(3):
+        group, seq, ordinal, flow = _groups(seed)
+        reg = register_groups(group, seq, ordinal, flow, 5, 1000, 1000, 0.05, 10**6,
+                              line_gate=gate)
+        for g in range(5):
+            f = reg.full_flow[g].double().numpy()
+            if np.isnan(f).any():
+                assert int(reg.inliers[g]) == 0
+                continue
+            limit = gate * max(float(np.linalg.norm(f)), 1.0)
+            nearest = {}
+            for gg, s, c in zip(group.tolist(), seq.tolist(), flow.tolist(), strict=True):
+                if gg == g:
+                    d = float(np.linalg.norm(np.asarray(c, dtype=np.float32) - f))
+                    nearest[s] = min(nearest.get(s, math.inf), d)
+            expected = sum(d <= limit * (1 + 1e-6) for d in nearest.values())
+            assert abs(int(reg.inliers[g]) - expected) <= sum(
+                abs(d - limit) < 1e-3 * limit for d in nearest.values())  # float32 ties
+            assert 0 <= int(reg.inliers[g]) <= int(reg.used_events[g])
+
+
+def test_events_on_lines_through_one_point_all_agree():
+    truth = np.array([-420.0, 650.0])
+    rng = np.random.default_rng(5)
+    angles = rng.uniform(-1.2, 1.2, 25) + math.atan2(truth[1], truth[0])
+    normals = np.stack([np.cos(angles), np.sin(angles)], 1)
+    group, seq, ordinal, flow = _line_candidates(normals, normals @ truth, DIRECTIONS)
+    reg = register_groups(group, seq, ordinal, flow, 1, 100, 400, 0.05, 10**6, line_gate=0.35)
+    # every event has a candidate within ~9 degrees of the truth, hence near the Eq. 3 solution
+    assert int(reg.inliers[0]) == int(reg.used_events[0]) == 25

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -59,6 +60,29 @@ def test_moving_stripes_give_normal_flow(stripes):
     assert float((n @ truth_n).abs().min()) > 0.99
     err = _rel_error(res.flow[res.normal], gt[0])  # the true flow is the normal flow here
     assert float(err.median()) < 0.08
+
+
+def _random_events(size, n, duration_us, seed):
+    rng = np.random.default_rng(seed)
+    w, h = size
+    return Events(torch.as_tensor(rng.integers(0, w, n), dtype=torch.int32),
+                  torch.as_tensor(rng.integers(0, h, n), dtype=torch.int32),
+                  torch.as_tensor(np.sort(rng.integers(0, duration_us, n))),
+                  torch.as_tensor(rng.choice([-1, 1], n), dtype=torch.int8), size)
+
+
+def test_windows_without_consensus_are_refused(texture):
+    noise = _random_events(SIZE, 60_000, 100_000, seed=0)
+    # random events still give chance triplets; their candidates agree on no flow
+    assert len(TripletFlow(roi_size=32, window_us=5_000, min_inlier_fraction=0.0)(noise)) > 20
+    assert len(TripletFlow(roi_size=32, window_us=5_000)(noise)) == 0
+    # a rigid motion keeps (almost) all its windows
+    ev, _ = texture
+    every = TripletFlow(roi_size=32, window_us=5_000, min_inlier_fraction=0.0)(ev)
+    gated = TripletFlow(roi_size=32, window_us=5_000)(ev)
+    assert len(gated) >= 0.75 * len(every)
+    kept = set(zip(gated.window.tolist(), gated.roi.tolist(), strict=True))
+    assert kept <= set(zip(every.window.tolist(), every.roi.tolist(), strict=True))
 
 
 def test_streaming_equals_one_call(texture):
