@@ -155,35 +155,34 @@ class CandidateSearch:
         self.config = config
         self.device = torch.device(device)
         self.width, self.height = config.sensor_size
-        self.history = EventHistory(config.sensor_size, config.history, config.pass_repeats,
-                                    self.device)
         self.block_size = config.resolved_block_size(self.device.type)
         offsets = search_offsets(config.radius)
         dev = self.device
         self.offsets = torch.as_tensor(offsets, device=dev)
-        # cell-id offsets of the e_j (x - d) and e_i (x - 2d) pixels
-        self.j_cell = self.offsets[:, 1] * self.width + self.offsets[:, 0]
+        self.reset()
+        # cell-id offsets of the e_j (x - d) and e_i (x - 2d) pixels on the padded grid
+        self.j_cell = self.offsets[:, 1] * self.history.row + self.offsets[:, 0]
         self.i_cell = 2 * self.j_cell
         bounds = dt_bounds_us(offsets, config.min_speed, config.max_speed)
         self.dt_lo32 = torch.as_tensor(bounds[:, 0], dtype=torch.int32, device=dev)
         self.dt_hi32 = torch.as_tensor(bounds[:, 1], dtype=torch.int32, device=dev)
+        self.dt_lo64 = self.dt_lo32.to(torch.int64)
+        self.dt_hi64 = self.dt_hi32.to(torch.int64)
         # e_j precedes e_i's match: t_k - t_j < t_k - t_i <= hi
         self.dt_hi_j = self.dt_hi32[None, :, None]
-        self.hi_max = int(bounds[:, 1].max()) if len(bounds) else 0
-        self.err_cap = self.hi_max + 1
-        largest = max(1000 * self.err_cap, int(config.tolerance_us) * 1000
-                      + config.tolerance_permille * self.hi_max)
-        self.tol_dtype = torch.int32 if largest < (1 << 31) - 1 else torch.int64
         # 2 d * 1e6, the numerator of the candidate flow (px * µs / s).
         self.flow_num = (2.0 * US_PER_S) * self.offsets.to(torch.float32)
         self.tol_abs = int(config.tolerance_us) * 1000
         self.tol_rel = config.tolerance_permille
-        self.reset()
 
     def reset(self) -> None:
         """Forget every event seen."""
-        self.history = EventHistory(self.config.sensor_size, self.config.history,
-                                    self.config.pass_repeats, self.device)
+        cfg = self.config
+        # padding 2r: the e_i pixel x - 2d of every event is a cell (empty outside the sensor)
+        self.history = EventHistory(cfg.sensor_size, cfg.history, cfg.pass_repeats,
+                                    pad=2 * cfg.radius, device=self.device)
+        self._consumed = (torch.zeros(self.history.cells, dtype=torch.int64, device=self.device)
+                          if cfg.pass_repeats > 1 else None)
         pixels = self.width * self.height
         self.last_t = torch.full((pixels,), NEVER_US, dtype=torch.int64, device=self.device)
         self.last_p = torch.zeros(pixels, dtype=torch.int8, device=self.device)
@@ -233,31 +232,37 @@ class CandidateSearch:
     def _chunk(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Candidates:
         n = int(t.shape[0])
         hist = self.history
-        seq = torch.arange(self.next_seq, self.next_seq + n, device=self.device)
-        cell = hist.cell_index(x, y, p)
+        dev = self.device
+        seq = torch.arange(self.next_seq, self.next_seq + n, device=dev)
         if self.config.refractory_us > 0:
             onset = self._onsets(x, y, t, p)
-            x, y, t, seq, cell = x[onset], y[onset], t[onset], seq[onset], cell[onset]
+            x, y, t, p, seq = x[onset], y[onset], t[onset], p[onset], seq[onset]
         self.next_seq += n
-        if t.numel() == 0:
-            return Candidates.empty(self.device)
-        keys = hist.make_keys(t, seq)
+        m = int(t.numel())
+        if m == 0:
+            return Candidates.empty(dev)
+        cell = hist.cell_index(x, y, p)
+        t_rel = hist.relative_times(t)
+        pos = torch.arange(m, dtype=torch.int32, device=dev)
         rank, next_end = pass_starts(cell, self.config.pass_repeats)
-        head0 = hist.head.index_select(0, cell)
-        slot = torch.remainder(head0 + rank, hist.slots)
-        # Is the event the last of its cell in the chunk up to the end of its pass? Decided
-        # per pass from the next event of the same cell.
         next_same = self._next_same_cell(cell)
         parts = []
         for start, stop in pass_bounds(next_end):
             sl = slice(start, stop)
-            last = next_same[sl] >= stop
-            hist.write(cell[sl], slot[sl], keys[sl], last,
-                       torch.remainder(slot[sl] + 1, hist.slots))
+            if self._consumed is None:
+                in_rank = torch.zeros_like(rank[sl])
+            else:  # rank among the pass's events of the cell
+                in_rank = rank[sl] - self._consumed[cell[sl]]
+            newest = next_same[sl] >= stop
+            hist.open_pass(cell[sl], in_rank, pos[sl])
             for b0 in range(start, stop, self.block_size):
                 b1 = min(stop, b0 + self.block_size)
-                parts.append(self._block(x[b0:b1], y[b0:b1], cell[b0:b1], keys[b0:b1],
-                                         seq[b0:b1]))
+                parts.append(self._block(pos[b0:b1], cell[b0:b1], t_rel, seq))
+            hist.close_pass(cell[sl], in_rank, t_rel, seq, newest)
+            if self._consumed is not None:
+                self._consumed.index_put_((cell[sl][newest],), rank[sl][newest] + 1)
+        if self._consumed is not None:
+            self._consumed.index_fill_(0, cell, 0)
         return Candidates.cat(parts)
 
     def _onsets(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Tensor:
@@ -299,46 +304,72 @@ class CandidateSearch:
         return out
 
     # ------------------------------------------------------------------ one block
-    def _block(self, x: Tensor, y: Tensor, cell: Tensor, keys: Tensor, seq: Tensor
-               ) -> Candidates:
+    def _block(self, pos: Tensor, cell: Tensor, t_rel: Tensor, seq: Tensor) -> Candidates:
+        """Candidates of the chunk's events at positions ``pos`` (all in the open pass).
+
+        Args:
+            pos: (b,) int32 chunk positions; cell: (b,) int64 their cells.
+            t_rel: (n_chunk,) int32 relative times; seq: (n_chunk,) int64 stream indices.
+        """
         hist = self.history
-        b = x.shape[0]
+        b = pos.shape[0]
         d = self.offsets.shape[0]
-        # the e_i pixel x - 2d must be inside (then so is the e_j pixel x - d)
-        ix = x[:, None] - 2 * self.offsets[:, 0]
-        iy = y[:, None] - 2 * self.offsets[:, 1]
-        inside = (ix >= 0) & (ix < self.width) & (iy >= 0) & (iy < self.height)
-        # stage 1, e_j: lookups at x - d for every displacement, (b, D, K)
-        j_cell = torch.where(inside, cell[:, None] - self.j_cell, cell[:, None])
-        seen_j = hist.lookup(j_cell.reshape(-1), keys[:, None].expand(b, d).reshape(-1))
-        seen_j = seen_j.view(b, d, -1)
-        # relative times fit int32: |t| < T_LIMIT = 2^29, empty slots at -2^29
-        t_k = hist.key_time(keys).to(torch.int32)
-        dt_kj = t_k[:, None, None] - hist.key_time(seen_j).to(torch.int32)
-        ok_j = (dt_kj >= 1) & (dt_kj < self.dt_hi_j) & inside[:, :, None]
-        ev, off = ok_j.any(2).nonzero(as_tuple=True)
-        if ev.numel() == 0:
+        k = self.config.history
+        t_k = t_rel[pos]
+        # stage 1, e_j: lookups at x - d for every displacement, (b * D, K)
+        j_cell = (cell[:, None] - self.j_cell).reshape(-1)
+        seen_j = hist.lookup_times(j_cell, pos[:, None].expand(b, d).reshape(-1), t_rel)
+        dt_kj = t_k[:, None, None] - seen_j.view(b, d, k)
+        ok_j = ((dt_kj >= 1) & (dt_kj < self.dt_hi_j)).view(b * d, k)
+        dt_kj = dt_kj.view(b * d, k)
+        rows = ok_j.any(1).nonzero().reshape(-1)
+        if rows.numel() == 0:
             return Candidates.empty(self.device)
+        ev = torch.div(rows, d, rounding_mode="floor")
+        off = rows - ev * d
+        # the e_i test as an interval of t_k - t_i per (row, e_j), see _dt_ki_bounds
+        lo, hi = self._dt_ki_bounds(dt_kj.index_select(0, rows), ok_j.index_select(0, rows), off)
         # stage 2, e_i: lookups at x - 2d for the surviving (event, displacement) rows only
-        seen_i = hist.lookup(cell[ev] - self.i_cell[off], keys[ev])
-        t_i = hist.key_time(seen_i).to(torch.int32)[:, None, :]
-        dt_kj = dt_kj[ev, off][:, :, None]
-        t_j = t_k[ev][:, None, None] - dt_kj
-        dt_ki = t_k[ev][:, None, None] - t_i
-        dt_ji = t_j - t_i
-        lo = self.dt_lo32[off][:, None, None]
-        hi = self.dt_hi32[off][:, None, None]
-        ok = ok_j[ev, off][:, :, None] & (dt_ji >= 1) & (dt_ki >= lo) & (dt_ki <= hi)
-        # exact integer tolerance test; operands are clamped so that the products fit
-        dt_c = dt_ki.clamp(0, self.hi_max).to(self.tol_dtype)
-        err = (dt_kj - dt_ji).abs().clamp_max(self.err_cap).to(self.tol_dtype)
-        ok &= err * 1000 <= self.tol_abs + self.tol_rel * dt_c
+        ev_pos = pos[ev]
+        t_i = hist.lookup_times(cell[ev] - self.i_cell[off], ev_pos, t_rel)
+        dt_ki = t_k[ev][:, None] - t_i  # (R, K) over the ages of e_i
+        ok = (dt_ki[:, None, :] >= lo[:, :, None]) & (dt_ki[:, None, :] <= hi[:, :, None])
         row, aj, ai = ok.nonzero(as_tuple=True)
         ev_c, off_c = ev[row], off[row]
-        dt = dt_ki[row, 0, ai].to(torch.int64)
-        k_j = seen_j[ev_c, off_c, aj]
-        k_i = seen_i[row, ai]
+        dt = dt_ki.view(-1)[row * k + ai].to(torch.int64)
         flow = self.flow_num[off_c] / dt.to(torch.float32)[:, None]
-        return Candidates(event=seq[ev_c], offset=off_c, age_j=aj, age_i=ai,
-                          seq_j=hist.key_seq(k_j), seq_i=hist.key_seq(k_i), dt_us=dt,
-                          flow=flow)
+        c_pos = ev_pos[row]
+        c_cell = cell[ev_c]
+        return Candidates(event=seq[c_pos], offset=off_c, age_j=aj, age_i=ai,
+                          seq_j=hist.lookup_seq(c_cell - self.j_cell[off_c], c_pos, aj, seq),
+                          seq_i=hist.lookup_seq(c_cell - self.i_cell[off_c], c_pos, ai, seq),
+                          dt_us=dt, flow=flow)
+
+    def _dt_ki_bounds(self, dt_kj: Tensor, ok_j: Tensor, off: Tensor) -> tuple[Tensor, Tensor]:
+        """The ``t_k - t_i`` that complete a triplet, as an interval per (row, age of e_j).
+
+        With ``a = t_k - t_j`` and ``c = t_k - t_i`` (µs), the rule of
+        :mod:`evtrack.flow.config` asks ``c >= a + 1`` (``t_j - t_i >= 1``), the speed bounds
+        ``lo_d <= c <= hi_d`` and ``1000 |2a - c| <= A + r c`` (``A = 1000 tolerance_us``,
+        ``r`` the per-mille tolerance, ``r < 1000``). The last is exactly
+        ``c (1000 + r) >= 2000 a - A`` and ``c (1000 - r) <= 2000 a + A``, i.e.
+        ``ceil((2000 a - A) / (1000 + r)) <= c <= floor((2000 a + A) / (1000 - r))``.
+
+        Args:
+            dt_kj: (R, K) int32 ``t_k - t_j``; ok_j: (R, K) bool, e_j usable; off: (R,)
+                displacement index.
+
+        Returns:
+            ``(lo, hi)``: (R, K) int32 bounds; ``lo > hi`` where e_j is unusable.
+        """
+        a2 = 2000 * dt_kj.to(torch.int64)
+        num_lo = a2 - self.tol_abs
+        lo_tol = -torch.div(-num_lo, 1000 + self.tol_rel, rounding_mode="floor")
+        lo = torch.maximum(torch.maximum(lo_tol, dt_kj.to(torch.int64) + 1),
+                           self.dt_lo64[off][:, None])
+        hi = self.dt_hi64[off][:, None].expand_as(lo)
+        if self.tol_rel < 1000:  # (a per-mille tolerance of 1000 bounds nothing from above)
+            hi = torch.minimum(hi, torch.div(a2 + self.tol_abs, 1000 - self.tol_rel,
+                                             rounding_mode="floor"))
+        lo = torch.where(ok_j, lo, hi + 1)
+        return lo.to(torch.int32), hi.to(torch.int32)

@@ -1,17 +1,22 @@
-"""Per-pixel, per-polarity ring buffer of recent events (:class:`EventHistory`).
+"""Per-pixel, per-polarity history of recent events (:class:`EventHistory`).
 
-Each (polarity, y, x) cell keeps its ``history + pass_repeats`` most recent events as int64
-*keys* ``(t - t_base) << SEQ_BITS | (seq - seq_base)``: the timestamp relative to a base
-(µs) in the high bits and the event's index in the stream relative to another base in the
-low bits. Within a pixel, key order is stream order, so "was written before event k" is the
-single comparison ``key < key_k`` even between events with equal timestamps.
+Each (polarity, y, x) *cell* keeps its ``history`` (K) most recent events, newest first: their
+timestamps as int32 µs relative to a base ``t_base`` (``ring_t``) and their stream indices
+(``ring_s``). The grid is padded by ``pad`` empty cells on every side, so that a neighbour
+``x - d`` of any pixel is a valid cell id (padding cells are never written and read as empty):
+lookups need no bounds test.
 
-The batched search (:mod:`evtrack.flow.candidates`) writes a whole *pass* of events (at most
-``pass_repeats`` events per cell) before evaluating that pass's lookups;
-:meth:`EventHistory.lookup` then recovers, for each query, exactly the last ``history``
-events of the cell that precede the querying event in the stream: it counts the cell's
-entries with a key at or after the query's (only events of the current pass can be) and
-skips that many of the newest slots.
+The batched search (:mod:`evtrack.flow.candidates`) handles a *pass* of events (at most
+``pass_repeats`` (L) events per cell) at once:
+
+1. :meth:`EventHistory.open_pass` records, per cell, the chunk positions of the pass's events
+   (``pass_pos``, oldest first, -1 where unused) without touching the rings;
+2. :meth:`EventHistory.lookup_times` then returns, for each query (a cell and the chunk
+   position of the querying event), the K newest events of the cell that precede the query in
+   the stream: the cell's pass events before it (newest first), then its ring;
+3. :meth:`EventHistory.close_pass` shifts the pass's events into the rings.
+
+So every event sees exactly the events before it, as a sequential ring buffer would.
 """
 
 from __future__ import annotations
@@ -19,142 +24,186 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["EventHistory", "SEQ_BITS", "EMPTY_KEY", "T_LIMIT", "SEQ_LIMIT", "MAX_SPAN_US"]
+__all__ = ["EventHistory", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US"]
 
-SEQ_BITS = 33
-"""Low bits of a key holding the relative stream index."""
-SEQ_MASK = (1 << SEQ_BITS) - 1
 T_LIMIT = 1 << 29
 """Relative timestamps stay below this (µs); the base moves forward before they reach it."""
-SEQ_LIMIT = 1 << SEQ_BITS
-"""Relative stream indices stay below this; the base moves forward before they reach it."""
 T_KEEP = 1 << 28
 """After a rebase, entries at most this old (µs) keep their value (older ones are emptied:
 they are beyond any speed bound, see ``FlowConfig``)."""
 MAX_SPAN_US = 1 << 27
 """Longest time span (µs) of the events of one chunk (the search splits longer chunks)."""
-SEQ_KEEP = 1 << 32
-"""After a rebase, entries at most this many events old keep their stream index."""
-EMPTY_KEY = -(1 << 62)
-"""Key of a slot never written; its timestamp ``EMPTY_KEY >> SEQ_BITS`` is ``-T_LIMIT``."""
+EMPTY_T = -(1 << 30)
+"""Relative timestamp of an empty slot: ``t - EMPTY_T`` exceeds every speed bound and still
+fits int32 for ``0 <= t < T_LIMIT``."""
 
 
 class EventHistory:
-    """Ring buffers of the most recent event keys of every pixel and polarity.
+    """The K most recent events of every pixel and polarity, on a padded grid.
 
     Args:
         sensor_size: ``(width, height)`` in pixels.
         history: K, the number of events a lookup returns per cell.
-        pass_repeats: L, the most events of one cell a pass may write before its lookups.
+        pass_repeats: L, the most events of one cell a pass may hold.
+        pad: empty cells around the sensor on every side (>= the largest lookup offset).
         device: torch device of the buffers.
 
     Attributes:
-        ring: (2 * H * W * S,) int64 keys, cell-major, with ``S = history + pass_repeats``.
-        head: (2 * H * W,) int64, the slot the cell's next event is written to.
-        t_base, seq_base: the bases (µs, stream index) keys are relative to.
+        ring_t: (cells, K) int32 relative timestamps (µs), newest first; ``EMPTY_T`` if unused.
+        ring_s: (cells, K) int64 stream indices, newest first; -1 if unused.
+        pass_pos: (cells, L) int32 chunk positions of the open pass's events, oldest first;
+            -1 if unused.
+        t_base: the base (µs) of the relative timestamps, ``None`` before the first event.
+        row: cell-id stride of one row (the padded width).
     """
 
     def __init__(self, sensor_size: tuple[int, int], history: int, pass_repeats: int,
-                 device: str | torch.device = "cpu") -> None:
+                 pad: int = 0, device: str | torch.device = "cpu") -> None:
         self.width, self.height = (int(v) for v in sensor_size)
         self.history = int(history)
         self.pass_repeats = int(pass_repeats)
-        self.slots = self.history + self.pass_repeats
-        self.cells = 2 * self.width * self.height
+        self.pad = int(pad)
+        self.row = self.width + 2 * self.pad
+        self.rows = self.height + 2 * self.pad
+        self.cells = 2 * self.row * self.rows
         self.device = torch.device(device)
-        self.ring = torch.full((self.cells * self.slots,), EMPTY_KEY, dtype=torch.int64,
-                               device=self.device)
-        self.head = torch.zeros(self.cells, dtype=torch.int64, device=self.device)
+        dev = self.device
+        self.ring_t = torch.full((self.cells, self.history), EMPTY_T, dtype=torch.int32,
+                                 device=dev)
+        self.ring_s = torch.full((self.cells, self.history), -1, dtype=torch.int64, device=dev)
+        self.pass_pos = torch.full((self.cells, self.pass_repeats), -1, dtype=torch.int32,
+                                   device=dev)
         self.t_base: int | None = None
-        self.seq_base = 0
-        self._ages = torch.arange(self.history, device=self.device)
+        self._ages = torch.arange(self.history, device=dev)
 
-    # ------------------------------------------------------------------ keys
+    # ------------------------------------------------------------------ cells and times
     def cell_index(self, x: Tensor, y: Tensor, polarity: Tensor) -> Tensor:
-        """Cell id ``(c * H + y) * W + x`` with ``c = 0`` for ON (+1), 1 for OFF (-1)."""
+        """Cell id ``(c * Hp + y + pad) * Wp + x + pad`` (int64), ``c = 0`` ON, 1 OFF."""
         channel = (polarity < 0).to(torch.int64)
-        return (channel * self.height + y.to(torch.int64)) * self.width + x.to(torch.int64)
+        return ((channel * self.rows + y.to(torch.int64) + self.pad) * self.row
+                + x.to(torch.int64) + self.pad)
 
-    def make_keys(self, t: Tensor, seq: Tensor) -> Tensor:
-        """Keys of events with absolute timestamps ``t`` (µs) and stream indices ``seq``.
+    def relative_times(self, t: Tensor) -> Tensor:
+        """Int32 timestamps relative to the base, moving the base forward first if needed.
 
-        Moves the bases forward first when needed (:meth:`ensure_range`).
+        Args:
+            t: (n,) int64 absolute µs, non-decreasing, spanning less than ``MAX_SPAN_US``.
         """
         if t.numel():
-            self.ensure_range(int(t[0]), int(t[-1]), int(seq[-1]))
-        return ((t - self.t_base) << SEQ_BITS) | (seq - self.seq_base)
+            self.ensure_range(int(t[0]), int(t[-1]))
+        return (t - self.t_base).to(torch.int32)
 
-    def key_time(self, keys: Tensor) -> Tensor:
-        """Relative timestamps (µs) of keys; ``-T_LIMIT`` for empty slots."""
-        return keys >> SEQ_BITS
-
-    def key_seq(self, keys: Tensor) -> Tensor:
-        """Absolute stream indices of (non-empty) keys."""
-        return (keys & SEQ_MASK) + self.seq_base
-
-    def ensure_range(self, t_first: int, t_last: int, seq_last: int) -> None:
-        """Move the bases so that keys of events in ``[t_first, t_last]`` fit their bit fields.
-
-        The events written together must span less than ``MAX_SPAN_US``.
-        """
+    def ensure_range(self, t_first: int, t_last: int) -> None:
+        """Move the base so that ``[t_first, t_last]`` maps into ``[0, T_LIMIT)``."""
         if t_last - t_first >= MAX_SPAN_US:
             raise ValueError(f"events written together span {t_last - t_first} µs, more than "
                              f"{MAX_SPAN_US}")
         if self.t_base is None:
             self.t_base = t_first
-        shift_t = max(0, t_last - self.t_base - (T_LIMIT - 1))
-        shift_s = max(0, seq_last - self.seq_base - (SEQ_LIMIT - 1))
-        if shift_t:
-            shift_t = t_last - self.t_base - T_KEEP
-        if shift_s:
-            shift_s = seq_last - self.seq_base - SEQ_KEEP
-        if shift_t < 0 or shift_s < 0:
+        if t_first < self.t_base:
             raise ValueError("events must be given in stream order")
-        if shift_t or shift_s:
-            self._rebase(shift_t, shift_s)
+        if t_last - self.t_base >= T_LIMIT:
+            shift = t_last - self.t_base - T_KEEP
+            moved = self.ring_t.to(torch.int64) - shift
+            self.ring_t = torch.where((self.ring_t != EMPTY_T) & (moved >= 0), moved,
+                                      EMPTY_T).to(torch.int32)
+            self.ring_s = torch.where(self.ring_t != EMPTY_T, self.ring_s, -1)
+            self.t_base += shift
 
-    def _rebase(self, shift_t: int, shift_s: int) -> None:
-        full = self.ring != EMPTY_KEY
-        t_rel = (self.ring >> SEQ_BITS) - shift_t
-        s_rel = (self.ring & SEQ_MASK) - shift_s
-        keep = full & (t_rel >= 0)
-        s_rel = s_rel.clamp_min(0)  # only order matters for entries this old
-        self.ring = torch.where(keep, (t_rel << SEQ_BITS) | s_rel,
-                                torch.full_like(self.ring, EMPTY_KEY))
-        self.t_base += shift_t
-        self.seq_base += shift_s
-
-    # ------------------------------------------------------------------ write / read
-    def write(self, cell: Tensor, slot: Tensor, keys: Tensor, last: Tensor,
-              next_head: Tensor) -> None:
-        """Store ``keys`` at ``(cell, slot)`` and move the heads of the cells written.
+    # ------------------------------------------------------------------ passes
+    def open_pass(self, cell: Tensor, rank: Tensor, pos: Tensor) -> None:
+        """Register the events of a pass (their cells, ranks within the pass, chunk positions).
 
         Args:
-            cell, slot, keys: (n,) int64; the (cell, slot) pairs are distinct.
-            last: (n,) bool, True for the last event of its cell in this pass.
-            next_head: (n,) int64, the cell's head after this event (read where ``last``).
+            cell: (m,) int64 cell ids; each cell appears at most L times.
+            rank: (m,) int64 rank of the event among the pass's events of its cell (0 oldest).
+            pos: (m,) int64 chunk positions, increasing.
         """
-        self.ring.index_put_((cell * self.slots + slot,), keys)
-        self.head.index_put_((cell[last],), next_head[last])
+        self.pass_pos.index_put_((cell, rank), pos.to(torch.int32))
 
-    def lookup(self, cell: Tensor, query_key: Tensor) -> Tensor:
-        """The last ``history`` keys of each cell that precede each query, newest first.
+    def close_pass(self, cell: Tensor, rank: Tensor, t: Tensor, seq: Tensor,
+                   newest: Tensor) -> None:
+        """Shift the events of the open pass into the rings and clear the pass.
 
         Args:
-            cell: (M,) int64 cell ids.
-            query_key: (M,) int64 keys of the querying events; every event of the current pass
-                is already written.
+            cell, rank: as given to :meth:`open_pass`.
+            t: (n_chunk,) int32 relative timestamps of the chunk's events (by chunk position).
+            seq: (n_chunk,) int64 stream indices of the chunk's events.
+            newest: (m,) bool, True for the newest pass event of its cell (one per cell).
+        """
+        cells = cell[newest]
+        count = rank[newest] + 1
+        t_new, s_new = self._newest_first(cells, count, self._ages.expand(cells.numel(), -1),
+                                          t, seq)
+        self.ring_t.index_put_((cells,), t_new)
+        self.ring_s.index_put_((cells,), s_new)
+        self.pass_pos.index_put_((cell, rank), torch.full_like(rank, -1, dtype=torch.int32))
+
+    def _newest_first(self, cell: Tensor, count: Tensor, idx: Tensor, t: Tensor | None,
+                      seq: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
+        """Entries ``idx`` (Q, A) of the newest-first sequence ``[pass events of the cell
+        (``count`` of them), ring]`` of cells ``cell`` (Q,): (Q, A) int32 relative times (if
+        ``t`` is given) and int64 stream indices (if ``seq`` is given).
+        """
+        count = count[:, None]
+        from_pass = idx < count
+        ring_slot = (idx - count).clamp(0, self.history - 1)
+        pass_slot = (count - 1 - idx).clamp(0, self.pass_repeats - 1)
+        pos = self.pass_pos[cell].gather(1, pass_slot).clamp_min(0).to(torch.int64)
+        times = indices = None
+        if t is not None:
+            times = torch.where(from_pass, t[pos], self.ring_t[cell].gather(1, ring_slot))
+        if seq is not None:
+            indices = torch.where(from_pass, seq[pos], self.ring_s[cell].gather(1, ring_slot))
+        return times, indices
+
+    # ------------------------------------------------------------------ lookups
+    def lookup_times(self, cell: Tensor, pos: Tensor, t: Tensor) -> Tensor:
+        """Times of the last K events of each cell that precede each query, newest first.
+
+        Args:
+            cell: (Q,) int64 cell ids.
+            pos: (Q,) int32 chunk positions of the querying events (in the open pass).
+            t: (n_chunk,) int32 relative timestamps of the chunk's events.
 
         Returns:
-            (M, history) int64 keys, ``EMPTY_KEY`` where the cell holds fewer events.
+            (Q, K) int32 relative times, ``EMPTY_T`` where the cell holds fewer events.
         """
-        rows = self.ring.view(self.cells, self.slots).index_select(0, cell)
-        later = (rows >= query_key[:, None]).to(torch.uint8).sum(1, dtype=torch.uint8)
-        newest = self.head.index_select(0, cell) - 1 - later.to(torch.int64)
-        slot = torch.remainder(newest[:, None] - self._ages, self.slots)
-        return rows.gather(1, slot)
+        if self.pass_repeats == 1:
+            pp = self.pass_pos.view(-1)[cell]
+            visible = (pp >= 0) & (pp < pos)
+            rows = self.ring_t[cell]
+            newest = t[pp.clamp_min(0).to(torch.int64)][:, None]
+            shifted = torch.cat([newest, rows[:, :-1]], 1) if self.history > 1 else newest
+            return torch.where(visible[:, None], shifted, rows)
+        pp = self.pass_pos[cell]
+        count = (pp >= 0).sum(1)
+        skip = (pp >= pos[:, None]).sum(1)
+        times, _ = self._newest_first(cell, count, skip[:, None] + self._ages, t, None)
+        return times
 
+    def lookup_seq(self, cell: Tensor, pos: Tensor, age: Tensor, seq: Tensor) -> Tensor:
+        """Stream index of the entry ``age`` (newest first) each query of
+        :meth:`lookup_times` saw.
+
+        Args:
+            cell, pos: (M,) as in :meth:`lookup_times`.
+            age: (M,) int64 age of the entry (0 = newest visible).
+            seq: (n_chunk,) int64 stream indices of the chunk's events.
+        """
+        pp = self.pass_pos[cell]
+        count = (pp >= 0).sum(1)
+        skip = (pp >= pos[:, None]).sum(1)
+        _, indices = self._newest_first(cell, count, (skip + age)[:, None], None, seq)
+        return indices[:, 0]
+
+    # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
-        """Buffers and bases, for checkpointing or moving devices."""
-        return {"ring": self.ring, "head": self.head, "t_base": self.t_base,
-                "seq_base": self.seq_base}
+        """Buffers and base, for checkpointing or moving devices."""
+        return {"ring_t": self.ring_t, "ring_s": self.ring_s, "t_base": self.t_base}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict` (tensors moved to this history's device)."""
+        self.ring_t = state["ring_t"].to(self.device, torch.int32)
+        self.ring_s = state["ring_s"].to(self.device, torch.int64)
+        self.t_base = state["t_base"]

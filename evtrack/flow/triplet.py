@@ -98,12 +98,10 @@ class TripletFlow(nn.Module):
         self.device = device
         if old_search is not None:
             new = CandidateSearch(self.config, device)
-            new.history.ring = old_search.history.ring.to(device)
-            new.history.head = old_search.history.head.to(device)
-            new.history.t_base = old_search.history.t_base
-            new.history.seq_base = old_search.history.seq_base
+            new.history.load_state_dict(old_search.history.state_dict())
             new.next_seq = old_search.next_seq
             new.last_t = old_search.last_t.to(device)
+            new.last_p = old_search.last_p.to(device)
             self._search = new
         p = self._pending
         self._pending = _Pending(*(getattr(p, f).to(device) for f in _Pending.__annotations__))

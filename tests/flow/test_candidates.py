@@ -92,6 +92,21 @@ def test_structured_stream_equals_reference_for_any_chunking(chunk, block):
     _assert_same(got, ref)
 
 
+@pytest.mark.parametrize("repeats", [1, 3])
+def test_long_streams_move_the_time_base_without_changing_the_result(repeats):
+    """Relative int32 times: crossing the base's limit (2^29 µs) keeps the result exact."""
+    x, y, t, p = _structured_stream(2000)
+    t = t.clone()
+    t[1000:] += (1 << 29) - 4_000  # the second half straddles the limit
+    t[1500:] += 1 << 30            # and jumps by more than the history keeps
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=300, refractory_us=0,
+                     pass_repeats=repeats)
+    got = CandidateSearch(cfg)(x, y, t, p)
+    ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
+    assert any(r[0] >= 1500 for r in ref) and any(1000 <= r[0] < 1500 for r in ref)
+    _assert_same(got, ref)
+
+
 def test_streaming_calls_equal_one_call():
     x, y, t, p = _structured_stream(2000)
     cfg = FlowConfig(sensor_size=(40, 30), refractory_us=0, chunk_size=97)
