@@ -7,13 +7,12 @@ stateful methods of :class:`~evtrack.filters.VelocityKF` and :class:`~evtrack.fi
 when :func:`applies` says so: the same model as the torch steps, written for one track —
 quaternion and SE(3) algebra on Python floats, per-RoI work on the usable RoIs only
 (gathered once, so no masks) as rows of (k, N) arrays, 6x6 algebra through LAPACK (SciPy's
-``potrf``/``potri``/``posv``, the routines torch calls). Results equal the torch path to
-rounding (``tests/filters/test_fast_path.py``: 1e-12, measured in the covariance's metric for
-the velocity filter; a steep fixed Laplacian scale makes the weights amplify rounding, as
-much in the torch path itself); batches, CUDA, float32, autograd, ``compile_steps`` and ONNX
-export keep the torch steps. A 6x6 that is not positive definite raises
-``numpy.linalg.LinAlgError``, on which the filters rerun the step in torch (which returns
-its NaNs instead of raising).
+``posv``). Results equal the torch path to rounding (``tests/filters/test_fast_path.py``:
+1e-12, in the covariance's metric for the velocity filter; a steep fixed Laplacian scale
+makes the weights amplify rounding, as much in the torch path itself). Batches, CUDA,
+float32, autograd, ``compile_steps`` and ONNX export keep the torch steps. A 6x6 that is not
+positive definite raises ``numpy.linalg.LinAlgError``, on which the filters rerun the step in
+torch (which returns its NaNs instead of raising).
 
 The formulas are those of :mod:`velocity_kf`, :mod:`pose_ukf`, :mod:`lie` and
 :mod:`weighting`; see there for the derivations and units. Shapes here drop the batch
@@ -29,8 +28,6 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from scipy.linalg.lapack import dposv as _posv
-from scipy.linalg.lapack import dpotrf as _potrf
-from scipy.linalg.lapack import dpotri as _potri
 from torch import Tensor
 
 from evtrack.filters.config import VelocityKFConfig
@@ -51,6 +48,7 @@ __all__ = [
 Quat = tuple[float, float, float, float]
 Vec3 = tuple[float, float, float]
 
+_EYE6 = np.eye(6)
 _ACROSS = np.array([-1.0, 1.0])  # n⊥ = (-ny, nx) scales (ny, nx) by these
 _TINY = float(np.finfo(np.float64).tiny)
 
@@ -145,12 +143,12 @@ def velocity_update(
     _, flow_info, scale, scale_min, floor = consts
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
+    uv_flat, flow_flat = uv.reshape(-1), flow.reshape(-1)
     if (
         mask is None
-        and np.isfinite(uv).all()
-        and np.isfinite(flow).all()
         and depth.min() > 0  # False for NaN too
-        and depth.max() < math.inf
+        and math.isfinite(depth.sum())  # False for inf (or a sum over 1e308)
+        and math.isfinite(uv_flat @ uv_flat + flow_flat @ flow_flat)  # likewise
     ):  # every RoI usable (the common case)
         n_mask = n_depth = N
     else:
@@ -213,7 +211,7 @@ def velocity_update(
     np.subtract(t[1], t[0], out=HT[5])
 
     # Λ = P⁻¹ + Hᵀ W H;  P⁺ = Λ⁻¹;  V⁺ = V + P⁺ Hᵀ W (z − H V)
-    prior_info = spd_inverse(cov)
+    prior_info = spd_solve(cov, _EYE6)  # posv reads Λ's lower triangle only
     if cfg.weighting and cfg.weighting_reference == "previous":
         innovation, residual = z - twist @ HT, z - reference @ HT
     else:
@@ -221,20 +219,23 @@ def velocity_update(
     passes = cfg.weighting_iterations if cfg.weighting else 1
     rho: np.ndarray | None = None
     post_twist, post_cov = twist, cov
+    HTf = HT * flow_info  # Hᵀ R_F⁻¹
     for i in range(passes):
         if cfg.weighting:
             rho = laplacian_weights(
                 residual, None if cfg.laplace_scale is None else scale, scale_min, floor, rho
             )
-            HTw = HT * (rho * flow_info)  # Hᵀ W, (6, M)
+            HTw = HTf * rho  # Hᵀ W, (6, M)
         else:
-            HTw = HT * flow_info
+            HTw = HTf
         info = HTw @ HT.T
         info += prior_info
-        post_cov = spd_inverse(info)
-        post_twist = twist + post_cov @ (HTw @ innovation)
-        if i + 1 < passes:
+        if i + 1 < passes:  # only the twist: the next pass's residuals
+            post_twist = twist + spd_solve(info, HTw @ innovation)
             residual = z - post_twist @ HT
+        else:
+            post_cov = spd_inverse(info)
+            post_twist = twist + post_cov @ (HTw @ innovation)
     return post_twist, post_cov, n_mask - n_depth, n_depth - n_valid
 
 
@@ -280,20 +281,16 @@ def spd_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def spd_inverse(A: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive-definite matrix from its Cholesky factor (LAPACK potrf,
-    potri: what ``torch.cholesky_inverse`` runs), exactly symmetric.
+    """Inverse of a symmetric positive-definite matrix (Cholesky solve against the identity),
+    made exactly symmetric.
+
+    (Not LAPACK ``potri``: OpenBLAS runs it on a thread pool, ~10x slower at 6x6.)
 
     Raises:
         numpy.linalg.LinAlgError: if ``A`` is not positive definite (see :func:`spd_solve`).
     """
-    L, info = _potrf(A, lower=1, clean=1)  # clean: zeros above the diagonal
-    if info == 0:
-        X, info = _potri(L, lower=1)  # the lower triangle of A⁻¹; zeros above
-    if info != 0:
-        raise np.linalg.LinAlgError(f"LAPACK potrf/potri: info {info}")
-    X = X + X.T
-    X.flat[:: X.shape[0] + 1] *= 0.5  # the diagonal was doubled
-    return X
+    X = spd_solve(A, _EYE6 if A.shape[0] == 6 else np.eye(A.shape[0]))
+    return 0.5 * (X + X.T)
 
 
 # ---------------------------------------------------------------------------- quaternions
