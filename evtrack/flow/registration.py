@@ -10,7 +10,8 @@ candidate: it is one of the candidate flows.
 
 Evaluated batched over many groups, exactly and deterministically:
 
-* distances are rounded to ``1 / COST_SCALE`` px/s and summed in int64, so costs (and thus the
+* distances (``sqrt(dx * dx + dy * dy)`` in float32, separate IEEE operations) are rounded to
+  ``1 / COST_SCALE`` px/s and summed in int64, so costs (and thus the
   arg-min) do not depend on summation order, batch composition or device atomics;
 * ties go to the hypothesis with the smallest hash (see below);
 * caps keep the O(|M|^2) cost bounded: at most ``max_events_per_roi`` events enter the data
@@ -58,6 +59,8 @@ _PARALLEL_EPS = 1e-3
 _IRLS_DELTA = 0.01
 _GOLDEN = 2654435761
 _RANK_BITS = 20
+_Q_MAX = 1 << 30
+"""Rounded distances are capped here (2^30 / COST_SCALE px/s, far beyond any speed bound)."""
 
 
 def hash32(value: Tensor) -> Tensor:
@@ -317,39 +320,58 @@ def _fit_lines(lines: dict[str, Tensor], start: Tensor, g_count: int, iters: int
 def _hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Tensor,
                       c_start: Tensor, c_local_ev: Tensor, ev_per_group: Tensor,
                       ev_start: Tensor, pair_budget: int) -> Tensor:
-    """Exact int64 cost ``sum_i min_c round(|F_h - F_ic| * COST_SCALE)`` per hypothesis."""
+    """Exact int64 cost ``sum_i min_c round(|F_h - F_ic| * COST_SCALE)`` per hypothesis.
+
+    Dense per batch of groups: the hypotheses (padded to the batch's most, ``Hm``) against the
+    candidates (padded to ``Cm``), ``(groups, Hm, Cm)`` distances, a per-event minimum by a
+    scatter along the candidates and a sum over the events. Groups are batched in order of
+    their candidate count (little padding) within ``pair_budget`` distances. Distances are
+    ``sqrt(dx * dx + dy * dy)`` in float32 with separate IEEE operations, so every value is
+    the same whatever the batch layout or device.
+    """
     dev = c_flow.device
     n_h = h_idx.numel()
     cost = torch.zeros(n_h, dtype=torch.int64, device=dev)
     if n_h == 0:
         return cost
-    per_h = counts[h_group]
-    cum = torch.cumsum(per_h, 0)
-    cum_host = cum.cpu()
+    del ev_start  # events are addressed by their index within the group (c_local_ev)
+    grp, h_per = torch.unique_consecutive(h_group, return_counts=True)
+    h_first = torch.cumsum(h_per, 0) - h_per
+    order = torch.argsort(counts[grp], stable=True)
+    sizes_c = counts[grp][order].tolist()
+    sizes_h = h_per[order].tolist()
+    sizes_e = ev_per_group[grp][order].tolist()
+    n_g = len(sizes_c)
     start = 0
-    while start < n_h:
-        # largest batch of hypotheses within the pair budget (at least one)
-        base = int(cum_host[start - 1]) if start else 0
-        stop = int(torch.searchsorted(cum_host, torch.tensor([base + pair_budget]),
-                                      right=True)[0])
-        stop = min(n_h, max(stop, start + 1))
-        hb = torch.arange(start, stop, device=dev)
-        cnt = per_h[start:stop]
-        pair_h = torch.repeat_interleave(hb - start, cnt)
-        offs = torch.cumsum(cnt, 0) - cnt
-        within = torch.arange(pair_h.numel(), device=dev) - offs[pair_h]
-        g = h_group[start:stop]
-        pair_c = c_start[g][pair_h] + within
-        d = (c_flow[h_idx[start:stop]][pair_h] - c_flow[pair_c]).norm(dim=1)
-        q = torch.round(d.to(torch.float64) * COST_SCALE).to(torch.int64)
-        e_cnt = ev_per_group[g]
-        e_base = torch.cumsum(e_cnt, 0) - e_cnt
-        slots = torch.full((int(e_cnt.sum()),), torch.iinfo(torch.int64).max,
-                           dtype=torch.int64, device=dev)
-        slots.scatter_reduce_(0, e_base[pair_h] + c_local_ev[pair_c], q, "amin")
-        slot_h = torch.repeat_interleave(torch.arange(stop - start, device=dev), e_cnt)
-        part = torch.zeros(stop - start, dtype=torch.int64, device=dev)
-        part.index_add_(0, slot_h, slots)
-        cost[start:stop] = part
+    while start < n_g:
+        # greedy batch: as many groups (by candidate count) as the budget allows, at least one
+        stop, cm, hm = start + 1, sizes_c[start], sizes_h[start]
+        while stop < n_g:
+            c2, h2 = max(cm, sizes_c[stop]), max(hm, sizes_h[stop])
+            if (stop + 1 - start) * c2 * h2 > pair_budget:
+                break
+            cm, hm, stop = c2, h2, stop + 1
+        em = max(sizes_e[start:stop])
+        sel = order[start:stop]
+        g = grp[sel]
+        n_b = stop - start
+        ar_c = torch.arange(cm, device=dev)
+        c_valid = ar_c < counts[g][:, None]
+        c_i = torch.where(c_valid, c_start[g][:, None] + ar_c, 0)
+        c_f = c_flow[c_i]
+        c_ev = torch.where(c_valid, c_local_ev[c_i], em)  # padding -> a dummy event slot
+        ar_h = torch.arange(hm, device=dev)
+        h_valid = ar_h < h_per[sel][:, None]
+        h_pos = torch.where(h_valid, h_first[sel][:, None] + ar_h, 0)
+        h_f = c_flow[h_idx[h_pos]]
+        dx = h_f[:, :, None, 0] - c_f[:, None, :, 0]
+        dy = h_f[:, :, None, 1] - c_f[:, None, :, 1]
+        dist = torch.sqrt(dx * dx + dy * dy)
+        q = torch.round(dist * COST_SCALE).clamp_max(float(_Q_MAX)).to(torch.int32)
+        mins = torch.full((n_b, hm, em + 1), _Q_MAX, dtype=torch.int32, device=dev)
+        mins.scatter_reduce_(2, c_ev[:, None, :].expand(n_b, hm, cm), q, "amin")
+        e_valid = torch.arange(em, device=dev) < ev_per_group[g][:, None]
+        part = torch.where(e_valid[:, None, :], mins[:, :, :em], 0).sum(2, dtype=torch.int64)
+        cost[h_pos[h_valid]] = part[h_valid]
         start = stop
     return cost
