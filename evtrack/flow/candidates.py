@@ -40,6 +40,8 @@ __all__ = ["Candidates", "CandidateSearch", "pass_bounds", "pass_starts", "NEVER
 
 NEVER_US = -(1 << 62)
 """Timestamp (µs) of the previous event of a cell that has none."""
+_TABLE_MAX = 1 << 22
+"""Largest ``hi_max`` (µs) for which the tolerance interval is tabulated (2 x 16 MiB)."""
 
 
 @dataclass
@@ -166,14 +168,14 @@ class CandidateSearch:
         bounds = dt_bounds_us(offsets, config.min_speed, config.max_speed)
         self.dt_lo32 = torch.as_tensor(bounds[:, 0], dtype=torch.int32, device=dev)
         self.dt_hi32 = torch.as_tensor(bounds[:, 1], dtype=torch.int32, device=dev)
-        self.dt_lo64 = self.dt_lo32.to(torch.int64)
-        self.dt_hi64 = self.dt_hi32.to(torch.int64)
         # e_j precedes e_i's match: t_k - t_j < t_k - t_i <= hi
         self.dt_hi_j = self.dt_hi32[None, :, None]
         # 2 d * 1e6, the numerator of the candidate flow (px * µs / s).
         self.flow_num = (2.0 * US_PER_S) * self.offsets.to(torch.float32)
         self.tol_abs = int(config.tolerance_us) * 1000
         self.tol_rel = config.tolerance_permille
+        self.hi_max = int(bounds[:, 1].max()) if len(bounds) else 0
+        self._tol_tables = self._tolerance_tables() if self.hi_max < _TABLE_MAX else None
 
     def reset(self) -> None:
         """Forget every event seen."""
@@ -254,7 +256,7 @@ class CandidateSearch:
             else:  # rank among the pass's events of the cell
                 in_rank = rank[sl] - self._consumed[cell[sl]]
             newest = next_same[sl] >= stop
-            hist.open_pass(cell[sl], in_rank, pos[sl])
+            hist.open_pass(cell[sl], in_rank, pos[sl], t_rel)
             for b0 in range(start, stop, self.block_size):
                 b1 = min(stop, b0 + self.block_size)
                 parts.append(self._block(pos[b0:b1], cell[b0:b1], t_rel, seq))
@@ -345,31 +347,51 @@ class CandidateSearch:
                           seq_i=hist.lookup_seq(c_cell - self.i_cell[off_c], c_pos, ai, seq),
                           dt_us=dt, flow=flow)
 
+    def _tolerance_tables(self) -> tuple[Tensor, Tensor]:
+        """:meth:`_dt_ki_bounds`' interval for every ``t_k - t_j`` in ``[0, hi_max]``
+        (int32, capped at ``hi_max + 1``), so that a block looks it up instead of dividing."""
+        a = torch.arange(self.hi_max + 1, dtype=torch.int64, device=self.device)
+        lo, hi = self._tolerance_interval(a)
+        cap = self.hi_max + 1
+        return lo.clamp_max(cap).to(torch.int32), hi.clamp_max(cap).to(torch.int32)
+
+    def _tolerance_interval(self, a: Tensor) -> tuple[Tensor, Tensor]:
+        """int64 ``[max(ceil((2000 a - A) / (1000 + r)), a + 1), floor((2000 a + A) /
+        (1000 - r))]`` (see :meth:`_dt_ki_bounds`); the upper end is ``hi_max + 1`` when
+        ``r >= 1000`` (the relative tolerance then bounds nothing from above)."""
+        lo = -torch.div(self.tol_abs - 2000 * a, 1000 + self.tol_rel, rounding_mode="floor")
+        lo = torch.maximum(lo, a + 1)
+        if self.tol_rel < 1000:
+            hi = torch.div(2000 * a + self.tol_abs, 1000 - self.tol_rel, rounding_mode="floor")
+        else:
+            hi = torch.full_like(a, self.hi_max + 1)
+        return lo, hi
+
     def _dt_ki_bounds(self, dt_kj: Tensor, ok_j: Tensor, off: Tensor) -> tuple[Tensor, Tensor]:
         """The ``t_k - t_i`` that complete a triplet, as an interval per (row, age of e_j).
 
         With ``a = t_k - t_j`` and ``c = t_k - t_i`` (µs), the rule of
         :mod:`evtrack.flow.config` asks ``c >= a + 1`` (``t_j - t_i >= 1``), the speed bounds
         ``lo_d <= c <= hi_d`` and ``1000 |2a - c| <= A + r c`` (``A = 1000 tolerance_us``,
-        ``r`` the per-mille tolerance, ``r < 1000``). The last is exactly
-        ``c (1000 + r) >= 2000 a - A`` and ``c (1000 - r) <= 2000 a + A``, i.e.
+        ``r`` the per-mille tolerance). As ``1000 + r > 0`` and ``1000 - r >= 0``, the last is
+        exactly ``c (1000 + r) >= 2000 a - A`` and ``c (1000 - r) <= 2000 a + A``, i.e.
         ``ceil((2000 a - A) / (1000 + r)) <= c <= floor((2000 a + A) / (1000 - r))``.
 
         Args:
-            dt_kj: (R, K) int32 ``t_k - t_j``; ok_j: (R, K) bool, e_j usable; off: (R,)
-                displacement index.
+            dt_kj: (R, K) int32 ``t_k - t_j``; ok_j: (R, K) bool, e_j usable (then
+                ``1 <= a < hi_d <= hi_max``); off: (R,) displacement index.
 
         Returns:
             ``(lo, hi)``: (R, K) int32 bounds; ``lo > hi`` where e_j is unusable.
         """
-        a2 = 2000 * dt_kj.to(torch.int64)
-        num_lo = a2 - self.tol_abs
-        lo_tol = -torch.div(-num_lo, 1000 + self.tol_rel, rounding_mode="floor")
-        lo = torch.maximum(torch.maximum(lo_tol, dt_kj.to(torch.int64) + 1),
-                           self.dt_lo64[off][:, None])
-        hi = self.dt_hi64[off][:, None].expand_as(lo)
-        if self.tol_rel < 1000:  # (a per-mille tolerance of 1000 bounds nothing from above)
-            hi = torch.minimum(hi, torch.div(a2 + self.tol_abs, 1000 - self.tol_rel,
-                                             rounding_mode="floor"))
+        if self._tol_tables is not None:
+            a = dt_kj.clamp(0, self.hi_max).to(torch.int64)
+            lo_tab, hi_tab = self._tol_tables
+            lo_tol, hi_tol = lo_tab[a], hi_tab[a]
+        else:
+            lo_tol, hi_tol = self._tolerance_interval(dt_kj.clamp(0, self.hi_max)
+                                                      .to(torch.int64))
+        lo = torch.maximum(lo_tol, self.dt_lo32[off][:, None])
+        hi = torch.minimum(hi_tol, self.dt_hi32[off][:, None])
         lo = torch.where(ok_j, lo, hi + 1)
         return lo.to(torch.int32), hi.to(torch.int32)

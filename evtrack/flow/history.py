@@ -10,7 +10,7 @@ The batched search (:mod:`evtrack.flow.candidates`) handles a *pass* of events (
 ``pass_repeats`` (L) events per cell) at once:
 
 1. :meth:`EventHistory.open_pass` records, per cell, the chunk positions of the pass's events
-   (``pass_pos``, oldest first, -1 where unused) without touching the rings;
+   (``pass_pos``, oldest first, ``UNUSED`` elsewhere) without touching the rings;
 2. :meth:`EventHistory.lookup_times` then returns, for each query (a cell and the chunk
    position of the querying event), the K newest events of the cell that precede the query in
    the stream: the cell's pass events before it (newest first), then its ring;
@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["EventHistory", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US"]
+__all__ = ["EventHistory", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US", "UNUSED"]
 
 T_LIMIT = 1 << 29
 """Relative timestamps stay below this (µs); the base moves forward before they reach it."""
@@ -33,6 +33,8 @@ T_KEEP = 1 << 28
 they are beyond any speed bound, see ``FlowConfig``)."""
 MAX_SPAN_US = 1 << 27
 """Longest time span (µs) of the events of one chunk (the search splits longer chunks)."""
+UNUSED = (1 << 31) - 1
+"""``pass_pos`` of a slot without a pass event: after every chunk position."""
 EMPTY_T = -(1 << 30)
 """Relative timestamp of an empty slot: ``t - EMPTY_T`` exceeds every speed bound and still
 fits int32 for ``0 <= t < T_LIMIT``."""
@@ -52,7 +54,8 @@ class EventHistory:
         ring_t: (cells, K) int32 relative timestamps (µs), newest first; ``EMPTY_T`` if unused.
         ring_s: (cells, K) int64 stream indices, newest first; -1 if unused.
         pass_pos: (cells, L) int32 chunk positions of the open pass's events, oldest first;
-            -1 if unused.
+            ``UNUSED`` (larger than any position) elsewhere.
+        pass_t: (cells,) int32 relative time of the open pass's event of the cell (L = 1 only).
         t_base: the base (µs) of the relative timestamps, ``None`` before the first event.
         row: cell-id stride of one row (the padded width).
     """
@@ -71,8 +74,10 @@ class EventHistory:
         self.ring_t = torch.full((self.cells, self.history), EMPTY_T, dtype=torch.int32,
                                  device=dev)
         self.ring_s = torch.full((self.cells, self.history), -1, dtype=torch.int64, device=dev)
-        self.pass_pos = torch.full((self.cells, self.pass_repeats), -1, dtype=torch.int32,
+        self.pass_pos = torch.full((self.cells, self.pass_repeats), UNUSED, dtype=torch.int32,
                                    device=dev)
+        self.pass_t = (torch.zeros(self.cells, dtype=torch.int32, device=dev)
+                       if self.pass_repeats == 1 else None)
         self.t_base: int | None = None
         self._ages = torch.arange(self.history, device=dev)
 
@@ -111,15 +116,18 @@ class EventHistory:
             self.t_base += shift
 
     # ------------------------------------------------------------------ passes
-    def open_pass(self, cell: Tensor, rank: Tensor, pos: Tensor) -> None:
+    def open_pass(self, cell: Tensor, rank: Tensor, pos: Tensor, t: Tensor) -> None:
         """Register the events of a pass (their cells, ranks within the pass, chunk positions).
 
         Args:
             cell: (m,) int64 cell ids; each cell appears at most L times.
             rank: (m,) int64 rank of the event among the pass's events of its cell (0 oldest).
-            pos: (m,) int64 chunk positions, increasing.
+            pos: (m,) int32 chunk positions, increasing.
+            t: (n_chunk,) int32 relative timestamps of the chunk's events (by chunk position).
         """
         self.pass_pos.index_put_((cell, rank), pos.to(torch.int32))
+        if self.pass_t is not None:
+            self.pass_t.index_put_((cell,), t[pos])
 
     def close_pass(self, cell: Tensor, rank: Tensor, t: Tensor, seq: Tensor,
                    newest: Tensor) -> None:
@@ -137,7 +145,7 @@ class EventHistory:
                                           t, seq)
         self.ring_t.index_put_((cells,), t_new)
         self.ring_s.index_put_((cells,), s_new)
-        self.pass_pos.index_put_((cell, rank), torch.full_like(rank, -1, dtype=torch.int32))
+        self.pass_pos.index_put_((cell, rank), torch.full_like(rank, UNUSED, dtype=torch.int32))
 
     def _newest_first(self, cell: Tensor, count: Tensor, idx: Tensor, t: Tensor | None,
                       seq: Tensor | None) -> tuple[Tensor | None, Tensor | None]:
@@ -149,7 +157,8 @@ class EventHistory:
         from_pass = idx < count
         ring_slot = (idx - count).clamp(0, self.history - 1)
         pass_slot = (count - 1 - idx).clamp(0, self.pass_repeats - 1)
-        pos = self.pass_pos[cell].gather(1, pass_slot).clamp_min(0).to(torch.int64)
+        pos = self.pass_pos[cell].gather(1, pass_slot)
+        pos = torch.where(from_pass, pos, 0).to(torch.int64)
         times = indices = None
         if t is not None:
             times = torch.where(from_pass, t[pos], self.ring_t[cell].gather(1, ring_slot))
@@ -170,15 +179,14 @@ class EventHistory:
             (Q, K) int32 relative times, ``EMPTY_T`` where the cell holds fewer events.
         """
         if self.pass_repeats == 1:
-            pp = self.pass_pos.view(-1)[cell]
-            visible = (pp >= 0) & (pp < pos)
+            visible = self.pass_pos.view(-1)[cell] < pos  # (UNUSED never is)
             rows = self.ring_t[cell]
-            newest = t[pp.clamp_min(0).to(torch.int64)][:, None]
+            newest = self.pass_t[cell][:, None]
             shifted = torch.cat([newest, rows[:, :-1]], 1) if self.history > 1 else newest
             return torch.where(visible[:, None], shifted, rows)
         pp = self.pass_pos[cell]
-        count = (pp >= 0).sum(1)
-        skip = (pp >= pos[:, None]).sum(1)
+        count = (pp != UNUSED).sum(1)
+        skip = count - (pp < pos[:, None]).sum(1)
         times, _ = self._newest_first(cell, count, skip[:, None] + self._ages, t, None)
         return times
 
@@ -192,8 +200,8 @@ class EventHistory:
             seq: (n_chunk,) int64 stream indices of the chunk's events.
         """
         pp = self.pass_pos[cell]
-        count = (pp >= 0).sum(1)
-        skip = (pp >= pos[:, None]).sum(1)
+        count = (pp != UNUSED).sum(1)
+        skip = count - (pp < pos[:, None]).sum(1)
         _, indices = self._newest_first(cell, count, (skip + age)[:, None], None, seq)
         return indices[:, 0]
 

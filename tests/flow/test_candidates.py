@@ -107,6 +107,24 @@ def test_long_streams_move_the_time_base_without_changing_the_result(repeats):
     _assert_same(got, ref)
 
 
+@pytest.mark.parametrize("tabulated", [True, False])
+@pytest.mark.parametrize("tolerance_rel", [0.1, 0.9997])  # 0.9997: 1000 per mille
+def test_tolerance_interval_equals_reference(monkeypatch, tabulated, tolerance_rel):
+    import evtrack.flow.candidates as candidates
+
+    if not tabulated:
+        monkeypatch.setattr(candidates, "_TABLE_MAX", 0)
+    x, y, t, p = _structured_stream(1500)
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=400, refractory_us=0,
+                     tolerance_rel=tolerance_rel, tolerance_us=3)
+    search = CandidateSearch(cfg)
+    assert (search._tol_tables is not None) == tabulated
+    got = search(x, y, t, p)
+    ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
+    assert len(ref) > 100
+    _assert_same(got, ref)
+
+
 def test_streaming_calls_equal_one_call():
     x, y, t, p = _structured_stream(2000)
     cfg = FlowConfig(sensor_size=(40, 30), refractory_us=0, chunk_size=97)
