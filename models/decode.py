@@ -40,6 +40,10 @@ __all__ = [
 ]
 
 
+_MIN_KEYPOINT_SPREAD_PX = 1.0
+"""Keypoints spread over less than this (pixels, either axis) give no pose."""
+
+
 @dataclass(frozen=True)
 class DecodeConfig:
     """How belief maps and affinity fields become poses.
@@ -225,30 +229,41 @@ def solve_pose(
     img = np.ascontiguousarray(instance.keypoints[mask].astype(np.float64))
     used = np.ones(n, dtype=bool)
     starts: list[tuple[np.ndarray, np.ndarray]] = []
-    if cfg.ransac and n >= 6:
-        ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-            obj, img, K, dist, iterationsCount=cfg.ransac_iterations,
-            reprojectionError=cfg.ransac_reprojection_px, flags=cv2.SOLVEPNP_EPNP,
-        )
-        if ok and inliers is not None and len(inliers) >= cfg.min_points:
-            used = np.zeros(n, dtype=bool)
-            used[inliers.reshape(-1)] = True
-            starts.append((rvec, tvec))
-    else:
-        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_EPNP)
+    if np.ptp(img, axis=0).max() < _MIN_KEYPOINT_SPREAD_PX:
+        return None  # every keypoint on (nearly) one pixel: no pose, and OpenCV's solvers assert
+    try:
+        if cfg.ransac and n >= 6:
+            ok, rvec, tvec, inliers = cv2.solvePnPRansac(
+                obj, img, K, dist, iterationsCount=cfg.ransac_iterations,
+                reprojectionError=cfg.ransac_reprojection_px, flags=cv2.SOLVEPNP_EPNP,
+            )
+            if ok and inliers is not None and len(inliers) >= cfg.min_points:
+                used = np.zeros(n, dtype=bool)
+                used[inliers.reshape(-1)] = True
+                starts.append((rvec, tvec))
+        else:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_EPNP)
+            if ok:
+                starts.append((rvec, tvec))
+    except cv2.error:
+        pass  # a degenerate configuration: the SQPnP start below may still succeed
+    obj_u, img_u = obj[used], img[used]
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj_u, img_u, K, dist, flags=cv2.SOLVEPNP_SQPNP)
         if ok:
             starts.append((rvec, tvec))
-    obj_u, img_u = obj[used], img[used]
-    ok, rvec, tvec = cv2.solvePnP(obj_u, img_u, K, dist, flags=cv2.SOLVEPNP_SQPNP)
-    if ok:
-        starts.append((rvec, tvec))
+    except cv2.error:
+        pass  # SQPnP asserts on (nearly) collinear or coincident points
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     for rvec, tvec in starts:
         rvec, tvec = rvec.astype(np.float64).copy(), tvec.astype(np.float64).copy()
         if not (np.all(np.isfinite(rvec)) and np.all(np.isfinite(tvec))):
             continue
         if cfg.refine == "lm":
-            rvec, tvec = cv2.solvePnPRefineLM(obj_u, img_u, K, dist, rvec, tvec)
+            try:
+                rvec, tvec = cv2.solvePnPRefineLM(obj_u, img_u, K, dist, rvec, tvec)
+            except cv2.error:
+                continue
         if not _in_front(cuboid.points(), rvec, tvec):
             continue
         err = _reprojection_rms(obj_u, img_u, rvec, tvec, K, dist)

@@ -17,6 +17,7 @@ from evtrack.train.augment import (
     Compose,
     GaussianNoise,
     MotionBlur,
+    RandomCrop,
     RandomOcclusion,
     RandomScale,
 )
@@ -59,6 +60,7 @@ __all__ = [
     "PoseLightningModule",
     "PoseSample",
     "RandomOcclusion",
+    "RandomCrop",
     "RandomScale",
     "SampleSource",
     "ShardError",

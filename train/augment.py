@@ -1,4 +1,4 @@
-"""Domain randomisation applied to samples: colour jitter, motion blur, noise, scale, occlusion.
+"""Domain randomisation of samples: crop, colour jitter, motion blur, noise, scale, occlusion.
 
 Backgrounds, lighting and distractor objects belong to the image source (the renderer);
 these transforms perturb a finished image. Each is a frozen dataclass whose ``__call__(sample,
@@ -22,6 +22,7 @@ __all__ = [
     "ColorJitter",
     "MotionBlur",
     "GaussianNoise",
+    "RandomCrop",
     "RandomScale",
     "RandomOcclusion",
     "Compose",
@@ -89,6 +90,67 @@ class GaussianNoise:
         sigma = rng.uniform(0, self.max_sigma)
         noisy = sample.image.astype(np.float32) + rng.normal(0, sigma, sample.image.shape)
         return sample.replace(image=np.clip(noisy + 0.5, 0, 255).astype(np.uint8))
+
+
+@dataclass(frozen=True)
+class RandomCrop:
+    """Cut a fixed-size window, usually around an object instance; keypoints and ``K`` follow.
+
+    Training on crops spends the compute on the pixels that carry the object: a 160x160 crop of
+    a 320x240 render costs a third of the full frame, and the fully convolutional network still
+    runs on whole frames at inference. The crop always happens (every training image gets the
+    crop size, so batches stack); validation images are never augmented and stay whole.
+
+    With probability ``object_p`` the window is placed so that the centroid of a random instance
+    lands within ``max_offset`` (a fraction of the crop side) of the window's centre; otherwise
+    (or when no instance has a known centroid) the window is placed uniformly. Parts of the
+    window outside the image are filled with a random flat colour.
+
+    Attributes:
+        size: ``(height, width)`` of the crop in pixels, multiples of 8.
+        object_p: probability of centring on an instance.
+        max_offset: largest offset of the instance centroid from the crop centre, fraction of the
+            crop side.
+    """
+
+    size: tuple[int, int] = (160, 160)
+    object_p: float = 0.85
+    max_offset: float = 0.3
+
+    def __post_init__(self) -> None:
+        h, w = (int(v) for v in self.size)
+        if h <= 0 or w <= 0 or h % 8 or w % 8:
+            raise ConfigError(f"data.augment.crop.size must be positive multiples of 8, got "
+                              f"{self.size}")
+        if not 0.0 <= self.object_p <= 1.0:
+            raise ConfigError(f"data.augment.crop.object_p must be in [0, 1], got {self.object_p}")
+        if self.max_offset < 0:
+            raise ConfigError(f"data.augment.crop.max_offset must be >= 0, got {self.max_offset}")
+
+    def __call__(self, sample: PoseSample, rng: np.random.Generator) -> PoseSample:
+        ch, cw = (int(v) for v in self.size)
+        h, w = sample.image.shape[:2]
+        centroids = sample.keypoints[:, -1, :] if sample.num_instances else np.zeros((0, 2))
+        known = np.flatnonzero(np.isfinite(centroids).all(axis=1))
+        if known.size and rng.random() < self.object_p:
+            c = centroids[int(rng.choice(known))].astype(np.float64)
+            off = rng.uniform(-self.max_offset, self.max_offset, 2) * (cw, ch)
+            x0 = int(round(c[0] + off[0] - cw / 2))
+            y0 = int(round(c[1] + off[1] - ch / 2))
+        else:
+            x0 = int(rng.integers(min(0, w - cw), max(0, w - cw) + 1))
+            y0 = int(rng.integers(min(0, h - ch), max(0, h - ch) + 1))
+        fill = rng.integers(0, 256, 3).astype(np.uint8)
+        out = np.empty((ch, cw, 3), np.uint8)
+        out[:] = fill
+        sx0, sy0 = max(x0, 0), max(y0, 0)
+        sx1, sy1 = min(x0 + cw, w), min(y0 + ch, h)
+        if sx1 > sx0 and sy1 > sy0:
+            out[sy0 - y0:sy1 - y0, sx0 - x0:sx1 - x0] = sample.image[sy0:sy1, sx0:sx1]
+        shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
+        K = shift @ np.asarray(sample.K, dtype=np.float64)
+        kps = (sample.keypoints.astype(np.float64) - (x0, y0)).astype(np.float32)
+        return sample.replace(image=out, K=K, keypoints=kps)
 
 
 @dataclass(frozen=True)
@@ -160,6 +222,7 @@ class Compose:
 
 
 _SECTIONS: dict[str, type] = {
+    "crop": RandomCrop,
     "scale": RandomScale,
     "color": ColorJitter,
     "occlusion": RandomOcclusion,
@@ -170,13 +233,14 @@ _SECTIONS: dict[str, type] = {
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    """Which transforms run (in this order: scale, colour, occlusion, motion blur, noise).
+    """Which transforms run (in this order: crop, scale, colour, occlusion, motion blur, noise).
 
     Each section is ``None`` (off) or the transform's parameters; ``enabled: false`` turns
-    everything off (validation data is never augmented).
+    everything off (validation data is never augmented). ``crop`` is off by default.
     """
 
     enabled: bool = True
+    crop: RandomCrop | None = None
     scale: RandomScale | None = field(default_factory=RandomScale)
     color: ColorJitter | None = field(default_factory=ColorJitter)
     occlusion: RandomOcclusion | None = field(default_factory=RandomOcclusion)

@@ -229,7 +229,7 @@ class PoseDataModule(L.LightningDataModule):
             parts.append(f"val: {self.val_source.description}")
         aug = self.config.augment
         if isinstance(aug, AugmentConfig):
-            on = [n for n in ("scale", "color", "occlusion", "motion_blur", "noise")
+            on = [n for n in ("crop", "scale", "color", "occlusion", "motion_blur", "noise")
                   if aug.enabled and getattr(aug, n) is not None]
             parts.append(f"augmentation: {', '.join(on) or 'none'}")
         return "; ".join(p for p in parts if p)

@@ -237,3 +237,16 @@ def test_strongest_peak_of_a_channel_wins_within_an_instance():
     (det,) = decode_poses(belief, affinity, CUBOID, K)
     np.testing.assert_allclose(det.keypoints[0].numpy(), kp[0], atol=0.05)
     assert_pose_close(det, truth)
+
+
+@pytest.mark.parametrize("ransac", [False, True])
+def test_degenerate_keypoints_give_no_pose_instead_of_an_opencv_error(ransac):
+    from evtrack.models.decode import InstanceKeypoints, solve_pose
+
+    cfg = DecodeConfig(ransac=ransac, min_confidence=0.0)
+    same = InstanceKeypoints(np.full((9, 2), (200.0, 150.0)), np.ones(9))
+    assert solve_pose(same, CUBOID, K, config=cfg) is None
+    # all on one image line: SQPnP asserts on it; the solver must not raise whatever it finds
+    line = np.stack([np.linspace(100.0, 300.0, 9), np.full(9, 150.0)], axis=1)
+    det = solve_pose(InstanceKeypoints(line, np.ones(9)), CUBOID, K, config=cfg)
+    assert det is None or np.isfinite(det.pose.numpy()).all()

@@ -13,6 +13,7 @@ from evtrack.train import (
     CuboidSourceOptions,
     GaussianNoise,
     MotionBlur,
+    RandomCrop,
     RandomOcclusion,
     RandomScale,
     SyntheticCuboidSource,
@@ -85,3 +86,55 @@ def test_config_from_dict():
         AugmentConfig.from_dict({"blur": {}})
     with pytest.raises(ConfigError, match=r"data.augment.noise: unknown field"):
         AugmentConfig.from_dict({"noise": {"sigma": 3}})
+
+
+def test_crop_keeps_keypoints_projections_and_content(sample):
+    before = sample.image.copy()
+    crop = RandomCrop(size=(48, 64), object_p=1.0, max_offset=0.0)
+    out = crop(sample, np.random.default_rng(1))
+    np.testing.assert_array_equal(sample.image, before)
+    out.check()
+    assert out.image.shape == (48, 64, 3)
+    np.testing.assert_allclose(out.keypoints, reprojection(out), atol=1e-3)
+    # with no offset the instance's centroid lands on the crop centre (to the rounding)
+    np.testing.assert_allclose(out.keypoints[0, -1], (32, 24), atol=0.51)
+    # pixels inside the source image are the source's own pixels, moved by the crop origin
+    x0 = int(round(sample.keypoints[0, -1, 0] - 32))
+    y0 = int(round(sample.keypoints[0, -1, 1] - 24))
+    for v, u in [(10, 10), (30, 50), (47, 63)]:
+        sv, su = v + y0, u + x0
+        if 0 <= sv < 96 and 0 <= su < 128:
+            np.testing.assert_array_equal(out.image[v, u], sample.image[sv, su])
+    again = crop(sample, np.random.default_rng(1))
+    np.testing.assert_array_equal(out.image, again.image)
+
+
+def test_crop_outside_the_image_is_filled_and_uniform_crops_stay_inside():
+    from evtrack.train import PoseSample
+
+    img = np.full((40, 48, 3), 7, np.uint8)
+    kp = np.full((1, 9, 2), (1.0, 1.0), np.float32)  # centroid at the top-left corner
+    s = PoseSample(img, np.eye(3), np.eye(4)[None], kp)
+    out = RandomCrop(size=(32, 32), object_p=1.0, max_offset=0.0)(s, np.random.default_rng(0))
+    assert out.image.shape == (32, 32, 3)
+    assert (out.image[-1, -1] == 7).all()  # bottom-right of the crop is inside the image
+    fill = out.image[0, 0]
+    assert (out.image[:10, :10] == fill).all()  # top-left is the flat fill colour
+    np.testing.assert_allclose(out.keypoints[0, -1], (16, 16), atol=0.51)
+    # no instance: a uniform crop, always entirely inside an image larger than the crop
+    empty = PoseSample(img, np.eye(3), np.zeros((0, 4, 4)), np.zeros((0, 9, 2), np.float32))
+    for seed in range(20):
+        o = RandomCrop(size=(32, 32))(empty, np.random.default_rng(seed))
+        assert (o.image == 7).all() and o.K[0, 2] <= 0 and o.K[0, 2] >= -16
+
+
+def test_crop_config_is_validated_and_runs_first():
+    cfg = AugmentConfig.from_dict({"crop": {"size": [160, 160]}, "noise": None})
+    assert cfg.crop == RandomCrop(size=(160, 160))
+    assert type(cfg.build().transforms[0]).__name__ == "RandomCrop"
+    assert AugmentConfig().crop is None
+    assert AugmentConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ConfigError, match="crop.size"):
+        RandomCrop(size=(100, 160))
+    with pytest.raises(ConfigError, match="object_p"):
+        RandomCrop(object_p=1.5)
