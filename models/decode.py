@@ -11,6 +11,11 @@
 3. PnP with OpenCV on the instance's keypoints and the object's cuboid: EPnP (inside RANSAC
    when asked) and SQPnP as a second start, each refined with Levenberg-Marquardt; the
    solution with the smaller reprojection error is kept.
+   With ``correspondence="search"`` the corner identities come from a search instead
+   (:mod:`evtrack.models.pose_search`): the instance's corner peaks of *every* corner map are
+   pooled, poses are hypothesised from pairs of them and the centroid, and the pose whose
+   projected corners the maps support best is refined on the nearest pooled points. Use it
+   for networks that localise corners better than they name them.
 4. ``confidence = mean over the 9 keypoints of the clipped peak value (0 if missing)
    * exp(-0.5 * (rms_reprojection_px / reprojection_scale_px)^2)``.
 """
@@ -28,7 +33,14 @@ from torch import Tensor
 
 from evtrack.errors import ConfigError
 from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
-from evtrack.models.keypoints import SUBPIXEL_METHODS, find_peaks, grid_to_pixel, sample_bilinear
+from evtrack.models.keypoints import (
+    SUBPIXEL_METHODS,
+    find_peaks,
+    grid_to_pixel,
+    pixel_to_grid,
+    sample_bilinear,
+)
+from evtrack.models.pose_search import merge_points, search_pose
 
 __all__ = [
     "DecodeConfig",
@@ -36,6 +48,7 @@ __all__ = [
     "InstanceKeypoints",
     "extract_instances",
     "solve_pose",
+    "search_instance",
     "decode_poses",
 ]
 
@@ -64,6 +77,14 @@ class DecodeConfig:
         reprojection_scale_px: reprojection RMS at which the confidence falls by exp(-1/2).
         min_confidence: detections below this confidence are dropped.
         max_instances: at most this many centroid peaks (the strongest) are decoded.
+        correspondence: ``"strongest"`` (each corner takes its map's strongest peak) or
+            ``"search"`` (pose search over corner identities; see the module docstring).
+        search_identity_weight: weight of a corner's own map against the best of all corner
+            maps in the search's score, in [0, 1].
+        search_max_points: the search hypothesises from at most this many pooled corner points.
+        search_merge_cells: pooled corner points closer than this (cells) are merged.
+        search_gate_cells: after the search, a projected corner takes the nearest pooled point
+            within this distance (cells) for the refinement.
     """
 
     peak_threshold: float = 0.1
@@ -79,8 +100,22 @@ class DecodeConfig:
     reprojection_scale_px: float = 8.0
     min_confidence: float = 0.0
     max_instances: int = 16
+    correspondence: str = "strongest"
+    search_identity_weight: float = 0.5
+    search_max_points: int = 8
+    search_merge_cells: float = 1.0
+    search_gate_cells: float = 1.5
 
     def __post_init__(self) -> None:
+        if self.correspondence not in ("strongest", "search"):
+            raise ConfigError(f"decode.correspondence must be 'strongest' or 'search', got "
+                              f"{self.correspondence!r}")
+        if not 0.0 <= self.search_identity_weight <= 1.0:
+            raise ConfigError("decode.search_identity_weight must be in [0, 1], got "
+                              f"{self.search_identity_weight}")
+        if self.search_max_points < 2:
+            raise ConfigError(f"decode.search_max_points must be >= 2, got "
+                              f"{self.search_max_points}")
         if self.subpixel not in SUBPIXEL_METHODS:
             raise ConfigError(f"decode.subpixel must be one of {SUBPIXEL_METHODS}")
         if self.refine not in ("lm", "none"):
@@ -128,10 +163,15 @@ class PoseDetection:
 
 @dataclass
 class InstanceKeypoints:
-    """Keypoints of one instance before PnP: (9, 2) pixels (NaN missing) and (9,) scores."""
+    """Keypoints of one instance before PnP: (9, 2) pixels (NaN missing) and (9,) scores.
+
+    ``candidates`` (N, 4) ``(x, y, score, corner map)`` holds every corner peak that joined the
+    instance, pixels (the pose search pools them).
+    """
 
     keypoints: np.ndarray
     scores: np.ndarray
+    candidates: np.ndarray | None = None
 
 
 def extract_instances(
@@ -166,6 +206,7 @@ def extract_instances(
     kp[:, CENTROID_INDEX] = centroids[:, :2]
     sc[:, CENTROID_INDEX] = centroids[:, 2]
     max_angle = math.radians(cfg.max_angle_deg)
+    joined: list[list[tuple[float, float, float, int]]] = [[] for _ in range(m)]
     for k in range(NUM_KEYPOINTS - 1):
         best_angle = np.full(m, np.inf)
         for x, y, score in peaks[k]:
@@ -180,13 +221,20 @@ def extract_instances(
             cos = np.where(d_norm < 1e-9, 1.0, cos)  # a corner on its centroid agrees with any
             angle = np.arccos(np.clip(cos, -1.0, 1.0))
             j = int(np.argmin(angle))
+            if angle[j] <= max_angle:
+                joined[j].append((x, y, score, k))
             better = score > sc[j, k] or (score == sc[j, k] and angle[j] < best_angle[j])
             if angle[j] <= max_angle and better:
                 best_angle[j] = angle[j]
                 kp[j, k] = (x, y)
                 sc[j, k] = score
     kp = grid_to_pixel(kp, stride)
-    return [InstanceKeypoints(kp[i], sc[i]) for i in range(m)]
+    out = []
+    for i in range(m):
+        cand = np.array(joined[i], dtype=np.float64).reshape(-1, 4)
+        cand[:, :2] = grid_to_pixel(cand[:, :2], stride)
+        out.append(InstanceKeypoints(kp[i], sc[i], cand))
+    return out
 
 
 def _reprojection_rms(
@@ -291,6 +339,102 @@ def solve_pose(
     )
 
 
+def search_instance(
+    instance: InstanceKeypoints,
+    belief: np.ndarray,
+    cuboid: Cuboid,
+    K: np.ndarray,
+    dist: np.ndarray | None = None,
+    *,
+    stride: int = 8,
+    config: DecodeConfig | None = None,
+    pixel_scale: float | tuple[float, float] | np.ndarray = 1.0,
+    object_name: str = "",
+) -> PoseDetection | None:
+    """Pose of one instance by the search over corner identities, then LM refinement.
+
+    Args:
+        instance: keypoints and pooled ``candidates`` in pixels of the image ``K`` describes.
+        belief: (9, h, w) the maps the instance came from.
+        cuboid, K, dist: as in :func:`solve_pose`.
+        stride: network output stride; pixel_scale: the network input was the image resized by
+            this factor (per axis).
+
+    Returns:
+        The detection, or ``None`` (no centroid, fewer than two corner peaks, no hypothesis,
+        or fewer than ``min_points`` keypoints matched after the search).
+    """
+    cfg = config or DecodeConfig()
+    scale = np.broadcast_to(np.asarray(pixel_scale, dtype=np.float64), (2,))
+    centroid = instance.keypoints[CENTROID_INDEX]
+    cand = instance.candidates
+    if cand is None or not np.all(np.isfinite(centroid)):
+        return None
+    cell_px = stride / float(scale.min())  # one cell in pixels of K's image (the larger axis)
+    points = merge_points(cand[:, :3], cfg.search_merge_cells * cell_px)
+    K = np.asarray(K, dtype=np.float64)
+    dist = None if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
+
+    def to_grid(uv: np.ndarray) -> np.ndarray:
+        return pixel_to_grid((uv + 0.5) * scale - 0.5, stride)
+
+    found = search_pose(points, centroid, belief, cuboid, K, dist, to_grid,
+                        identity_weight=cfg.search_identity_weight,
+                        max_points=cfg.search_max_points)
+    if found is None:
+        return None
+    obj = cuboid.points()
+    uv, _ = cv2.projectPoints(obj, found.rvec, found.tvec, K, dist)
+    uv = uv.reshape(-1, 2)
+    keypoints = np.full((NUM_KEYPOINTS, 2), np.nan)
+    scores = np.zeros(NUM_KEYPOINTS)
+    keypoints[CENTROID_INDEX] = centroid
+    scores[CENTROID_INDEX] = instance.scores[CENTROID_INDEX]
+    gate = cfg.search_gate_cells * cell_px
+    dists = np.linalg.norm(uv[:CENTROID_INDEX, None, :] - points[None, :, :2], axis=2)
+    taken = np.zeros(len(points), dtype=bool)
+    for c in np.argsort(dists.min(axis=1), kind="stable"):
+        # corners nearest to a point choose first; each point serves one corner
+        d = np.where(taken, np.inf, dists[c])
+        j = int(np.argmin(d))
+        if d[j] <= gate:
+            taken[j] = True
+            keypoints[c] = points[j, :2]
+            scores[c] = points[j, 2]
+    mask = np.all(np.isfinite(keypoints), axis=1)
+    if int(mask.sum()) < cfg.min_points:
+        return None
+    obj_u = np.ascontiguousarray(obj[mask])
+    img_u = np.ascontiguousarray(keypoints[mask])
+    rvec, tvec = found.rvec.copy(), found.tvec.copy()
+    if cfg.refine == "lm":
+        try:
+            rvec, tvec = cv2.solvePnPRefineLM(obj_u, img_u, K, dist, rvec, tvec)
+        except cv2.error:
+            rvec, tvec = found.rvec.copy(), found.tvec.copy()
+    if not _in_front(obj, rvec, tvec):
+        return None
+    err = _reprojection_rms(obj_u, img_u, rvec, tvec, K, dist)
+    if not np.isfinite(err):
+        return None
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(rvec)[0]
+    pose[:3, 3] = tvec.reshape(3)
+    confidence = float(np.clip(scores, 0.0, 1.0).mean()
+                       * math.exp(-0.5 * (err / cfg.reprojection_scale_px) ** 2))
+    if confidence < cfg.min_confidence:
+        return None
+    return PoseDetection(
+        pose=torch.from_numpy(pose),
+        confidence=confidence,
+        keypoints=torch.from_numpy(keypoints),
+        keypoint_scores=torch.from_numpy(scores),
+        reprojection_error_px=err,
+        num_points=int(mask.sum()),
+        object_name=object_name,
+    )
+
+
 def decode_poses(
     belief: np.ndarray,
     affinity: np.ndarray,
@@ -318,8 +462,16 @@ def decode_poses(
     out = []
     for inst in extract_instances(belief, affinity, stride, cfg):
         if np.any(scale != 1.0):
-            inst = InstanceKeypoints((inst.keypoints + 0.5) / scale - 0.5, inst.scores)
-        det = solve_pose(inst, cuboid, K, dist, cfg, object_name)
+            cand = None
+            if inst.candidates is not None:
+                cand = inst.candidates.copy()
+                cand[:, :2] = (cand[:, :2] + 0.5) / scale - 0.5
+            inst = InstanceKeypoints((inst.keypoints + 0.5) / scale - 0.5, inst.scores, cand)
+        if cfg.correspondence == "search":
+            det = search_instance(inst, belief, cuboid, K, dist, stride=stride, config=cfg,
+                                  pixel_scale=scale, object_name=object_name)
+        else:
+            det = solve_pose(inst, cuboid, K, dist, cfg, object_name)
         if det is not None:
             out.append(det)
     out.sort(key=lambda d: -d.confidence)
