@@ -256,10 +256,11 @@ class CandidateSearch:
             else:  # rank among the pass's events of the cell
                 in_rank = rank[sl] - self._consumed[cell[sl]]
             newest = next_same[sl] >= stop
-            hist.open_pass(cell[sl], in_rank, pos[sl], t_rel)
+            hist.open_pass(cell[sl], in_rank, pos[sl], t_rel, seq)
+            block = self._block_slots if self.config.pass_repeats == 1 else self._block
             for b0 in range(start, stop, self.block_size):
                 b1 = min(stop, b0 + self.block_size)
-                parts.append(self._block(pos[b0:b1], cell[b0:b1], t_rel, seq))
+                parts.append(block(pos[b0:b1], cell[b0:b1], t_rel, seq))
             hist.close_pass(cell[sl], in_rank, t_rel, seq, newest)
             if self._consumed is not None:
                 self._consumed.index_put_((cell[sl][newest],), rank[sl][newest] + 1)
@@ -347,12 +348,105 @@ class CandidateSearch:
                           seq_i=hist.lookup_seq(c_cell - self.i_cell[off_c], c_pos, ai, seq),
                           dt_us=dt, flow=flow)
 
+    def _block_slots(self, pos: Tensor, cell: Tensor, t_rel: Tensor, seq: Tensor) -> Candidates:
+        """:meth:`_block` for ``pass_repeats == 1``, on the K + 1 slots of each cell.
+
+        Every lookup is one gather of a cell's slot row (see :mod:`evtrack.flow.history`);
+        the tests then run on one (queries,) vector per slot or pair of slots, which avoids
+        where-selections and broadcasts over tiny trailing dimensions. Slot ``s`` of a query
+        has age ``s - 1 + visible``, increasing with ``s``, so the order of the candidates
+        (event, displacement, age of e_j, age of e_i) is that of (row, slot of e_j, slot of
+        e_i) and equals :meth:`_block`'s.
+
+        Args:
+            pos: (b,) int32 chunk positions; cell: (b,) int64 their cells.
+            t_rel: (n_chunk,) int32 relative times; seq: (n_chunk,) int64 stream indices.
+        """
+        hist = self.history
+        b = pos.shape[0]
+        d = self.offsets.shape[0]
+        n_slots = self.config.history + 1
+        t_k = t_rel[pos]
+        # stage 1, e_j: the slot rows at x - d for every displacement, viewed as (b, D)
+        j_cell = (cell[:, None] - self.j_cell).reshape(-1)
+        rows_j = hist.gather_slots(j_cell)
+        t_kc = t_k[:, None]
+        dt_kj = [t_kc - rows_j[:, 1 + s].view(b, d) for s in range(n_slots)]
+        vis_j = rows_j[:, 0].view(b, d) < pos[:, None]
+        hi_j = self.dt_hi32[None, :]
+        ok = None
+        for s, a in enumerate(dt_kj):
+            ok_s = (a >= 1) & (a < hi_j)
+            if s == n_slots - 1:
+                ok_s &= ~vis_j
+            ok = ok_s if ok is None else ok.logical_or_(ok_s)
+        rows = ok.view(-1).nonzero().reshape(-1)
+        r = rows.numel()
+        if r == 0:
+            return Candidates.empty(self.device)
+        ev = torch.div(rows, d, rounding_mode="floor")
+        off = rows - ev * d
+        vis_j = vis_j.view(-1).index_select(0, rows)
+        # the e_i test as an interval of t_k - t_i per (row, slot of e_j)
+        lo_d = self.dt_lo32.index_select(0, off)
+        hi_d = self.dt_hi32.index_select(0, off)
+        bounds = []
+        for s, a in enumerate(dt_kj):
+            a = a.view(-1).index_select(0, rows)
+            if s == n_slots - 1:  # the oldest slot is hidden behind a visible pass event
+                a = a.masked_fill(vis_j, 0)
+            lo, hi = self._interval(a)
+            bounds.append((torch.maximum(lo, lo_d), torch.minimum(hi, hi_d)))
+        # stage 2, e_i: the slot rows at x - 2d for the surviving (event, displacement) rows
+        ev_pos = pos[ev]
+        i_cell = cell[ev] - self.i_cell[off]
+        rows_i = hist.gather_slots(i_cell)
+        t_kr = t_k[ev]
+        dt_ki = torch.stack([t_kr - rows_i[:, 1 + s] for s in range(n_slots)])  # (S, R)
+        hide_i = rows_i[:, 0] < ev_pos  # visible pass event: the oldest slot is hidden
+        ok = torch.empty(n_slots * n_slots, r, dtype=torch.bool, device=self.device)
+        for sj, (lo, hi) in enumerate(bounds):
+            for si in range(n_slots):
+                out = ok[sj * n_slots + si]
+                torch.ge(dt_ki[si], lo, out=out)
+                out &= dt_ki[si] <= hi
+                if si == n_slots - 1:
+                    out &= ~hide_i
+        row, pair = ok.t().nonzero(as_tuple=True)
+        sj = torch.div(pair, n_slots, rounding_mode="floor")
+        si = pair - sj * n_slots
+        ev_c, off_c = ev[row], off[row]
+        dt = dt_ki.view(-1)[si * r + row].to(torch.int64)
+        flow = self.flow_num[off_c] / dt.to(torch.float32)[:, None]
+        c_pos = ev_pos[row]
+        return Candidates(event=seq[c_pos], offset=off_c,
+                          age_j=sj + vis_j[row].to(torch.int64) - 1,
+                          age_i=si + hide_i[row].to(torch.int64) - 1,
+                          seq_j=hist.slot_seq(cell[ev_c] - self.j_cell[off_c], sj),
+                          seq_i=hist.slot_seq(i_cell[row], si),
+                          dt_us=dt, flow=flow)
+
+    def _interval(self, a: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`_dt_ki_bounds`' tolerance interval of ``t_k - t_i`` for ``a = t_k - t_j``
+        (int32, any value): (lo, hi) int32, empty (``lo > hi``) where ``a < 1``. Where
+        ``a >= hi_d`` it is empty too once intersected with the displacement's speed bounds
+        (``lo >= a + 1``)."""
+        a = a.clamp(0, self.hi_max)
+        if self._tol_tables is not None:  # entry 0 is empty
+            lo_tab, hi_tab = self._tol_tables
+            return lo_tab[a], hi_tab[a]
+        lo, hi = self._tolerance_interval(a.to(torch.int64))
+        lo = torch.where(a >= 1, lo, hi + 1)
+        return lo.to(torch.int32), hi.to(torch.int32)
+
     def _tolerance_tables(self) -> tuple[Tensor, Tensor]:
         """:meth:`_dt_ki_bounds`' interval for every ``t_k - t_j`` in ``[0, hi_max]``
-        (int32, capped at ``hi_max + 1``), so that a block looks it up instead of dividing."""
+        (int32, capped at ``hi_max + 1``; empty at 0), so that a block looks it up instead of
+        dividing."""
         a = torch.arange(self.hi_max + 1, dtype=torch.int64, device=self.device)
         lo, hi = self._tolerance_interval(a)
         cap = self.hi_max + 1
+        lo[0], hi[0] = cap, 0  # a = 0 never completes a triplet (t_k - t_j >= 1)
         return lo.clamp_max(cap).to(torch.int32), hi.clamp_max(cap).to(torch.int32)
 
     def _tolerance_interval(self, a: Tensor) -> tuple[Tensor, Tensor]:

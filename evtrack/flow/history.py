@@ -10,13 +10,25 @@ The batched search (:mod:`evtrack.flow.candidates`) handles a *pass* of events (
 ``pass_repeats`` (L) events per cell) at once:
 
 1. :meth:`EventHistory.open_pass` records, per cell, the chunk positions of the pass's events
-   (``pass_pos``, oldest first, ``UNUSED`` elsewhere) without touching the rings;
+   (``pass_pos``, oldest first, ``UNUSED`` elsewhere) without touching the rings (with
+   ``pass_repeats == 1`` also the event's time and stream index, see *slots* below);
 2. :meth:`EventHistory.lookup_times` then returns, for each query (a cell and the chunk
    position of the querying event), the K newest events of the cell that precede the query in
    the stream: the cell's pass events before it (newest first), then its ring;
 3. :meth:`EventHistory.close_pass` shifts the pass's events into the rings.
 
 So every event sees exactly the events before it, as a sequential ring buffer would.
+
+Storage and *slots* (``pass_repeats == 1``, the default). One int32 row per cell,
+``slot_t[cell] = [pass_pos, pass_t, ring_t[0], ..., ring_t[K - 1]]`` (padded to a multiple of
+four), is fetched by a single gather of 16-byte words (:meth:`EventHistory.gather_slots`). The
+K + 1 *slots* of a cell are its pass event (slot 0, time ``pass_t``: ``NO_PASS_T`` when the cell
+has none, which is after every event) and its ring (slots 1..K). A query at chunk position
+``q`` sees the pass event when ``pass_pos < q`` (*visible*); it then sees slots 0..K-1, else
+slots 1..K: the age of slot ``s`` is ``s - 1 + visible``. A pass event that is not visible has
+``pass_t >= t_q`` (it is later in the stream, or absent), so any test that needs the entry to
+be strictly older than the query rejects slot 0 by itself; only slot K needs the visibility
+mask. ``slot_s`` holds the stream indices the same way (``[pass_seq, ring_s...]``).
 """
 
 from __future__ import annotations
@@ -24,7 +36,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["EventHistory", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US", "UNUSED"]
+__all__ = ["EventHistory", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US", "UNUSED", "NO_PASS_T"]
 
 T_LIMIT = 1 << 29
 """Relative timestamps stay below this (µs); the base moves forward before they reach it."""
@@ -35,6 +47,9 @@ MAX_SPAN_US = 1 << 27
 """Longest time span (µs) of the events of one chunk (the search splits longer chunks)."""
 UNUSED = (1 << 31) - 1
 """``pass_pos`` of a slot without a pass event: after every chunk position."""
+NO_PASS_T = (1 << 31) - 1
+"""``pass_t`` of a cell without a pass event: after every relative time (``t - NO_PASS_T < 0``
+without overflow for ``0 <= t < T_LIMIT``)."""
 EMPTY_T = -(1 << 30)
 """Relative timestamp of an empty slot: ``t - EMPTY_T`` exceeds every speed bound and still
 fits int32 for ``0 <= t < T_LIMIT``."""
@@ -51,11 +66,17 @@ class EventHistory:
         device: torch device of the buffers.
 
     Attributes:
-        ring_t: (cells, K) int32 relative timestamps (µs), newest first; ``EMPTY_T`` if unused.
-        ring_s: (cells, K) int64 stream indices, newest first; -1 if unused.
-        pass_pos: (cells, L) int32 chunk positions of the open pass's events, oldest first;
-            ``UNUSED`` (larger than any position) elsewhere.
-        pass_t: (cells,) int32 relative time of the open pass's event of the cell (L = 1 only).
+        slot_t: (cells, W) int32 storage of ``pass_pos``, ``pass_t`` and ``ring_t`` (in that
+            column order; W is ``L + 1 + K`` rounded up to a multiple of 4).
+        slot_s: (cells, 1 + K) int64 storage of the pass event's stream index (L = 1 only)
+            and ``ring_s``.
+        ring_t: (cells, K) int32 view, relative timestamps (µs), newest first; ``EMPTY_T`` if
+            unused.
+        ring_s: (cells, K) int64 view, stream indices, newest first; -1 if unused.
+        pass_pos: (cells, L) int32 view, chunk positions of the open pass's events, oldest
+            first; ``UNUSED`` (larger than any position) elsewhere.
+        pass_t: (cells,) int32 view, relative time of the open pass's event of the cell
+            (L = 1 only; ``NO_PASS_T`` without one).
         t_base: the base (µs) of the relative timestamps, ``None`` before the first event.
         row: cell-id stride of one row (the padded width).
     """
@@ -71,13 +92,17 @@ class EventHistory:
         self.cells = 2 * self.row * self.rows
         self.device = torch.device(device)
         dev = self.device
-        self.ring_t = torch.full((self.cells, self.history), EMPTY_T, dtype=torch.int32,
-                                 device=dev)
-        self.ring_s = torch.full((self.cells, self.history), -1, dtype=torch.int64, device=dev)
-        self.pass_pos = torch.full((self.cells, self.pass_repeats), UNUSED, dtype=torch.int32,
-                                   device=dev)
-        self.pass_t = (torch.zeros(self.cells, dtype=torch.int32, device=dev)
-                       if self.pass_repeats == 1 else None)
+        k, n_pass = self.history, self.pass_repeats
+        width = -(-(n_pass + 1 + k) // 4) * 4  # whole 16-byte words per row
+        self.slot_t = torch.full((self.cells, width), EMPTY_T, dtype=torch.int32, device=dev)
+        self.slot_t[:, :n_pass] = UNUSED
+        self.slot_t[:, n_pass] = NO_PASS_T
+        self.slot_s = torch.full((self.cells, 1 + k), -1, dtype=torch.int64, device=dev)
+        self.pass_pos = self.slot_t[:, :n_pass]
+        self.pass_t = self.slot_t[:, n_pass]
+        self.ring_t = self.slot_t[:, n_pass + 1:n_pass + 1 + k]
+        self.ring_s = self.slot_s[:, 1:]
+        self._words = self.slot_t.view(torch.complex128)  # (cells, W / 4): one 16-byte word
         self.t_base: int | None = None
         self._ages = torch.arange(self.history, device=dev)
 
@@ -110,13 +135,14 @@ class EventHistory:
         if t_last - self.t_base >= T_LIMIT:
             shift = t_last - self.t_base - T_KEEP
             moved = self.ring_t.to(torch.int64) - shift
-            self.ring_t = torch.where((self.ring_t != EMPTY_T) & (moved >= 0), moved,
-                                      EMPTY_T).to(torch.int32)
-            self.ring_s = torch.where(self.ring_t != EMPTY_T, self.ring_s, -1)
+            kept = (self.ring_t != EMPTY_T) & (moved >= 0)
+            self.ring_t.copy_(torch.where(kept, moved, EMPTY_T))
+            self.ring_s.copy_(torch.where(kept, self.ring_s, -1))
             self.t_base += shift
 
     # ------------------------------------------------------------------ passes
-    def open_pass(self, cell: Tensor, rank: Tensor, pos: Tensor, t: Tensor) -> None:
+    def open_pass(self, cell: Tensor, rank: Tensor, pos: Tensor, t: Tensor,
+                  seq: Tensor) -> None:
         """Register the events of a pass (their cells, ranks within the pass, chunk positions).
 
         Args:
@@ -124,10 +150,16 @@ class EventHistory:
             rank: (m,) int64 rank of the event among the pass's events of its cell (0 oldest).
             pos: (m,) int32 chunk positions, increasing.
             t: (n_chunk,) int32 relative timestamps of the chunk's events (by chunk position).
+            seq: (n_chunk,) int64 stream indices of the chunk's events.
         """
+        if self.pass_repeats == 1:
+            rows = self.slot_t.index_select(0, cell)
+            rows[:, 0] = pos
+            rows[:, 1] = t[pos]
+            self.slot_t.index_copy_(0, cell, rows)
+            self.slot_s[:, 0].index_put_((cell,), seq[pos])
+            return
         self.pass_pos.index_put_((cell, rank), pos.to(torch.int32))
-        if self.pass_t is not None:
-            self.pass_t.index_put_((cell,), t[pos])
 
     def close_pass(self, cell: Tensor, rank: Tensor, t: Tensor, seq: Tensor,
                    newest: Tensor) -> None:
@@ -139,6 +171,17 @@ class EventHistory:
             seq: (n_chunk,) int64 stream indices of the chunk's events.
             newest: (m,) bool, True for the newest pass event of its cell (one per cell).
         """
+        if self.pass_repeats == 1:  # every cell once: its slots 0..K-1 become its ring
+            k = self.history
+            rows = self.slot_t.index_select(0, cell)
+            rows[:, 2:2 + k] = rows[:, 1:1 + k].clone()
+            rows[:, 0] = UNUSED
+            rows[:, 1] = NO_PASS_T
+            self.slot_t.index_copy_(0, cell, rows)
+            s_rows = self.slot_s.index_select(0, cell)
+            s_rows[:, 1:] = s_rows[:, :k].clone()
+            self.slot_s.index_copy_(0, cell, s_rows)
+            return
         cells = cell[newest]
         count = rank[newest] + 1
         t_new, s_new = self._newest_first(cells, count, self._ages.expand(cells.numel(), -1),
@@ -178,12 +221,6 @@ class EventHistory:
         Returns:
             (Q, K) int32 relative times, ``EMPTY_T`` where the cell holds fewer events.
         """
-        if self.pass_repeats == 1:
-            visible = self.pass_pos.view(-1)[cell] < pos  # (UNUSED never is)
-            rows = self.ring_t[cell]
-            newest = self.pass_t[cell][:, None]
-            shifted = torch.cat([newest, rows[:, :-1]], 1) if self.history > 1 else newest
-            return torch.where(visible[:, None], shifted, rows)
         pp = self.pass_pos[cell]
         count = (pp != UNUSED).sum(1)
         skip = count - (pp < pos[:, None]).sum(1)
@@ -205,6 +242,18 @@ class EventHistory:
         _, indices = self._newest_first(cell, count, (skip + age)[:, None], None, seq)
         return indices[:, 0]
 
+    def gather_slots(self, cell: Tensor) -> Tensor:
+        """The rows of ``slot_t`` of cells ``cell`` (Q,): (Q, W) int32, one gather of 16-byte
+        words. With L = 1, column 0 is ``pass_pos`` and column ``1 + s`` the time of slot
+        ``s`` (see the module docstring)."""
+        return torch.view_as_real(self._words.index_select(0, cell)).view(torch.int32) \
+            .view(cell.shape[0], -1)
+
+    def slot_seq(self, cell: Tensor, slot: Tensor) -> Tensor:
+        """(M,) int64 stream indices of slots ``slot`` (0 = pass event, 1 + a = ring entry a)
+        of cells ``cell`` (L = 1)."""
+        return self.slot_s.view(-1).index_select(0, cell * (self.history + 1) + slot)
+
     # ------------------------------------------------------------------ state
     def state_dict(self) -> dict:
         """Buffers and base, for checkpointing or moving devices."""
@@ -212,6 +261,6 @@ class EventHistory:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict` (tensors moved to this history's device)."""
-        self.ring_t = state["ring_t"].to(self.device, torch.int32)
-        self.ring_s = state["ring_s"].to(self.device, torch.int64)
+        self.ring_t.copy_(state["ring_t"].to(self.device, torch.int32))
+        self.ring_s.copy_(state["ring_s"].to(self.device, torch.int64))
         self.t_base = state["t_base"]

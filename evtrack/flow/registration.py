@@ -188,7 +188,7 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     ev_group = c_group[ev_first]
     ev_per_group = torch.bincount(ev_group, minlength=g_count)
     ev_start = torch.cumsum(ev_per_group, 0) - ev_per_group
-    c_local_ev = c_run - ev_start[c_group]
+    ev_cands = torch.bincount(c_run, minlength=n_ev_total)
     out.used_events = ev_per_group
     # --- hypotheses: cap by candidate hash; rank within group gives the tie-break order
     n_ord = int(ordinal.max()) + 1
@@ -202,7 +202,7 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     h_first[1:] = h_group[1:] != h_group[:-1]
     hpos = torch.arange(h_idx.numel(), device=dev)
     h_rank = hpos - torch.cummax(torch.where(h_first, hpos, torch.zeros_like(hpos)), 0).values
-    cost = _hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, c_local_ev,
+    cost = _hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, ev_cands,
                              ev_per_group, ev_start, pair_budget)
     # --- arg-min per group, ties to the smallest rank
     combo = (cost << _RANK_BITS) | h_rank
@@ -318,23 +318,36 @@ def _fit_lines(lines: dict[str, Tensor], start: Tensor, g_count: int, iters: int
 
 
 def _hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Tensor,
-                      c_start: Tensor, c_local_ev: Tensor, ev_per_group: Tensor,
+                      c_start: Tensor, ev_cands: Tensor, ev_per_group: Tensor,
                       ev_start: Tensor, pair_budget: int) -> Tensor:
     """Exact int64 cost ``sum_i min_c round(|F_h - F_ic| * COST_SCALE)`` per hypothesis.
 
     Dense per batch of groups: the hypotheses (padded to the batch's most, ``Hm``) against the
-    candidates (padded to ``Cm``), ``(groups, Hm, Cm)`` distances, a per-event minimum by a
-    scatter along the candidates and a sum over the events. Groups are batched in order of
-    their candidate count (little padding) within ``pair_budget`` distances. Distances are
-    ``sqrt(dx * dx + dy * dy)`` in float32 with separate IEEE operations, so every value is
-    the same whatever the batch layout or device.
+    candidates (padded to ``Cm``), ``(groups, Hm, Cm)`` squared distances, a per-event minimum
+    by a segmented reduction along the candidates (an event's candidates are consecutive) and
+    a sum over the events. Groups are batched in order of their candidate count (little
+    padding) within ``pair_budget`` distances. Squared distances are ``dx * dx + dy * dy`` in
+    float32 with separate IEEE operations, so every value is the same whatever the batch
+    layout or device. ``sqrt``, the scaling by a power of two, rounding and the cap are all
+    monotone non-decreasing, so they are applied to the per-event minimum only: the result is
+    bit for bit ``min_c round(sqrt(dx * dx + dy * dy) * COST_SCALE)``.
+
+    Args:
+        h_idx: (H,) candidate index of each hypothesis, grouped by group (``h_group``).
+        c_flow: (M, 2) float32 candidate flows, grouped by group, events contiguous.
+        counts, c_start: (G,) candidates per group and the first of each.
+        ev_cands: (E,) candidates of each kept event (events grouped by group).
+        ev_per_group, ev_start: (G,) kept events per group and the first of each.
     """
     dev = c_flow.device
     n_h = h_idx.numel()
     cost = torch.zeros(n_h, dtype=torch.int64, device=dev)
     if n_h == 0:
         return cost
-    del ev_start  # events are addressed by their index within the group (c_local_ev)
+    c_x = c_flow[:, 0].contiguous()
+    c_y = c_flow[:, 1].contiguous()
+    h_x = c_x[h_idx]
+    h_y = c_y[h_idx]
     grp, h_per = torch.unique_consecutive(h_group, return_counts=True)
     h_first = torch.cumsum(h_per, 0) - h_per
     order = torch.argsort(counts[grp], stable=True)
@@ -356,22 +369,29 @@ def _hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Te
         g = grp[sel]
         n_b = stop - start
         ar_c = torch.arange(cm, device=dev)
-        c_valid = ar_c < counts[g][:, None]
-        c_i = torch.where(c_valid, c_start[g][:, None] + ar_c, 0)
-        c_f = c_flow[c_i]
-        c_ev = torch.where(c_valid, c_local_ev[c_i], em)  # padding -> a dummy event slot
+        c_n = counts[g]
+        c_i = torch.where(ar_c < c_n[:, None], c_start[g][:, None] + ar_c, 0)
         ar_h = torch.arange(hm, device=dev)
         h_valid = ar_h < h_per[sel][:, None]
         h_pos = torch.where(h_valid, h_first[sel][:, None] + ar_h, 0)
-        h_f = c_flow[h_idx[h_pos]]
-        dx = h_f[:, :, None, 0] - c_f[:, None, :, 0]
-        dy = h_f[:, :, None, 1] - c_f[:, None, :, 1]
-        dist = torch.sqrt(dx * dx + dy * dy)
-        q = torch.round(dist * COST_SCALE).clamp_max(float(_Q_MAX)).to(torch.int32)
-        mins = torch.full((n_b, hm, em + 1), _Q_MAX, dtype=torch.int32, device=dev)
-        mins.scatter_reduce_(2, c_ev[:, None, :].expand(n_b, hm, cm), q, "amin")
-        e_valid = torch.arange(em, device=dev) < ev_per_group[g][:, None]
-        part = torch.where(e_valid[:, None, :], mins[:, :, :em], 0).sum(2, dtype=torch.int64)
+        d2 = h_x[h_pos][:, :, None] - c_x[c_i][:, None, :]  # (n_b, hm, cm)
+        dy = h_y[h_pos][:, :, None] - c_y[c_i][:, None, :]
+        d2.mul_(d2)
+        dy.mul_(dy)
+        d2.add_(dy)
+        del dy
+        # segments: the events of each group, then one dummy segment over the padding
+        ar_e = torch.arange(em, device=dev)
+        e_valid = ar_e < ev_per_group[g][:, None]
+        lengths = torch.empty(n_b, em + 1, dtype=torch.int64, device=dev)
+        lengths[:, :em] = torch.where(
+            e_valid, ev_cands[torch.where(e_valid, ev_start[g][:, None] + ar_e, 0)], 0)
+        lengths[:, em] = cm - c_n
+        mins = torch.segment_reduce(d2, "min", lengths=lengths[:, None, :].expand(n_b, hm, em + 1),
+                                    axis=2, initial=float("inf"))[:, :, :em]
+        del d2
+        q = torch.round(torch.sqrt(mins) * COST_SCALE).clamp_max(float(_Q_MAX)).to(torch.int32)
+        part = torch.where(e_valid[:, None, :], q, 0).sum(2, dtype=torch.int64)
         cost[h_pos[h_valid]] = part[h_valid]
         start = stop
     return cost

@@ -187,13 +187,14 @@ def test_burst_memory_is_bounded_by_block_size(monkeypatch):
     cfg = FlowConfig(sensor_size=(40, 30), chunk_size=5000, block_size=256, refractory_us=0)
     search = CandidateSearch(cfg)
     sizes = []
-    original = CandidateSearch._block
+    for name in ("_block", "_block_slots"):  # general and pass_repeats == 1 paths
+        original = getattr(CandidateSearch, name)
 
-    def spy(self, x, *args):
-        sizes.append(int(x.shape[0]))
-        return original(self, x, *args)
+        def spy(self, x, *args, original=original):
+            sizes.append(int(x.shape[0]))
+            return original(self, x, *args)
 
-    monkeypatch.setattr(CandidateSearch, "_block", spy)
+        monkeypatch.setattr(CandidateSearch, name, spy)
     chunk_sizes = []
     original_chunk = CandidateSearch._chunk
 
