@@ -66,6 +66,13 @@ class LossConfig:
         positive_weight: extra weight of the cells near keypoints: a belief cell's squared error
             is weighted by ``1 + positive_weight * target``, an affinity cell's inside a
             corner's disc by ``1 + positive_weight`` (0 = plain MSE, as DOPE).
+        shared_positive_weight: the weight of a cell is shared by every map: a belief cell weighs
+            ``1 + positive_weight * max_k target_k`` (the largest target of *any* keypoint) in all
+            9 maps, an affinity cell inside *any* corner's disc weighs ``1 + positive_weight`` in
+            all 16. A map firing on another keypoint then costs as much as missing its own; with
+            per-map weights (``False``) a corner map that fires on all 8 corners pays 1 for each
+            of the 7 wrong ones and gains ``1 + positive_weight`` on the right one, and the
+            network learns where corners are long before it learns which corner is which.
         last_stage_weight: weight of the last stage (earlier stages weigh 1).
         match_px: a predicted peak within this distance of a true keypoint counts as found
             (validation metrics).
@@ -75,6 +82,7 @@ class LossConfig:
     belief_weight: float = 1.0
     affinity_weight: float = 1.0
     positive_weight: float = 20.0
+    shared_positive_weight: bool = True
     last_stage_weight: float = 1.0
     match_px: float = 8.0
     peak_threshold: float = 0.1
@@ -182,9 +190,14 @@ class PoseLightningModule(L.LightningModule):
             belief, affinity: targets of the same shapes.
         """
         cfg = self.loss_config
-        w_belief = 1.0 + cfg.positive_weight * belief
         # affinity discs: cells where a corner's (dx, dy) target is set
-        disc = (affinity.unflatten(1, (-1, 2)).abs().sum(2) > 0).repeat_interleave(2, dim=1)
+        disc = affinity.unflatten(1, (-1, 2)).abs().sum(2) > 0  # (B, 8, h, w)
+        if cfg.shared_positive_weight:
+            w_belief = 1.0 + cfg.positive_weight * belief.amax(dim=1, keepdim=True)
+            disc = disc.any(dim=1, keepdim=True)
+        else:
+            w_belief = 1.0 + cfg.positive_weight * belief
+            disc = disc.repeat_interleave(2, dim=1)
         w_affinity = 1.0 + cfg.positive_weight * disc.to(affinity.dtype)
         lb = belief.new_zeros(())
         la = belief.new_zeros(())

@@ -91,12 +91,14 @@ def test_loss_is_the_stage_sum_of_mses():
     assert float(total) == pytest.approx(9 + 0.5 * 9)
 
 
-def test_positive_weighting_matches_a_cell_by_cell_sum():
+@pytest.mark.parametrize("shared", [False, True])
+def test_positive_weighting_matches_a_cell_by_cell_sum(shared):
     pw = 7.0
     module = PoseLightningModule(create("dope_lite_tiny"),
                                  WeightsRecord(arch="dope_lite_tiny", object_name="b",
                                                cuboid=CUBOID),
-                                 loss=LossConfig(positive_weight=pw))
+                                 loss=LossConfig(positive_weight=pw,
+                                                 shared_positive_weight=shared))
     g = torch.Generator().manual_seed(0)
     b = torch.rand(2, 9, 3, 4, generator=g)
     a = torch.randn(2, 16, 3, 4, generator=g)
@@ -106,10 +108,11 @@ def test_positive_weighting_matches_a_cell_by_cell_sum():
     _, lb, la = module.compute_loss([(pb, pa)], b, a)
     expect_b = expect_a = 0.0
     for n, c, i, j in np.ndindex(*b.shape):
-        expect_b += (1 + pw * float(b[n, c, i, j])) * float(pb[n, c, i, j] - b[n, c, i, j]) ** 2
+        target = max(float(b[n, k, i, j]) for k in range(9)) if shared else float(b[n, c, i, j])
+        expect_b += (1 + pw * target) * float(pb[n, c, i, j] - b[n, c, i, j]) ** 2
     for n, c, i, j in np.ndindex(*a.shape):
-        k = c // 2
-        inside = bool(a[n, 2 * k, i, j] != 0 or a[n, 2 * k + 1, i, j] != 0)
+        corners = range(8) if shared else [c // 2]
+        inside = any(bool(a[n, 2 * k, i, j] != 0 or a[n, 2 * k + 1, i, j] != 0) for k in corners)
         expect_a += (1 + pw * inside) * float(pa[n, c, i, j] - a[n, c, i, j]) ** 2
     assert float(lb) == pytest.approx(expect_b / b.numel(), rel=1e-5)
     assert float(la) == pytest.approx(expect_a / a.numel(), rel=1e-5)
