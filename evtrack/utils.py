@@ -17,7 +17,9 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
 
     On an exception the temporary file is removed, so nothing half-written is left behind.
     The temporary name ends with ``suffix`` (default: the target's suffix), for libraries
-    that choose a format by extension.
+    that choose a format by extension. The finished file gets the permissions of a file
+    created with ``open()`` (``0o666`` less the umask), not the private ``0o600`` of the
+    temporary file.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -29,11 +31,20 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        if tmp_path.exists():
+            os.chmod(tmp_path, 0o666 & ~_current_umask())
         os.replace(tmp_path, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         raise
+
+
+def _current_umask() -> int:
+    """The process umask (read by setting and restoring it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
