@@ -66,13 +66,15 @@ class LossConfig:
         positive_weight: extra weight of the cells near keypoints: a belief cell's squared error
             is weighted by ``1 + positive_weight * target``, an affinity cell's inside a
             corner's disc by ``1 + positive_weight`` (0 = plain MSE, as DOPE).
-        shared_positive_weight: the weight of a cell is shared by every map: a belief cell weighs
-            ``1 + positive_weight * max_k target_k`` (the largest target of *any* keypoint) in all
-            9 maps, an affinity cell inside *any* corner's disc weighs ``1 + positive_weight`` in
-            all 16. A map firing on another keypoint then costs as much as missing its own; with
-            per-map weights (``False``) a corner map that fires on all 8 corners pays 1 for each
-            of the 7 wrong ones and gains ``1 + positive_weight`` on the right one, and the
+        shared_positive_weight: the belief weight of a cell is shared by the 9 maps: it weighs
+            ``1 + positive_weight * max_k target_k`` (the largest target of *any* keypoint) in
+            every map, so a map firing on another keypoint costs as much as missing its own.
+            With per-map weights (``False``) a corner map that fires on all 8 corners pays 1 for
+            each of the 7 wrong ones and gains ``1 + positive_weight`` on the right one, and the
             network learns where corners are long before it learns which corner is which.
+            Affinity weights stay per corner either way (sharing them drives every affinity
+            field towards zero wherever the network is unsure which corner it sees, and the
+            decoder then cannot group corners into instances).
         last_stage_weight: weight of the last stage (earlier stages weigh 1).
         match_px: a predicted peak within this distance of a true keypoint counts as found
             (validation metrics).
@@ -191,13 +193,11 @@ class PoseLightningModule(L.LightningModule):
         """
         cfg = self.loss_config
         # affinity discs: cells where a corner's (dx, dy) target is set
-        disc = affinity.unflatten(1, (-1, 2)).abs().sum(2) > 0  # (B, 8, h, w)
+        disc = (affinity.unflatten(1, (-1, 2)).abs().sum(2) > 0).repeat_interleave(2, dim=1)
         if cfg.shared_positive_weight:
             w_belief = 1.0 + cfg.positive_weight * belief.amax(dim=1, keepdim=True)
-            disc = disc.any(dim=1, keepdim=True)
         else:
             w_belief = 1.0 + cfg.positive_weight * belief
-            disc = disc.repeat_interleave(2, dim=1)
         w_affinity = 1.0 + cfg.positive_weight * disc.to(affinity.dtype)
         lb = belief.new_zeros(())
         la = belief.new_zeros(())

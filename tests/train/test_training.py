@@ -111,8 +111,8 @@ def test_positive_weighting_matches_a_cell_by_cell_sum(shared):
         target = max(float(b[n, k, i, j]) for k in range(9)) if shared else float(b[n, c, i, j])
         expect_b += (1 + pw * target) * float(pb[n, c, i, j] - b[n, c, i, j]) ** 2
     for n, c, i, j in np.ndindex(*a.shape):
-        corners = range(8) if shared else [c // 2]
-        inside = any(bool(a[n, 2 * k, i, j] != 0 or a[n, 2 * k + 1, i, j] != 0) for k in corners)
+        k = c // 2  # affinity weights are per corner whether belief weights are shared or not
+        inside = bool(a[n, 2 * k, i, j] != 0 or a[n, 2 * k + 1, i, j] != 0)
         expect_a += (1 + pw * inside) * float(pa[n, c, i, j] - a[n, c, i, j]) ** 2
     assert float(lb) == pytest.approx(expect_b / b.numel(), rel=1e-5)
     assert float(la) == pytest.approx(expect_a / a.numel(), rel=1e-5)
