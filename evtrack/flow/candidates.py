@@ -176,6 +176,9 @@ class CandidateSearch:
         self.tol_rel = config.tolerance_permille
         self.hi_max = int(bounds[:, 1].max()) if len(bounds) else 0
         self._tol_tables = self._tolerance_tables() if self.hi_max < _TABLE_MAX else None
+        # both ends of the tabulated interval in one 8-byte word per entry (one gather)
+        self._tol_words = (torch.stack(self._tol_tables, 1).view(torch.int64).reshape(-1)
+                           if self._tol_tables is not None else None)
 
     def reset(self) -> None:
         """Forget every event seen."""
@@ -366,17 +369,20 @@ class CandidateSearch:
         b = pos.shape[0]
         d = self.offsets.shape[0]
         n_slots = self.config.history + 1
-        t_k = t_rel[pos]
-        # stage 1, e_j: the slot rows at x - d for every displacement, viewed as (b, D)
+        take = torch.index_select
+        t_k = take(t_rel, 0, pos)
+        # stage 1, e_j: the slot rows at x - d for every displacement, viewed as (b, D); the
+        # test 1 <= t_k - t_j < hi_d as t_k - hi_d < t_j <= t_k - 1
         j_cell = (cell[:, None] - self.j_cell).reshape(-1)
         rows_j = hist.gather_slots(j_cell)
-        t_kc = t_k[:, None]
-        dt_kj = [t_kc - rows_j[:, 1 + s].view(b, d) for s in range(n_slots)]
+        upper = (t_k - 1)[:, None]
+        lower = t_k[:, None] - self.dt_hi32
         vis_j = rows_j[:, 0].view(b, d) < pos[:, None]
-        hi_j = self.dt_hi32[None, :]
         ok = None
-        for s, a in enumerate(dt_kj):
-            ok_s = (a >= 1) & (a < hi_j)
+        for s in range(n_slots):
+            t_s = rows_j[:, 1 + s].view(b, d)
+            ok_s = torch.gt(t_s, lower)
+            ok_s &= t_s <= upper
             if s == n_slots - 1:
                 ok_s &= ~vis_j
             ok = ok_s if ok is None else ok.logical_or_(ok_s)
@@ -386,44 +392,48 @@ class CandidateSearch:
             return Candidates.empty(self.device)
         ev = torch.div(rows, d, rounding_mode="floor")
         off = rows - ev * d
-        vis_j = vis_j.view(-1).index_select(0, rows)
+        vis_j = take(vis_j.view(-1), 0, rows)
+        t_kr = take(t_k, 0, ev)
         # the e_i test as an interval of t_k - t_i per (row, slot of e_j)
-        lo_d = self.dt_lo32.index_select(0, off)
-        hi_d = self.dt_hi32.index_select(0, off)
+        lo_d = take(self.dt_lo32, 0, off)
+        hi_d = take(self.dt_hi32, 0, off)
         bounds = []
-        for s, a in enumerate(dt_kj):
-            a = a.view(-1).index_select(0, rows)
+        for s in range(n_slots):
+            a = t_kr - take(rows_j[:, 1 + s], 0, rows)
             if s == n_slots - 1:  # the oldest slot is hidden behind a visible pass event
-                a = a.masked_fill(vis_j, 0)
+                a.masked_fill_(vis_j, 0)
             lo, hi = self._interval(a)
             bounds.append((torch.maximum(lo, lo_d), torch.minimum(hi, hi_d)))
         # stage 2, e_i: the slot rows at x - 2d for the surviving (event, displacement) rows
-        ev_pos = pos[ev]
-        i_cell = cell[ev] - self.i_cell[off]
+        ev_pos = take(pos, 0, ev)
+        i_cell = take(cell, 0, ev) - take(self.i_cell, 0, off)
         rows_i = hist.gather_slots(i_cell)
-        t_kr = t_k[ev]
         dt_ki = torch.stack([t_kr - rows_i[:, 1 + s] for s in range(n_slots)])  # (S, R)
         hide_i = rows_i[:, 0] < ev_pos  # visible pass event: the oldest slot is hidden
-        ok = torch.empty(n_slots * n_slots, r, dtype=torch.bool, device=self.device)
+        n_pairs = n_slots * n_slots
+        ok = torch.empty(r, n_pairs, dtype=torch.bool, device=self.device)
         for sj, (lo, hi) in enumerate(bounds):
             for si in range(n_slots):
-                out = ok[sj * n_slots + si]
+                out = ok[:, sj * n_slots + si]
                 torch.ge(dt_ki[si], lo, out=out)
                 out &= dt_ki[si] <= hi
                 if si == n_slots - 1:
                     out &= ~hide_i
-        row, pair = ok.t().nonzero(as_tuple=True)
+        flat = ok.view(-1).nonzero().reshape(-1)
+        row = torch.div(flat, n_pairs, rounding_mode="floor")
+        pair = flat - row * n_pairs
         sj = torch.div(pair, n_slots, rounding_mode="floor")
         si = pair - sj * n_slots
-        ev_c, off_c = ev[row], off[row]
-        dt = dt_ki.view(-1)[si * r + row].to(torch.int64)
-        flow = self.flow_num[off_c] / dt.to(torch.float32)[:, None]
-        c_pos = ev_pos[row]
-        return Candidates(event=seq[c_pos], offset=off_c,
-                          age_j=sj + vis_j[row].to(torch.int64) - 1,
-                          age_i=si + hide_i[row].to(torch.int64) - 1,
-                          seq_j=hist.slot_seq(cell[ev_c] - self.j_cell[off_c], sj),
-                          seq_i=hist.slot_seq(i_cell[row], si),
+        ev_c, off_c = take(ev, 0, row), take(off, 0, row)
+        dt = take(dt_ki.view(-1), 0, si * r + row).to(torch.int64)
+        flow = take(self.flow_num, 0, off_c) / dt.to(torch.float32)[:, None]
+        c_pos = take(ev_pos, 0, row)
+        j_cell_c = take(cell, 0, ev_c) - take(self.j_cell, 0, off_c)
+        return Candidates(event=take(seq, 0, c_pos), offset=off_c,
+                          age_j=sj + take(vis_j, 0, row) - 1,
+                          age_i=si + take(hide_i, 0, row) - 1,
+                          seq_j=hist.slot_seq(j_cell_c, sj),
+                          seq_i=hist.slot_seq(take(i_cell, 0, row), si),
                           dt_us=dt, flow=flow)
 
     def _interval(self, a: Tensor) -> tuple[Tensor, Tensor]:
@@ -433,8 +443,8 @@ class CandidateSearch:
         (``lo >= a + 1``)."""
         a = a.clamp(0, self.hi_max)
         if self._tol_tables is not None:  # entry 0 is empty
-            lo_tab, hi_tab = self._tol_tables
-            return lo_tab[a], hi_tab[a]
+            both = self._tol_words.index_select(0, a).view(torch.int32).view(-1, 2)
+            return both[:, 0], both[:, 1]
         lo, hi = self._tolerance_interval(a.to(torch.int64))
         lo = torch.where(a >= 1, lo, hi + 1)
         return lo.to(torch.int32), hi.to(torch.int32)
