@@ -320,21 +320,30 @@ def solve_pose(
     if best is None:
         return None
     err, rvec, tvec = best
-    pose = np.eye(4)
-    pose[:3, :3] = cv2.Rodrigues(rvec)[0]
-    pose[:3, 3] = tvec.reshape(3)
-    scores = np.clip(instance.scores, 0.0, 1.0)
-    confidence = float(scores.mean() * math.exp(-0.5 * (err / cfg.reprojection_scale_px) ** 2))
+    return _detection(rvec, tvec, instance.keypoints, instance.scores, err, int(used.sum()), cfg,
+                      object_name)
+
+
+def _detection(
+    rvec: np.ndarray, tvec: np.ndarray, keypoints: np.ndarray, scores: np.ndarray, err: float,
+    num_points: int, cfg: DecodeConfig, object_name: str,
+) -> PoseDetection | None:
+    """The detection of a solved pose (step 4's confidence), or ``None`` below
+    ``min_confidence``."""
+    confidence = float(np.clip(scores, 0.0, 1.0).mean()
+                       * math.exp(-0.5 * (err / cfg.reprojection_scale_px) ** 2))
     if confidence < cfg.min_confidence:
         return None
-    kp = instance.keypoints.copy()
+    pose = np.eye(4)
+    pose[:3, :3] = cv2.Rodrigues(rvec)[0]
+    pose[:3, 3] = np.asarray(tvec).reshape(3)
     return PoseDetection(
         pose=torch.from_numpy(pose),
         confidence=confidence,
-        keypoints=torch.from_numpy(kp.astype(np.float64)),
-        keypoint_scores=torch.from_numpy(instance.scores.astype(np.float64)),
+        keypoints=torch.from_numpy(np.array(keypoints, dtype=np.float64)),
+        keypoint_scores=torch.from_numpy(np.array(scores, dtype=np.float64)),
         reprojection_error_px=err,
-        num_points=int(used.sum()),
+        num_points=num_points,
         object_name=object_name,
     )
 
@@ -417,22 +426,7 @@ def search_instance(
     err = _reprojection_rms(obj_u, img_u, rvec, tvec, K, dist)
     if not np.isfinite(err):
         return None
-    pose = np.eye(4)
-    pose[:3, :3] = cv2.Rodrigues(rvec)[0]
-    pose[:3, 3] = tvec.reshape(3)
-    confidence = float(np.clip(scores, 0.0, 1.0).mean()
-                       * math.exp(-0.5 * (err / cfg.reprojection_scale_px) ** 2))
-    if confidence < cfg.min_confidence:
-        return None
-    return PoseDetection(
-        pose=torch.from_numpy(pose),
-        confidence=confidence,
-        keypoints=torch.from_numpy(keypoints),
-        keypoint_scores=torch.from_numpy(scores),
-        reprojection_error_px=err,
-        num_points=int(mask.sum()),
-        object_name=object_name,
-    )
+    return _detection(rvec, tvec, keypoints, scores, err, int(mask.sum()), cfg, object_name)
 
 
 def decode_poses(
