@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _scene(size: tuple[int, int], duration_ms: float, cache: Path | None) -> Events:
     if cache is not None and cache.is_file():
-        d = torch.load(cache)
+        d = torch.load(cache, weights_only=True)
         return Events(d["x"], d["y"], d["t"], d["p"], tuple(d["size"]))
     ev, _ = translating_texture(size, velocity=(1200.0, -500.0),
                                 duration_us=int(duration_ms * 1000), seed=11)

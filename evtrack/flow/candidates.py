@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -165,15 +166,21 @@ class CandidateSearch:
         # cell-id offsets of the e_j (x - d) and e_i (x - 2d) pixels on the padded grid
         self.j_cell = self.offsets[:, 1] * self.history.row + self.offsets[:, 0]
         self.i_cell = 2 * self.j_cell
-        bounds = dt_bounds_us(offsets, config.min_speed, config.max_speed)
+        bounds = dt_bounds_us(offsets, config.min_speed, config.max_speed, config.max_span_us)
         self.dt_lo32 = torch.as_tensor(bounds[:, 0], dtype=torch.int32, device=dev)
         self.dt_hi32 = torch.as_tensor(bounds[:, 1], dtype=torch.int32, device=dev)
-        # e_j precedes e_i's match: t_k - t_j < t_k - t_i <= hi
-        self.dt_hi_j = self.dt_hi32[None, :, None]
         # 2 d * 1e6, the numerator of the candidate flow (px * µs / s).
         self.flow_num = (2.0 * US_PER_S) * self.offsets.to(torch.float32)
         self.tol_abs = int(config.tolerance_us) * 1000
         self.tol_rel = config.tolerance_permille
+        # stage 1 keeps an e_j only if some t_k - t_i can complete it: t_k - t_j < hi_d
+        # (e_j precedes e_i) and, by the tolerance test (see _dt_ki_bounds), c >= a + 1 with
+        # c (1000 + r) >= 2000 a - A, c <= hi_d: a <= (hi_d (1000 + r) + A) / 2000.
+        # Exclusive bound of a = t_k - t_j per displacement:
+        a_max = (bounds[:, 1] * (1000 + self.tol_rel) + self.tol_abs) // 2000
+        self.dt_hi_j32 = torch.as_tensor(np.minimum(bounds[:, 1], a_max + 1), dtype=torch.int32,
+                                         device=dev)
+        self.dt_hi_j = self.dt_hi_j32[None, :, None]
         self.hi_max = int(bounds[:, 1].max()) if len(bounds) else 0
         self._tol_tables = self._tolerance_tables() if self.hi_max < _TABLE_MAX else None
         # both ends of the tabulated interval in one 8-byte word per entry (one gather)
@@ -372,11 +379,11 @@ class CandidateSearch:
         take = torch.index_select
         t_k = take(t_rel, 0, pos)
         # stage 1, e_j: the slot rows at x - d for every displacement, viewed as (b, D); the
-        # test 1 <= t_k - t_j < hi_d as t_k - hi_d < t_j <= t_k - 1
+        # test 1 <= t_k - t_j < hi_j (see __init__) as t_k - hi_j < t_j <= t_k - 1
         j_cell = (cell[:, None] - self.j_cell).reshape(-1)
         rows_j = hist.gather_slots(j_cell)
         upper = (t_k - 1)[:, None]
-        lower = t_k[:, None] - self.dt_hi32
+        lower = t_k[:, None] - self.dt_hi_j32
         vis_j = rows_j[:, 0].view(b, d) < pos[:, None]
         ok = None
         for s in range(n_slots):

@@ -22,7 +22,8 @@ def reference_offsets(radius: int) -> list[tuple[int, int]]:
 
 
 def reference_candidates(x, y, t, p, sensor_size, *, radius, history, refractory_us,
-                         tolerance_us, tolerance_permille, min_speed, max_speed, state=None):
+                         tolerance_us, tolerance_permille, min_speed, max_speed, max_span_us=0,
+                         state=None):
     """Candidates of every event, sequentially.
 
     Returns ``(rows, state)``; each row is ``(k, offset, age_j, age_i, seq_j, seq_i, dt_ki,
@@ -58,6 +59,8 @@ def reference_candidates(x, y, t, p, sensor_size, *, radius, history, refractory
                     if dkj < 1 or dji < 1:
                         continue
                     if abs(dkj - dji) * 1000 > tolerance_us * 1000 + tolerance_permille * dki:
+                        continue
+                    if max_span_us > 0 and dki > max_span_us:
                         continue
                     speed = math.hypot(2 * dx, 2 * dy) * 1e6 / dki
                     if not (min_speed <= speed <= max_speed):

@@ -25,7 +25,7 @@ def _reference(x, y, t, p, cfg, state=None):
         x, y, t, p, cfg.sensor_size, radius=cfg.radius, history=cfg.history,
         refractory_us=cfg.refractory_us, tolerance_us=cfg.tolerance_us,
         tolerance_permille=cfg.tolerance_permille, min_speed=cfg.min_speed,
-        max_speed=cfg.max_speed, state=state)
+        max_speed=cfg.max_speed, max_span_us=cfg.max_span_us, state=state)
 
 
 def _assert_same(cands, ref_rows):
@@ -62,20 +62,42 @@ def test_offsets_and_bounds_match_their_definition():
         def ok(dt, dist=dist):
             return 37.0 <= dist * 1e6 / dt <= 9000.0
         assert ok(lo) and ok(hi) and not ok(lo - 1) and not ok(hi + 1)
+    # a span bound caps hi; one below every fitting dt leaves the displacement empty
+    capped = dt_bounds_us(offsets, 37.0, 9000.0, max_span_us=1000)
+    assert (capped[:, 0] == bounds[:, 0]).all() | (capped[:, 0] > capped[:, 1]).all()
+    for (lo, hi), (lo_c, hi_c) in zip(bounds.tolist(), capped.tolist(), strict=True):
+        if lo <= 1000:
+            assert (lo_c, hi_c) == (lo, min(hi, 1000))
+        else:
+            assert lo_c > hi_c
+
+
+def test_span_bound_drops_long_triplets_only():
+    """A triplet spanning more than max_span_us gives no candidate; a shorter one does."""
+    # one pixel row, an edge moving at 100 px/s: 10 ms per pixel, 20 ms per triplet (d = 1)
+    x, y = torch.tensor([0, 1, 2]), torch.zeros(3, dtype=torch.int64)
+    t, p = torch.tensor([0, 10_000, 20_000]), torch.ones(3, dtype=torch.int64)
+    base = dict(sensor_size=(3, 1), radius=1, history=1, min_speed=20.0)
+    kept = CandidateSearch(FlowConfig(**base, max_span_us=20_000))(x, y, t, p)
+    assert kept.dt_us.tolist() == [20_000]
+    torch.testing.assert_close(kept.flow, torch.tensor([[100.0, 0.0]]))
+    assert len(CandidateSearch(FlowConfig(**base, max_span_us=19_999))(x, y, t, p)) == 0
+    assert len(CandidateSearch(FlowConfig(**base, max_span_us=0))(x, y, t, p)) == 1
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), n=st.integers(0, 250), chunk=st.integers(1, 300),
        block=st.integers(1, 64), radius=st.integers(1, 3), history=st.integers(1, 3),
        repeats=st.integers(1, 4), refractory=st.sampled_from([0, 40, 400]),
-       max_gap=st.sampled_from([0, 3, 60]))
+       max_gap=st.sampled_from([0, 3, 60]), span=st.sampled_from([0, 300, 2000]))
 def test_random_streams_equal_reference(seed, n, chunk, block, radius, history, repeats,
-                                        refractory, max_gap):
+                                        refractory, max_gap, span):
     size = (9, 7)
     x, y, t, p = _random_stream(seed, n, size, max_gap)
     cfg = FlowConfig(sensor_size=size, radius=radius, history=history, pass_repeats=repeats,
                      refractory_us=refractory, chunk_size=chunk, block_size=block,
-                     tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6)
+                     tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6,
+                     max_span_us=span)
     got = CandidateSearch(cfg)(x, y, t, p)
     ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
     _assert_same(got, ref)

@@ -184,6 +184,8 @@ def test_config_loading_and_errors(tmp_path):
         FlowConfig.from_dict({"window_us": 1.5})
     with pytest.raises(ConfigError, match="'max_speed'"):
         FlowConfig(min_speed=100.0, max_speed=50.0)
+    with pytest.raises(ConfigError, match="'max_span_us'"):
+        FlowConfig.from_dict({"max_span_us": -5})
     bad = tmp_path / "bad.yaml"
     bad.write_text("- not a mapping\n")
     with pytest.raises(ConfigError, match="bad.yaml"):
