@@ -7,14 +7,16 @@ Three sources of ground truth:
   flow is: the aperture problem);
 * ``--sequence DIR``: an ``evtrack.Sequence`` folder whose ``groundtruth.h5`` has per-event
   flow (``event_flow``, px/s, aligned with ``events.h5``);
-* ``--sim PRESET``: simulate a short sequence with ``evtrack.sim`` (``regular``/``faster``)
-  and evaluate it like ``--sequence``. It renders at ``--render-hz`` (default 4000 Hz, not the
-  simulator's 500 Hz): the event model interpolates the log intensity linearly between renders
-  that have no anti-aliasing, so an edge's events are timed within the render interval it
-  crossed the pixel in, not when it crossed. At the ``faster`` preset's 600-850 px/s (640x480)
-  an edge crosses 1.2-1.7 px per 2 ms interval and the event times carry that error, whatever
-  the flow method (a translating YCB box at 600 px/s: RoI error 24 % rendered at 500 Hz, 3.5 %
-  at 4 kHz).
+* ``--sim PRESET``: simulate a short sequence with ``evtrack.sim`` (``regular``/``faster``) of
+  each ``--object`` and evaluate it like ``--sequence``; ``--object ycb`` takes the paper's four
+  YCB objects (``python benchmarks/bench_flow_accuracy.py --sim faster --sim regular --object
+  ycb``: the issue's benchmark, about 10 min on 2 cores). It renders at ``--render-hz`` (default
+  4000 Hz, not the simulator's 500 Hz): the event model interpolates the log intensity linearly
+  between renders that have no anti-aliasing, so an edge's events are timed within the render
+  interval it crossed the pixel in, not when it crossed. At the ``faster`` preset's 600-850 px/s
+  (640x480) an edge crosses 1.2-1.7 px per 2 ms interval and the event times carry that error,
+  whatever the flow method (a translating YCB box at 600 px/s: RoI error 24 % rendered at 500
+  Hz, 3.5 % at 4 kHz).
 
 The truth of a RoI window is the mean true flow of its events that have candidates (those the
 registration can use). Printed per scene:
@@ -149,13 +151,32 @@ def _simulate(preset: str, obj: str, duration: float, seed: int, render_hz: floa
     return out
 
 
+def _objects(names: list[str]) -> list[str]:
+    """The --object values, with 'ycb' expanded to the YCB objects found beside the repo."""
+    out = []
+    for name in names or ["can"]:
+        if name != "ycb":
+            out.append(name)
+            continue
+        from evtrack.sim.objects import find_ycb_dir
+
+        folder = find_ycb_dir()
+        if folder is None:
+            raise SystemExit("--object ycb: no YCB meshes found (expected ../shared/data/ycb "
+                             "beside the repository)")
+        out += sorted(d.name for d in folder.iterdir() if d.is_dir())
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sequence", type=Path, action="append", default=[],
                         help="sequence folder with per-event ground-truth flow (repeatable)")
     parser.add_argument("--sim", action="append", default=[], choices=["regular", "faster"],
                         help="simulate a sequence with evtrack.sim (repeatable)")
-    parser.add_argument("--object", default="can", help="object of --sim (default: can)")
+    parser.add_argument("--object", action="append", default=[],
+                        help="object of --sim (repeatable; default: can). 'ycb': the four YCB "
+                             "objects of ../shared/data/ycb (the paper's benchmark objects)")
     parser.add_argument("--duration", type=float, default=0.3, help="--sim duration in s")
     parser.add_argument("--render-hz", type=float, default=4000.0,
                         help="--sim render rate in Hz (default 4000; see the module docstring)")
@@ -172,9 +193,10 @@ def main(argv: list[str] | None = None) -> int:
     pooled: dict[str, list[torch.Tensor]] = {}
     if args.sequence or args.sim:
         with tempfile.TemporaryDirectory() as tmp:
+            # seeds 7 + preset index + 10 * object index: one fixed scene per (object, preset)
             folders = list(args.sequence) + [
-                _simulate(p, args.object, args.duration, 7 + i, args.render_hz, Path(tmp))
-                for i, p in enumerate(args.sim)]
+                _simulate(p, obj, args.duration, 7 + i + 10 * j, args.render_hz, Path(tmp))
+                for j, obj in enumerate(_objects(args.object)) for i, p in enumerate(args.sim)]
             for folder in folders:
                 ev, truth, preset = _sequence(folder)
                 m = evaluate(ev, truth, base.replace(sensor_size=ev.sensor_size))

@@ -288,20 +288,20 @@ class CandidateSearch:
         n = t.shape[0]
         pixel = y * self.width + x
         sorted_pix, order = torch.sort(pixel, stable=True)
-        t_sorted = t[order]
-        p_sorted = p[order].to(torch.int8)
+        t_sorted = t.index_select(0, order)
+        p_sorted = p.index_select(0, order).to(torch.int8)
         prev_t = self.last_t.index_select(0, sorted_pix)
         prev_p = self.last_p.index_select(0, sorted_pix)
         same = sorted_pix[1:] == sorted_pix[:-1]
         prev_t[1:] = torch.where(same, t_sorted[:-1], prev_t[1:])
         prev_p[1:] = torch.where(same, p_sorted[:-1], prev_p[1:])
-        burst = (prev_p == p_sorted) & ((t_sorted - prev_t) <= self.config.refractory_us)
+        onset_sorted = (prev_p != p_sorted) | ((t_sorted - prev_t) > self.config.refractory_us)
         onset = torch.empty(n, dtype=torch.bool, device=t.device)
-        onset[order] = ~burst
-        last = torch.ones(n, dtype=torch.bool, device=t.device)
-        last[:-1] = ~same
-        self.last_t.index_put_((sorted_pix[last],), t_sorted[last])
-        self.last_p.index_put_((sorted_pix[last],), p_sorted[last])
+        onset.index_copy_(0, order, onset_sorted)
+        last_idx = torch.nonzero(torch.cat([~same, same.new_ones(1)])).reshape(-1)
+        last_pix = sorted_pix.index_select(0, last_idx)  # distinct pixels: no write conflicts
+        self.last_t.index_copy_(0, last_pix, t_sorted.index_select(0, last_idx))
+        self.last_p.index_copy_(0, last_pix, p_sorted.index_select(0, last_idx))
         return onset
 
     @staticmethod

@@ -231,6 +231,12 @@ class TripletFlow(nn.Module):
         """Register the pending groups with key < ``open_key`` and keep the rest pending."""
         cfg = self.config
         p = self._pending
+        if (p.g_keys.numel() == 0 or int(p.g_keys[0]) >= open_key) and (
+                self.return_event_flow or p.gkey.numel() <= 4 * cfg.chunk_size):
+            # no window closes (keys are sorted) and the open ones are small: nothing to do
+            # now (their pruning below waits for a later call; it gives the same selection)
+            return FlowResult.empty(self.device, event_start=self._emitted,
+                                    with_events=self.return_event_flow)
         done_g = p.g_keys < open_key
         done_c = p.gkey < open_key
         keys = p.g_keys[done_g]
