@@ -2,10 +2,13 @@
 
 Prints one table: for each chunk size, events per second of
 
-* ``search``: the batched candidate search alone (burst filter + triplets), and
-* ``flow``: the whole ``TripletFlow`` (search + RoI registration),
+* ``search``: the candidate search alone (burst filter + triplets), and
+* ``flow``: the whole ``TripletFlow`` (search + RoI registration), fed one ``update()`` per
+  chunk as a live stream would,
 
-on CPU with each of ``--threads`` thread counts (default 2) and on CUDA when available, next to the
+for each backend (``torch``: batched tensor code; ``compiled``: the numba kernels of
+``evtrack.flow.compiled``, CPU only) on CPU with each of ``--threads`` thread counts (default
+2) and on CUDA when available, next to the
 sequential per-event reference of ``tests/flow/flow_reference.py`` run in the same process
 on a prefix of the same events (it is far slower, so it sees fewer events). A calibration
 line (int32 add throughput) helps compare runs on busy machines.
@@ -41,6 +44,7 @@ import torch
 
 from evtrack.events import Events
 from evtrack.flow import CandidateSearch, FlowConfig, TripletFlow
+from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.scenes import translating_texture
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,31 +166,44 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int]) -> None:
                          max_speed=cfg.max_speed, max_span_us=cfg.max_span_us)
     ref_rate = len(sub) / (time.perf_counter() - t0)
 
-    runs = [(torch.device("cpu"), n) for n in thread_counts]
+    runs = [(torch.device("cpu"), n, b) for n in thread_counts for b in _cpu_backends()]
     if torch.cuda.is_available() and not args.no_cuda:
-        runs.append((torch.device("cuda"), thread_counts[0]))
-    print(f"{'device':<9}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
+        runs.append((torch.device("cuda"), thread_counts[0], "torch"))
+    print(f"{'device':<20}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
           f"{'x reference':>14}{'calib Gop/s':>13}")
-    print(f"{'cpu/1':<9}{'-':>10}{'(reference)':>16}{ref_rate:>16,.0f}{1.0:>14.1f}{'':>13}")
-    for dev, threads in runs:
+    print(f"{'cpu/1 reference':<20}{'-':>10}{'(sequential)':>16}{ref_rate:>16,.0f}{1.0:>14.1f}")
+    for dev, threads, backend in runs:
         torch.set_num_threads(threads)
-        label = f"cpu/{threads}" if dev.type == "cpu" else "cuda"
+        label = (f"cpu/{threads} {backend}" if dev.type == "cpu" else "cuda torch")
         sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
         evd = ev.to(dev)
         calib = _calibration(dev)
         for chunk in (int(c) for c in args.chunks.split(",")):
-            c = cfg.replace(chunk_size=chunk, device=str(dev))
+            c = cfg.replace(chunk_size=chunk, device=str(dev), backend=backend)
+            make_search = CompiledSearch if backend == "compiled" else CandidateSearch
 
-            def search(c=c, evd=evd, dev=dev):
-                CandidateSearch(c, dev)(evd.x, evd.y, evd.t, evd.p)
+            def search(c=c, evd=evd, dev=dev, make_search=make_search, chunk=chunk):
+                s = make_search(c, dev)
+                for i in range(0, len(evd), chunk):
+                    s(evd.x[i:i + chunk], evd.y[i:i + chunk], evd.t[i:i + chunk],
+                      evd.p[i:i + chunk])
 
-            def flow(c=c, evd=evd):
-                TripletFlow(c)(evd)
+            def flow(c=c, evd=evd, chunk=chunk):  # streaming: one update() per chunk
+                f = TripletFlow(c)
+                for i in range(0, len(evd), chunk):
+                    f.update(evd[i:i + chunk])
+                f.flush()
 
             r_search = _rate(search, len(ev), args.repeats, sync)
             r_flow = _rate(flow, len(ev), args.repeats, sync)
-            print(f"{label:<9}{chunk:>10,}{r_search:>16,.0f}{r_flow:>16,.0f}"
+            print(f"{label:<20}{chunk:>10,}{r_search:>16,.0f}{r_flow:>16,.0f}"
                   f"{r_flow / ref_rate:>14.1f}{calib:>13.2f}")
+
+
+def _cpu_backends() -> list[str]:
+    from evtrack.flow import compiled
+
+    return ["torch", "compiled"] if compiled.available() else ["torch"]
 
 
 def _count_onsets(cfg: FlowConfig, ev: Events) -> int:

@@ -39,7 +39,10 @@ import yaml
 
 from evtrack.errors import ConfigError
 
-__all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S"]
+__all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S", "BACKENDS"]
+
+BACKENDS = ("auto", "torch", "compiled")
+"""Values of :attr:`FlowConfig.backend`."""
 
 US_PER_S = 1_000_000
 """Microseconds per second (timestamps are µs, flows px/s)."""
@@ -124,6 +127,11 @@ class FlowConfig:
         pair_budget: largest number of (hypothesis, candidate) distances the registration
             evaluates at once (bounds its memory).
         device: torch device of the history and of all computation.
+        backend: ``"auto"``: on CPU, the compiled kernels of :mod:`evtrack.flow.compiled`
+            (numba) when numba is installed, else the batched tensor code; on CUDA, the
+            tensor code. ``"torch"``: always the tensor code. ``"compiled"``: always the
+            kernels (CPU only; an error without numba). Both give the same candidates and
+            flows, bit for bit; the kernels are 3-5x faster on CPU.
     """
 
     sensor_size: tuple[int, int] | None = None
@@ -150,6 +158,7 @@ class FlowConfig:
     pass_repeats: int = 1
     pair_budget: int = 4_000_000
     device: str = "cpu"
+    backend: str = "auto"
 
     def __post_init__(self) -> None:
         def need(cond: bool, name: str, problem: str) -> None:
@@ -184,6 +193,8 @@ class FlowConfig:
         need(float(self.max_speed) > float(self.min_speed), "max_speed",
              f"must exceed min_speed ({self.min_speed}), got {self.max_speed}")
         need(isinstance(self.refine, bool), "refine", f"expected true/false, got {self.refine!r}")
+        need(self.backend in BACKENDS, "backend",
+             f"expected one of {BACKENDS}, got {self.backend!r}")
         need(float(self.line_gate) > 0.0, "line_gate", f"must be > 0, got {self.line_gate}")
         need(0.0 <= float(self.min_inlier_fraction) <= 1.0, "min_inlier_fraction",
              f"expected a fraction in [0, 1], got {self.min_inlier_fraction!r}")
@@ -210,6 +221,23 @@ class FlowConfig:
         if self.block_size is not None:
             return int(self.block_size)
         return 262_144 if device_type == "cuda" else 16_384
+
+    def use_compiled(self, device_type: str) -> bool:
+        """Whether the compiled CPU kernels run for a flow on ``device_type`` (see
+        :attr:`backend`); raises :class:`ConfigError` when ``"compiled"`` cannot run."""
+        from evtrack.flow import compiled
+
+        if self.backend == "torch":
+            return False
+        if self.backend == "compiled":
+            if device_type != "cpu":
+                raise ConfigError(f"flow config field 'backend': 'compiled' runs on CPU, not "
+                                  f"{device_type}; use 'auto' or 'torch'")
+            if not compiled.available():
+                raise ConfigError("flow config field 'backend': 'compiled' needs numba "
+                                  "(pip install numba); use 'auto' or 'torch'")
+            return True
+        return device_type == "cpu" and compiled.available()
 
     def replace(self, **changes: Any) -> FlowConfig:
         """A copy with some fields changed (validated again)."""
@@ -245,8 +273,9 @@ class FlowConfig:
                 data[name] = kind(value)
         if data.get("sensor_size") is not None:
             data["sensor_size"] = tuple(data["sensor_size"])
-        if "device" in data:
-            data["device"] = str(data["device"])
+        for name in ("device", "backend"):
+            if name in data:
+                data[name] = str(data[name])
         return cls(**data)
 
     @classmethod

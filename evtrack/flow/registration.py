@@ -10,9 +10,11 @@ candidate: it is one of the candidate flows.
 
 Evaluated batched over many groups, exactly and deterministically:
 
-* distances (``sqrt(dx * dx + dy * dy)`` in float32, separate IEEE operations) are rounded to
-  ``1 / COST_SCALE`` px/s and summed in int64, so costs (and thus the
-  arg-min) do not depend on summation order, batch composition or device atomics;
+* a distance is ``d2 = dx * dx + dy * dy`` in float32 (separate IEEE operations), then
+  ``round(sqrt(d2) * COST_SCALE)`` (half to even), capped at ``_Q_MAX``, found with exact
+  float64 comparisons (:func:`rounded_distance`; library ``sqrt`` need not be correctly
+  rounded, and torch's CPU ``sqrt`` is not), and summed in int64, so costs (and thus the
+  arg-min) do not depend on summation order, batch composition, device or backend;
 * ties go to the hypothesis with the smallest hash (see below);
 * caps keep the O(|M|^2) cost bounded: at most ``max_events_per_roi`` events enter the data
   term (those with the smallest hash of their stream index) and at most ``max_hypotheses``
@@ -59,8 +61,33 @@ _PARALLEL_EPS = 1e-3
 _IRLS_DELTA = 0.01
 _GOLDEN = 2654435761
 _RANK_BITS = 20
-_Q_MAX = 1 << 30
-"""Rounded distances are capped here (2^30 / COST_SCALE px/s, far beyond any speed bound)."""
+_Q_MAX = 1 << 25
+"""Rounded distances are capped here (2^25 / COST_SCALE = 2.1 M px/s, beyond any plausible
+difference of flows); below it ``(n +- 0.5)^2`` is exact in float64."""
+
+
+def rounded_distance(d2: Tensor) -> Tensor:
+    """``min(round(sqrt(d2) * COST_SCALE), _Q_MAX)`` exactly (ties to even), as int64.
+
+    ``sqrt`` only gives the starting guess ``n``; with ``D = d2 * COST_SCALE^2`` (exact: a
+    float32 value times a power of two, in float64) the result is the integer ``n`` with
+    ``(n - 0.5)^2 <= D <= (n + 0.5)^2``, those squares being exact in float64 below
+    ``_Q_MAX``. A guess within one unit in the last place is off by at most one.
+
+    Args:
+        d2: float32 squared distances (px/s)^2, >= 0 (``inf`` allowed).
+    """
+    big = float(_Q_MAX) ** 2
+    dd = d2.to(torch.float64) * (COST_SCALE * COST_SCALE)
+    capped = dd >= big
+    dd = torch.where(capped, 0.0, dd)
+    n = torch.round(torch.sqrt(dd))
+    n = (n + (dd > (n + 0.5) * (n + 0.5)).to(n.dtype)
+         - ((dd < (n - 0.5) * (n - 0.5)) & (n > 0)).to(n.dtype))
+    odd = torch.remainder(n, 2.0) == 1.0  # a tie goes to the even neighbour
+    n = (n + ((dd == (n + 0.5) * (n + 0.5)) & odd).to(n.dtype)
+         - ((dd == (n - 0.5) * (n - 0.5)) & odd).to(n.dtype))
+    return torch.where(capped, _Q_MAX, n.to(torch.int64))
 
 
 def hash32(value: Tensor) -> Tensor:
@@ -133,7 +160,8 @@ def _runs(values: Tensor) -> tuple[Tensor, Tensor]:
 def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n_groups: int,
                     max_events: int, max_hypotheses: int, aperture_ratio: float,
                     pair_budget: int, refine: bool = True, line_gate: float = 0.35,
-                    refine_iters: int = 5) -> Registration:
+                    refine_iters: int = 5, compiled: bool = False,
+                    n_ordinals: int = 1 << 20) -> Registration:
     """Solve Eq. 3 for ``n_groups`` groups at once.
 
     Args:
@@ -150,6 +178,11 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
         line_gate: an event's line uses its two candidates nearest to F, both within
             ``line_gate * |F|`` of it.
         refine_iters: IRLS iterations of the refinement.
+        n_ordinals: a bound on the ordinals, the same for every call on one stream (the
+            hypotheses' hash keys are ``seq * n_ordinals + ordinal``: a bound taken from the
+            batch would make the selection depend on how the stream was chunked).
+        compiled: evaluate the Eq. 3 costs with the compiled CPU kernel
+            (:func:`evtrack.flow.compiled.hypothesis_costs`; the same integers).
 
     Returns:
         The :class:`Registration` of every group.
@@ -188,11 +221,11 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     ev_group = c_group[ev_first]
     ev_per_group = torch.bincount(ev_group, minlength=g_count)
     ev_start = torch.cumsum(ev_per_group, 0) - ev_per_group
-    ev_cands = torch.bincount(c_run, minlength=n_ev_total)
     out.used_events = ev_per_group
     # --- hypotheses: cap by candidate hash; rank within group gives the tie-break order
-    n_ord = int(ordinal.max()) + 1
-    h_key = hash32(c_seq * n_ord + c_ord)
+    if c_ord.numel() and int(c_ord.max()) >= n_ordinals:
+        raise ValueError(f"candidate ordinals must be < n_ordinals ({n_ordinals})")
+    h_key = hash32(c_seq * n_ordinals + c_ord)
     h_keep = select_smallest(c_group, h_key, max_hypotheses)
     h_idx = torch.nonzero(h_keep).reshape(-1)
     h_group = c_group[h_idx]
@@ -202,8 +235,15 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     h_first[1:] = h_group[1:] != h_group[:-1]
     hpos = torch.arange(h_idx.numel(), device=dev)
     h_rank = hpos - torch.cummax(torch.where(h_first, hpos, torch.zeros_like(hpos)), 0).values
-    cost = _hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, ev_cands,
-                             ev_per_group, ev_start, pair_budget)
+    c_event = c_run - ev_start[c_group]
+    if compiled:
+        from evtrack.flow.compiled import hypothesis_costs
+
+        cost = hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, c_event, ev_per_group,
+                                COST_SCALE, _Q_MAX).to(dev)
+    else:
+        cost = _hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, c_event,
+                                 ev_per_group, pair_budget)
     # --- arg-min per group, ties to the smallest rank
     combo = (cost << _RANK_BITS) | h_rank
     best = torch.full((g_count,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
@@ -318,26 +358,26 @@ def _fit_lines(lines: dict[str, Tensor], start: Tensor, g_count: int, iters: int
 
 
 def _hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Tensor,
-                      c_start: Tensor, ev_cands: Tensor, ev_per_group: Tensor,
-                      ev_start: Tensor, pair_budget: int) -> Tensor:
+                      c_start: Tensor, c_event: Tensor, ev_per_group: Tensor,
+                      pair_budget: int) -> Tensor:
     """Exact int64 cost ``sum_i min_c round(|F_h - F_ic| * COST_SCALE)`` per hypothesis.
 
     Dense per batch of groups: the hypotheses (padded to the batch's most, ``Hm``) against the
     candidates (padded to ``Cm``), ``(groups, Hm, Cm)`` squared distances, a per-event minimum
-    by a segmented reduction along the candidates (an event's candidates are consecutive) and
-    a sum over the events. Groups are batched in order of their candidate count (little
+    (a scatter-min of each candidate onto its event; ``min`` is exact in any order) and a sum
+    over the events. Groups are batched in order of their candidate count (little
     padding) within ``pair_budget`` distances. Squared distances are ``dx * dx + dy * dy`` in
     float32 with separate IEEE operations, so every value is the same whatever the batch
     layout or device. ``sqrt``, the scaling by a power of two, rounding and the cap are all
     monotone non-decreasing, so they are applied to the per-event minimum only: the result is
-    bit for bit ``min_c round(sqrt(dx * dx + dy * dy) * COST_SCALE)``.
+    bit for bit ``min_c rounded_distance(dx * dx + dy * dy)``.
 
     Args:
         h_idx: (H,) candidate index of each hypothesis, grouped by group (``h_group``).
         c_flow: (M, 2) float32 candidate flows, grouped by group, events contiguous.
         counts, c_start: (G,) candidates per group and the first of each.
-        ev_cands: (E,) candidates of each kept event (events grouped by group).
-        ev_per_group, ev_start: (G,) kept events per group and the first of each.
+        c_event: (M,) index of each candidate's event among its group's kept events.
+        ev_per_group: (G,) kept events per group.
     """
     dev = c_flow.device
     n_h = h_idx.numel()
@@ -380,17 +420,15 @@ def _hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Te
         dy.mul_(dy)
         d2.add_(dy)
         del dy
-        # segments: the events of each group, then one dummy segment over the padding
+        # per-event minimum: each candidate onto its event, the padding onto a dummy event em
         ar_e = torch.arange(em, device=dev)
         e_valid = ar_e < ev_per_group[g][:, None]
-        lengths = torch.empty(n_b, em + 1, dtype=torch.int64, device=dev)
-        lengths[:, :em] = torch.where(
-            e_valid, ev_cands[torch.where(e_valid, ev_start[g][:, None] + ar_e, 0)], 0)
-        lengths[:, em] = cm - c_n
-        mins = torch.segment_reduce(d2, "min", lengths=lengths[:, None, :].expand(n_b, hm, em + 1),
-                                    axis=2, initial=float("inf"))[:, :, :em]
+        ev_of = torch.where(ar_c < c_n[:, None], c_event[c_i], em)
+        mins = torch.full((n_b, hm, em + 1), float("inf"), dtype=d2.dtype, device=dev)
+        mins.scatter_reduce_(2, ev_of[:, None, :].expand(n_b, hm, cm), d2, "amin")
+        mins = mins[:, :, :em]
         del d2
-        q = torch.round(torch.sqrt(mins) * COST_SCALE).clamp_max(float(_Q_MAX)).to(torch.int32)
+        q = rounded_distance(mins)
         part = torch.where(e_valid[:, None, :], q, 0).sum(2, dtype=torch.int64)
         cost[h_pos[h_valid]] = part[h_valid]
         start = stop

@@ -13,10 +13,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from evtrack.errors import EventsError
+from evtrack.errors import EventsError, EvtrackError
 from evtrack.events import Events
 from evtrack.flow.candidates import Candidates, CandidateSearch
-from evtrack.flow.config import FlowConfig
+from evtrack.flow.compiled import CompiledSearch
+from evtrack.flow.config import FlowConfig, search_offsets
 from evtrack.flow.registration import (
     COST_SCALE,
     hash32,
@@ -76,14 +77,15 @@ class TripletFlow(nn.Module):
         self.config = config
         self.return_event_flow = bool(return_event_flow)
         self.device = torch.device(config.device)
+        # candidate ordinals (offset * K + age_j) * K + age_i lie below this, for every call
+        self._n_ordinals = len(search_offsets(config.radius)) * config.history ** 2
         self.reset()
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         """Forget the history, the pending windows and the stream position."""
         self._sensor = self.config.sensor_size
-        self._search = (CandidateSearch(self.config, self.device)
-                        if self._sensor is not None else None)
+        self._search = self._new_search() if self._sensor is not None else None
         self._last_t: int | None = None
         self._emitted = 0
         self._pending = self._empty_pending()
@@ -95,7 +97,14 @@ class TripletFlow(nn.Module):
             return self
         self.config = self.config.replace(device=str(device))
         old_search = self._search
+        if isinstance(old_search, CompiledSearch) and old_search.next_seq > 0:
+            raise EvtrackError("TripletFlow.to(): the compiled CPU backend cannot carry its "
+                               "history to another device; move the flow before its first "
+                               "events, or use FlowConfig(backend='torch')")
         self.device = device
+        if isinstance(old_search, CompiledSearch):
+            old_search = None
+            self._search = self._new_search()
         if old_search is not None:
             new = CandidateSearch(self.config, device)
             new.history.load_state_dict(old_search.history.state_dict())
@@ -106,6 +115,11 @@ class TripletFlow(nn.Module):
         p = self._pending
         self._pending = _Pending(*(getattr(p, f).to(device) for f in _Pending.__annotations__))
         return self
+
+    def _new_search(self) -> CandidateSearch | CompiledSearch:
+        if self.config.use_compiled(self.device.type):
+            return CompiledSearch(self.config, self.device)
+        return CandidateSearch(self.config, self.device)
 
     def _empty_pending(self) -> _Pending:
         z = torch.zeros(0, dtype=torch.int64, device=self.device)
@@ -170,7 +184,7 @@ class TripletFlow(nn.Module):
                                   "give events with sensor_size")
             self._sensor = tuple(size)
             self.config = self.config.replace(sensor_size=self._sensor)
-            self._search = CandidateSearch(self.config, self.device)
+            self._search = self._new_search()
         elif size is not None and tuple(size) != tuple(self._sensor):
             raise EventsError(f"events of sensor size {tuple(size)} given to a flow set up "
                               f"for {tuple(self._sensor)}")
@@ -245,7 +259,8 @@ class TripletFlow(nn.Module):
         reg = register_groups(c_local, p.seq[done_c], p.ordinal[done_c], p.flow[done_c],
                               keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
                               cfg.aperture_ratio, cfg.pair_budget, cfg.refine, cfg.line_gate,
-                              cfg.refine_iters)
+                              cfg.refine_iters, compiled=cfg.use_compiled(self.device.type),
+                              n_ordinals=self._n_ordinals)
         support = p.g_support[done_g]
         agree = reg.inliers.to(torch.float64) >= (float(cfg.min_inlier_fraction)
                                                   * reg.used_events.to(torch.float64))

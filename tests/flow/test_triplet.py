@@ -101,6 +101,21 @@ def test_streaming_equals_one_call(texture):
     assert whole.event_flow.shape == (len(ev), 2) and joined.event_start == 0
 
 
+def test_hypothesis_selection_does_not_depend_on_the_chunking():
+    """The hash keys of the capped hypotheses use a fixed bound on the candidate ordinals;
+    one taken from each registration batch made this scene's flows depend on the chunking."""
+    ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
+    out = []
+    for chunk in (5_000, 1_733):
+        flow = TripletFlow(FlowConfig(sensor_size=(64, 48), roi_size=16, window_us=2_000,
+                                      backend="torch"))
+        parts = [flow.update(ev[i:i + chunk]) for i in range(0, len(ev), chunk)]
+        out.append(FlowResult.cat([*parts, flow.flush()]))
+    assert len(out[0]) > 100
+    for name in ("flow", "cost", "support", "roi", "window"):
+        torch.testing.assert_close(getattr(out[0], name), getattr(out[1], name), rtol=0, atol=0)
+
+
 def test_event_flows_are_candidates_near_the_roi_flow(texture):
     ev, gt = texture
     res = TripletFlow(roi_size=32, window_us=5_000, return_event_flow=True)(ev)

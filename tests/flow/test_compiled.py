@@ -1,0 +1,146 @@
+"""The compiled CPU backend of the flow (numba) against the sequential reference, the torch
+backend, and exact arithmetic."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import torch
+from flow_reference import reference_candidates
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from evtrack.errors import ConfigError, EvtrackError
+from evtrack.flow import FlowConfig, FlowResult, TripletFlow
+from evtrack.flow.registration import COST_SCALE, rounded_distance
+from evtrack.flow.scenes import translating_texture
+
+compiled = pytest.importorskip("evtrack.flow.compiled")
+if not compiled.available():
+    pytest.skip("numba is not installed: the compiled backend cannot run", allow_module_level=True)
+
+FIELDS = ("event", "offset", "age_j", "age_i", "seq_j", "seq_i", "dt_us")
+
+
+def _reference_rows(x, y, t, p, cfg):
+    rows, _ = reference_candidates(
+        x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg.sensor_size, radius=cfg.radius,
+        history=cfg.history, refractory_us=cfg.refractory_us, tolerance_us=cfg.tolerance_us,
+        tolerance_permille=cfg.tolerance_permille, min_speed=cfg.min_speed,
+        max_speed=cfg.max_speed, max_span_us=cfg.max_span_us)
+    return rows
+
+
+def _search_in_chunks(cfg, x, y, t, p, cuts):
+    search = compiled.CompiledSearch(cfg)
+    parts = []
+    bounds = [0, *sorted(set(cuts)), len(t)]
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        if b > a:
+            parts.append(search(x[a:b], y[a:b], t[a:b], p[a:b]))
+    assert search.next_seq == len(t)
+    rows, flows = [], []
+    for c in parts:
+        rows += list(zip(*(getattr(c, f).tolist() for f in FIELDS), strict=True))
+        flows.append(c.flow)
+    return rows, torch.cat(flows) if flows else torch.zeros(0, 2)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 300), radius=st.integers(1, 3),
+       history=st.integers(1, 3), refractory=st.sampled_from([0, 40, 400]),
+       max_gap=st.sampled_from([0, 3, 60]), span=st.sampled_from([0, 300, 2000]),
+       cuts=st.lists(st.integers(0, 300), max_size=4))
+def test_random_streams_equal_the_reference(seed, n, radius, history, refractory, max_gap,
+                                            span, cuts):
+    rng = np.random.default_rng(seed)
+    size = (9, 7)
+    t = torch.as_tensor(np.cumsum(rng.integers(0, max_gap + 1, n)))
+    x = torch.as_tensor(rng.integers(0, size[0], n))
+    y = torch.as_tensor(rng.integers(0, size[1], n))
+    p = torch.as_tensor(rng.choice([-1, 1], n))
+    cfg = FlowConfig(sensor_size=size, radius=radius, history=history, refractory_us=refractory,
+                     tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6,
+                     max_span_us=span)
+    rows, flow = _search_in_chunks(cfg, x, y, t, p, [c for c in cuts if c <= n])
+    ref = _reference_rows(x, y, t, p, cfg)
+    assert rows == [r[:7] for r in ref]
+    if ref:
+        torch.testing.assert_close(flow.double(), torch.tensor([r[7:] for r in ref],
+                                                               dtype=torch.float64),
+                                   rtol=1e-6, atol=1e-3)
+
+
+def test_textured_scene_equals_the_reference_and_the_torch_search():
+    ev, _ = translating_texture((40, 30), velocity=(900.0, -400.0), duration_us=12_000, seed=3)
+    ev = ev[:3000]
+    cfg = FlowConfig(sensor_size=(40, 30))
+    rows, flow = _search_in_chunks(cfg, ev.x, ev.y, ev.t, ev.p, [1, 700, 701, 2000])
+    ref = _reference_rows(ev.x, ev.y, ev.t, ev.p, cfg)
+    assert len(ref) > 100 and rows == [r[:7] for r in ref]
+    from evtrack.flow.candidates import CandidateSearch
+
+    tensor_search = CandidateSearch(cfg.replace(backend="torch"))(ev.x, ev.y, ev.t, ev.p)
+    assert torch.equal(tensor_search.flow, flow)  # same float32 flows, bit for bit
+
+
+def test_both_backends_give_the_same_flow_bit_for_bit():
+    ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
+    out = {}
+    for backend, chunk in (("torch", 5_000), ("compiled", 1_733)):
+        flow = TripletFlow(FlowConfig(sensor_size=(64, 48), roi_size=16, window_us=2_000,
+                                      backend=backend), return_event_flow=True)
+        parts = [flow.update(ev[i:i + chunk]) for i in range(0, len(ev), chunk)]
+        out[backend] = FlowResult.cat([*parts, flow.flush()])
+    a, b = out["torch"], out["compiled"]
+    assert len(a) > 20
+    for name in ("flow", "full_flow", "cost", "support", "normal", "roi", "window",
+                 "event_flow"):
+        assert torch.equal(torch.nan_to_num(getattr(a, name).float(), 1e30),
+                           torch.nan_to_num(getattr(b, name).float(), 1e30)), name
+
+
+def _exact_rounded(d2: float) -> int:
+    """round(sqrt(d2) * COST_SCALE), ties to even, capped, in rational arithmetic."""
+    cap = 1 << 25
+    if not math.isfinite(d2) or d2 * COST_SCALE ** 2 >= float(cap) ** 2:
+        return cap
+    big = Fraction(d2) * int(COST_SCALE) ** 2
+    n = math.isqrt(int(big))
+    for c in range(max(n - 2, 0), n + 3):
+        lo = Fraction(2 * c - 1, 2) ** 2 if c > 0 else Fraction(-1)
+        hi = Fraction(2 * c + 1, 2) ** 2
+        if lo < big < hi or (big == lo and c % 2 == 0):
+            return c
+        if big == hi:
+            return c if c % 2 == 0 else c + 1
+    raise AssertionError(d2)
+
+
+def test_rounded_distance_is_exact_in_both_backends():
+    rng = np.random.default_rng(1)
+    ties = (rng.integers(0, 4000, 300) + 0.5) ** 2 / COST_SCALE ** 2  # exactly between
+    d2 = np.concatenate([rng.random(2000) * 1e8, ties, rng.random(300) * 10,
+                         [0.0, 1e-30, np.inf, 1e30]]).astype(np.float32)
+    expected = np.array([_exact_rounded(float(v)) for v in d2])
+    assert np.array_equal(rounded_distance(torch.from_numpy(d2)).numpy(), expected)
+    got = [compiled._rounded_distance(np.float32(v), COST_SCALE, float(1 << 25)) for v in d2]
+    assert np.array_equal(np.array(got), expected)
+
+
+def test_backend_choice_and_errors():
+    assert FlowConfig(backend="auto").use_compiled("cpu")
+    assert not FlowConfig(backend="auto").use_compiled("cuda")
+    assert not FlowConfig(backend="torch").use_compiled("cpu")
+    with pytest.raises(ConfigError, match="'backend'"):
+        FlowConfig(backend="fast")
+    with pytest.raises(ConfigError, match="runs on CPU"):
+        FlowConfig(backend="compiled").use_compiled("cuda")
+    flow = TripletFlow(FlowConfig(sensor_size=(32, 24), backend="compiled"))
+    ev, _ = translating_texture((32, 24), velocity=(500.0, 0.0), duration_us=5_000, seed=1)
+    flow.update(ev)
+    with pytest.raises(EvtrackError, match="compiled CPU backend"):
+        flow.to("meta")
