@@ -55,13 +55,16 @@ def _njit(**kwargs):
 
 
 @_njit()
-def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, dt_hi, num_x,
-                   num_y, history, refractory, tol_abs, permille, last_t, last_p, hist_t,
-                   hist_s, hist_n, o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_out):
+def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+                   num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
+                   o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_out):
     """Process events ``start..`` until done or until the output might overflow.
 
-    Returns ``(next event index, rows written)``; the state arrays are updated for every
-    processed event only, so a call can resume where the previous one stopped.
+    ``last[pixel] = (t, p)`` of the pixel's latest event; ``hist[cell] = (n, t_0..t_{K-1})``:
+    the cell's ``n <= K`` latest onsets, newest first (one short row: one cache line per
+    lookup); ``hist_s[cell]``: their stream indices (read only for a candidate). Returns
+    ``(next event index, rows written)``; the state is updated for every processed event
+    only, so a call can resume where the previous one stopped.
     """
     n = x.shape[0]
     n_off = off_x.shape[0]
@@ -75,9 +78,9 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
         xk, yk, tk, pk = x[k], y[k], t[k], p[k]
         seq = seq0 + k
         pix = yk * width + xk
-        prev_t, prev_p = last_t[pix], last_p[pix]
-        last_t[pix] = tk
-        last_p[pix] = pk
+        prev_t, prev_p = last[pix, 0], last[pix, 1]
+        last[pix, 0] = tk
+        last[pix, 1] = pk
         k += 1
         if refractory > 0 and prev_t != NEVER and prev_p == pk and tk - prev_t <= refractory:
             continue  # inside a burst: neither searched nor stored
@@ -88,19 +91,28 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
             if xi < 0 or xi >= width or yi < 0 or yi >= height:
                 continue
             cj = plane + (yk - dy) * width + (xk - dx)
+            nj = hist[cj, 0]
+            if nj == 0:
+                continue
             ci = plane + yi * width + xi
-            nj, ni = hist_n[cj], hist_n[ci]
-            lo, hi = dt_lo[o], dt_hi[o]
+            ni = hist[ci, 0]
+            if ni == 0:
+                continue
+            lo, hi, top_j = dt_lo[o], dt_hi[o], hi_j[o]
             for aj in range(nj):
-                tj = hist_t[cj, aj]
+                tj = hist[cj, 1 + aj]
                 dkj = tk - tj
                 if dkj < 1:
                     continue
+                if dkj >= top_j:
+                    break  # older e_j are older still: no t_k - t_i can complete them
                 for ai in range(ni):
-                    ti = hist_t[ci, ai]
-                    dji = tj - ti
+                    ti = hist[ci, 1 + ai]
                     dki = tk - ti
-                    if dji < 1 or dki < lo or dki > hi:
+                    if dki > hi:
+                        break  # older e_i are older still
+                    dji = tj - ti
+                    if dji < 1 or dki < lo:
                         continue
                     if abs(dkj - dji) * 1000 > tol_abs + permille * dki:
                         continue
@@ -117,15 +129,15 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
                     n_out += 1
         # store e_k: newest first, the oldest of a full cell drops out
         c = plane + pix
-        m = hist_n[c]
+        m = hist[c, 0]
         if m < history:
-            hist_n[c] = m + 1
+            hist[c, 0] = m + 1
         else:
             m = history - 1
         for a in range(m, 0, -1):
-            hist_t[c, a] = hist_t[c, a - 1]
+            hist[c, 1 + a] = hist[c, a]
             hist_s[c, a] = hist_s[c, a - 1]
-        hist_t[c, 0] = tk
+        hist[c, 1] = tk
         hist_s[c, 0] = seq
     return k, n_out
 
@@ -158,6 +170,10 @@ class CompiledSearch:
         self._off_y = np.ascontiguousarray(offsets[:, 1], dtype=np.int64)
         self._lo = np.ascontiguousarray(bounds[:, 0], dtype=np.int64)
         self._hi = np.ascontiguousarray(bounds[:, 1], dtype=np.int64)
+        # e_j with t_k - t_j >= hi_j complete no triplet (as CandidateSearch's stage 1)
+        a_max = (self._hi * (1000 + config.tolerance_permille)
+                 + config.tolerance_us * 1000) // 2000
+        self._hi_j = np.minimum(self._hi, a_max + 1)
         # the candidate flow's numerator 2 d * 1e6 in float32, as the torch search has it
         self._num_x = (np.float32(2.0 * US_PER_S) * self._off_x.astype(np.float32))
         self._num_y = (np.float32(2.0 * US_PER_S) * self._off_y.astype(np.float32))
@@ -168,11 +184,10 @@ class CompiledSearch:
         """Forget every event seen."""
         pixels = self.width * self.height
         k = self.config.history
-        self.last_t = np.full(pixels, NEVER_US, dtype=np.int64)
-        self.last_p = np.zeros(pixels, dtype=np.int64)
-        self.hist_t = np.zeros((2 * pixels, k), dtype=np.int64)
-        self.hist_s = np.zeros((2 * pixels, k), dtype=np.int64)
-        self.hist_n = np.zeros(2 * pixels, dtype=np.int64)
+        self.last = np.zeros((pixels, 2), dtype=np.int64)  # (t, p) of each pixel's latest
+        self.last[:, 0] = NEVER_US
+        self.hist = np.zeros((2 * pixels, 1 + k), dtype=np.int64)  # (n, times)
+        self.hist_s = np.zeros((2 * pixels, k), dtype=np.int64)  # stream indices
         self.next_seq = 0
 
     def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Candidates:
@@ -200,9 +215,9 @@ class CompiledSearch:
             flow = np.empty((capacity, 2), np.float32)
             start, rows = _search_kernel(
                 *arrays, start, self.next_seq, self.width, self.height, self._off_x,
-                self._off_y, self._lo, self._hi, self._num_x, self._num_y, cfg.history,
-                cfg.refractory_us, cfg.tolerance_us * 1000, cfg.tolerance_permille,
-                self.last_t, self.last_p, self.hist_t, self.hist_s, self.hist_n, *out, flow, 0)
+                self._off_y, self._lo, self._hi, self._hi_j, self._num_x, self._num_y,
+                cfg.history, cfg.refractory_us, cfg.tolerance_us * 1000,
+                cfg.tolerance_permille, self.last, self.hist, self.hist_s, *out, flow, 0)
             parts.append(Candidates(*(torch.from_numpy(a[:rows]) for a in out),
                                     flow=torch.from_numpy(flow[:rows])))
             capacity *= 2
@@ -211,26 +226,32 @@ class CompiledSearch:
 
 
 @_njit(parallel=True)
-def _costs_kernel(h_cand, h_group, c_x, c_y, c_start, counts, c_event, ev_per_group,
+def _costs_kernel(h_cand, h_start, h_count, c_x, c_y, c_start, counts, c_event, ev_per_group,
                   cost_scale, q_max):
-    n_h = h_cand.shape[0]
-    cost = np.zeros(n_h, dtype=np.int64)
-    for h in _prange(n_h):
-        g = h_group[h]
-        hx, hy = c_x[h_cand[h]], c_y[h_cand[h]]
-        mins = np.full(ev_per_group[g], np.inf, dtype=np.float32)
-        for c in range(c_start[g], c_start[g] + counts[g]):
-            dx = hx - c_x[c]
-            dy = hy - c_y[c]
-            d2 = dx * dx
-            d2 = d2 + dy * dy
-            e = c_event[c]
-            if d2 < mins[e]:
-                mins[e] = d2
-        total = 0
-        for e in range(mins.shape[0]):
-            total += _rounded_distance(mins[e], cost_scale, q_max)
-        cost[h] = total
+    """Per group (in parallel), per hypothesis: the sum over events of the rounded distance
+    to the event's nearest candidate. Hypotheses of a group are consecutive."""
+    n_g = h_start.shape[0]
+    cost = np.zeros(h_cand.shape[0], dtype=np.int64)
+    for g in _prange(n_g):
+        if h_count[g] == 0:
+            continue
+        mins = np.empty(ev_per_group[g], dtype=np.float32)
+        c0, c1 = c_start[g], c_start[g] + counts[g]
+        for h in range(h_start[g], h_start[g] + h_count[g]):
+            hx, hy = c_x[h_cand[h]], c_y[h_cand[h]]
+            mins[:] = np.inf
+            for c in range(c0, c1):
+                dx = hx - c_x[c]
+                dy = hy - c_y[c]
+                d2 = dx * dx
+                d2 = d2 + dy * dy
+                e = c_event[c]
+                if d2 < mins[e]:
+                    mins[e] = d2
+            total = 0
+            for e in range(mins.shape[0]):
+                total += _rounded_distance(mins[e], cost_scale, q_max)
+            cost[h] = total
     return cost
 
 
@@ -262,7 +283,8 @@ def hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Ten
     :func:`evtrack.flow.registration._hypothesis_costs`, which it equals bit for bit).
 
     Args:
-        h_idx: (H,) candidate index of each hypothesis; h_group: (H,) its group.
+        h_idx: (H,) candidate index of each hypothesis; h_group: (H,) its group (the
+            hypotheses of a group are consecutive).
         c_flow: (M, 2) float32 candidate flows, grouped by group, events contiguous.
         counts, c_start: (G,) candidates per group and the first of each.
         c_event: (M,) index of each candidate's event among its group's kept events.
@@ -275,9 +297,12 @@ def hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Ten
     if h_idx.numel() == 0:
         return torch.zeros(0, dtype=torch.int64)
     flow = c_flow.detach().cpu().numpy().astype(np.float32, copy=False)
+    n_groups = counts.shape[0]
+    h_count = torch.bincount(h_group, minlength=n_groups)
+    h_start = torch.cumsum(h_count, 0) - h_count
     as64 = [np.ascontiguousarray(a.detach().cpu().numpy(), dtype=np.int64)
-            for a in (h_idx, h_group, c_start, counts, c_event, ev_per_group)]
-    cost = _costs_kernel(as64[0], as64[1], np.ascontiguousarray(flow[:, 0]),
-                         np.ascontiguousarray(flow[:, 1]), as64[2], as64[3], as64[4], as64[5],
-                         float(cost_scale), float(q_max))
+            for a in (h_idx, h_start, h_count, c_start, counts, c_event, ev_per_group)]
+    cost = _costs_kernel(as64[0], as64[1], as64[2], np.ascontiguousarray(flow[:, 0]),
+                         np.ascontiguousarray(flow[:, 1]), *as64[3:], float(cost_scale),
+                         float(q_max))
     return torch.from_numpy(cost)
