@@ -131,7 +131,8 @@ class FlowConfig:
             (numba) when numba is installed, else the batched tensor code; on CUDA, the
             tensor code. ``"torch"``: always the tensor code. ``"compiled"``: always the
             kernels (CPU only; an error without numba). Both give the same candidates and
-            flows, bit for bit; the kernels are 3-5x faster on CPU.
+            flows, bit for bit; on 2 CPU cores the kernels were 1.6-3.5x faster
+            (``benchmarks/bench_flow_speed.py``).
     """
 
     sensor_size: tuple[int, int] | None = None

@@ -95,12 +95,12 @@ class TripletFlow(nn.Module):
         device = torch.device(device)
         if device == self.device:
             return self
-        self.config = self.config.replace(device=str(device))
         old_search = self._search
         if isinstance(old_search, CompiledSearch) and old_search.next_seq > 0:
             raise EvtrackError("TripletFlow.to(): the compiled CPU backend cannot carry its "
                                "history to another device; move the flow before its first "
                                "events, or use FlowConfig(backend='torch')")
+        self.config = self.config.replace(device=str(device))
         self.device = device
         if isinstance(old_search, CompiledSearch):
             old_search = None

@@ -144,3 +144,6 @@ def test_backend_choice_and_errors():
     flow.update(ev)
     with pytest.raises(EvtrackError, match="compiled CPU backend"):
         flow.to("meta")
+    assert flow.device.type == "cpu" and flow.config.device == "cpu"  # left as it was
+    fresh = TripletFlow(FlowConfig(sensor_size=(32, 24))).to("meta")  # no events yet: fine
+    assert fresh.config.device == "meta"
