@@ -163,7 +163,7 @@ class TripletFlow(nn.Module):
         parts = [FlowResult.empty(self.device, self._emitted, self.return_event_flow)]
         size = self.config.chunk_size
         for start in range(0, len(events), size):
-            parts.append(self._process(events[start:start + size]))
+            parts.append(self._register_piece(*self._search_piece(events[start:start + size])))
         return FlowResult.cat(parts)
 
     def flush(self) -> FlowResult:
@@ -206,13 +206,18 @@ class TripletFlow(nn.Module):
                                                                        rounding_mode="floor")
         return window * (cols * rows) + roi
 
-    def _process(self, ev: Events) -> FlowResult:
+    def _search_piece(self, ev: Events) -> tuple[Tensor, Tensor, Tensor, Candidates, int]:
+        """The candidates of the next events (advances the search's history)."""
         dev = self.device
         x = ev.x.to(dev, torch.int64)
         y = ev.y.to(dev, torch.int64)
         t = ev.t.to(dev, torch.int64)
         seq0 = self._search.next_seq
-        cands = self._search(x, y, t, ev.p.to(dev))
+        return x, y, t, self._search(x, y, t, ev.p.to(dev)), seq0
+
+    def _register_piece(self, x: Tensor, y: Tensor, t: Tensor, cands: Candidates,
+                        seq0: int) -> FlowResult:
+        """Add searched events to the pending windows; register the windows they close."""
         gkey = self._group_keys(x, y, t)
         self._add_pending(gkey, cands, seq0)
         cols, rows = self.num_rois

@@ -173,13 +173,13 @@ def test_burst_of_100x_rate_is_processed_in_bounded_chunks(texture, monkeypatch)
     flow = TripletFlow(roi_size=32, window_us=100, chunk_size=2_000, refractory_us=20,
                        tolerance_us=1, max_speed=1e6, min_speed=1000.0)
     seen = []
-    original = TripletFlow._process
+    original = TripletFlow._search_piece
 
     def spy(self, chunk):
         seen.append(len(chunk))
         return original(self, chunk)
 
-    monkeypatch.setattr(TripletFlow, "_process", spy)
+    monkeypatch.setattr(TripletFlow, "_search_piece", spy)
     res = flow(burst)
     assert max(seen) <= 2_000 and sum(seen) == len(ev)
     assert len(res) > 0
