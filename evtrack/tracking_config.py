@@ -126,7 +126,11 @@ class GEConfig:
 
 def _tracker_flow_defaults() -> FlowConfig:
     # One flow window per velocity step: every step's flows are complete at its end.
-    return FlowConfig(window_us=1000, roi_size=32)
+    # tolerance_rel 0.1 (the flow's own default is 0.05): more, slightly less exact RoI
+    # flows; with the filter's Laplacian weighting the twist came out closer to the truth
+    # (oracle poses, box sequences: relative v error 0.58 -> 0.52 and 0.50 -> 0.44, ω
+    # 0.52 -> 0.47 and 0.57 -> 0.49)
+    return FlowConfig(window_us=1000, roi_size=32, tolerance_rel=0.1)
 
 
 def _pose_ukf_defaults() -> PoseUKFConfig:

@@ -326,11 +326,13 @@ def test_leaving_and_reentering_the_view(exit_sequence, box) -> None:
     ``pose_latency_ms`` after its frame, and it tracks again.
 
     Measured: first frame with less than 30% in view at 358 ms, last detection of the frame at
-    308 ms, misses at 408, 508, 608 ms -> LOST from 708 ms (bound: the first frame out + 3
-    pose periods + the latency, 758 ms); back in view with the frame at 808 ms -> tracking
-    from 908 ms (bound: + one period + the latency, 1008 ms). After re-initialisation: 5.93 cm
-    / 8.61 deg RMSE, against 5.83 cm / 8.81 deg before the object left (bound: 1.5x the error
-    before it left, at least 8 cm / 8 deg)."""
+    308 ms, misses at 408, 508, 608 ms -> LOST from 708 ms at the latest (bound: the first frame
+    out + 3 pose periods + the latency, 758 ms). The predicted silhouette can leave the image
+    first, which declares the object lost ``lost_after_ms`` later (507 ms with the tracker's
+    flow settings since session 4), but not before the object really left; back in view with the
+    frame at 808 ms -> tracking from 908 ms (bound: + one period + the latency, 1008 ms). After
+    re-initialisation: 5.93 cm / 8.61 deg RMSE, against 5.83 cm / 8.81 deg before the object
+    left (bound: 1.5x the error before it left, at least 8 cm / 8 deg)."""
     seq = exit_sequence
     oracle = OraclePoseSource.from_sequence(seq, seed=0, **ORACLE_NOISE)
     source = VisibleOnlySource(oracle, np.asarray(box.vertices), seq.meta.event_camera, 0.3)
@@ -347,16 +349,17 @@ def test_leaving_and_reentering_the_view(exit_sequence, box) -> None:
     back = next(c for c in calls[k + 3:] if c in answered)
     t_back = _on_grid(back + LATENCY_US)
     t, status = traj.t_us.numpy(), traj.status.numpy()
-    lost = np.flatnonzero(status == STATUS_LOST)
-    assert t[lost[0]] == t_lost and t[lost[-1]] == t_back - STEP_US
-    assert (status[(t >= t_lost) & (t < t_back)] == STATUS_LOST).all()
-    assert (status[t >= t_back] == STATUS_TRACKING).all()
-    # re-initialised within one pose period plus the latency of the object's return
     sil = Silhouette(np.asarray(box.vertices), seq.meta.event_camera)
     gt = seq.ground_truth
     frames = seq.rgb_times_us.numpy()
     visible = [sil.polygon(gt.pose_at(int(f)).numpy()).visible_fraction for f in frames]
     out = frames[np.asarray(visible) < 0.3]
+    lost = np.flatnonzero(status == STATUS_LOST)
+    # lost by the misses at the latest, never before the object left the view
+    assert int(out.min()) <= t[lost[0]] <= t_lost and t[lost[-1]] == t_back - STEP_US
+    assert (status[(t >= t[lost[0]]) & (t < t_back)] == STATUS_LOST).all()
+    assert (status[t >= t_back] == STATUS_TRACKING).all()
+    # re-initialised within one pose period plus the latency of the object's return
     returned = int(frames[(frames > out.min()) & (np.asarray(visible) >= 0.3)][0])
     assert t_back <= returned + PERIOD_US + LATENCY_US
     assert t_lost <= int(out.min()) + 3 * PERIOD_US + LATENCY_US
