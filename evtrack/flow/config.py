@@ -72,23 +72,22 @@ class FlowConfig:
             whose times do not move rigidly with the edge). 0 disables the filter.
         tolerance_us: absolute part of the constant-velocity tolerance ξ, in µs.
         tolerance_rel: relative part of ξ, as a fraction of ``t_k - t_i``; used at per-mille
-            resolution (``round(1000 * tolerance_rel)``). 5 %: the speed may change by that
-            much between the two halves of a triplet (0.1 gave more RoIs, less accurate:
-            see ``max_span_us``).
+            resolution (``round(1000 * tolerance_rel)``).
         min_speed: smallest plausible speed in px/s (> 0); slower candidates are dropped.
         max_speed: largest plausible speed in px/s; faster candidates are dropped.
-        max_span_us: longest triplet, ``t_k - t_i`` in µs; 0: no bound beyond ``min_speed``.
-            A triplet's flow is the mean velocity over its span, so it lags the present by
-            about half the span. Without a bound (``min_speed`` alone allowed 300 ms spans at
-            radius 3) the RoI flow of the ``faster`` benchmark sequences, whose velocity
-            changes within tens of ms, matched the true flow of 4-12 ms *earlier* best. The
-            default, with ``tolerance_rel`` 0.05, took the median relative RoI error from
-            0.136 to 0.092 on ``faster`` and from 0.116 to 0.079 on ``regular`` (4 kHz
-            renders). The price: edges slower than ``2 |d| / max_span_us`` (50 px/s for the
-            nearest neighbours) give no candidates, so fewer slow RoIs are reported. A
-            shorter bound cuts the lag further but leaves a slow RoI only near-tangent
-            triplets, whose consensus can be wrong (20 ms: 3.3x the true flow on one slow
-            sequence).
+        max_span_us: longest triplet, ``t_k - t_i`` in µs; 0 (the default): no bound beyond
+            ``min_speed``. A triplet's flow is the mean velocity over its span, so it lags the
+            present by about half the span. On the ``faster`` benchmark sequences, whose
+            velocity changes within tens of ms, the unbounded RoI flow matched the true flow
+            of 4-12 ms *earlier* best (``min_speed`` alone allows 300 ms spans at radius 3).
+            For fast objects ``configs/flow_fast.yaml`` sets 40 ms with ``tolerance_rel``
+            0.05: median relative RoI error 0.136 -> 0.092 on ``faster``, 0.116 -> 0.079 on
+            ``regular`` (4 kHz renders). It is not the default because edges slower than
+            ``2 |d| / max_span_us`` (50 px/s for the nearest neighbours at 40 ms) give no
+            candidates: on the slow DVXplorer sample of ``../shared/data/formats`` it leaves
+            4 RoI flows of 1,418. A bound much shorter than 40 ms leaves a slow RoI only
+            near-tangent triplets, whose consensus can be wrong (20 ms: 3.3x the true flow on
+            one slow sequence).
         roi_size: side of the square regions of interest, in pixels (the last row/column of
             RoIs is cut by the sensor border).
         window_us: length of the registration time windows in µs; windows are aligned on
@@ -140,10 +139,10 @@ class FlowConfig:
     history: int = 2
     refractory_us: int = 20_000
     tolerance_us: int = 20
-    tolerance_rel: float = 0.05
+    tolerance_rel: float = 0.1
     min_speed: float = 20.0
     max_speed: float = 20_000.0
-    max_span_us: int = 40_000
+    max_span_us: int = 0
     roi_size: int = 32
     window_us: int = 2_000
     min_support: int = 5

@@ -32,6 +32,8 @@ def flow_to_rgb(flow: Tensor | np.ndarray, max_speed: float | None = None) -> np
     f = np.asarray(flow.cpu() if isinstance(flow, Tensor) else flow, dtype=np.float32)
     shape = f.shape[:-1]
     f = f.reshape(-1, 2)
+    if f.shape[0] == 0:  # no flows (e.g. a frame without RoI flows): OpenCV refuses empty input
+        return np.zeros((*shape, 3), dtype=np.uint8)
     bad = ~np.isfinite(f).all(1)
     f = np.where(bad[:, None], 0.0, f)
     mag = np.hypot(f[:, 0], f[:, 1])

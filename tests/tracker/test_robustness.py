@@ -328,11 +328,11 @@ def test_leaving_and_reentering_the_view(exit_sequence, box) -> None:
     Measured: first frame with less than 30% in view at 358 ms, last detection of the frame at
     308 ms, misses at 408, 508, 608 ms -> LOST from 708 ms at the latest (bound: the first frame
     out + 3 pose periods + the latency, 758 ms). The predicted silhouette can leave the image
-    first, which declares the object lost ``lost_after_ms`` later (507 ms with the tracker's
-    flow settings since session 4), but not before the object really left; back in view with the
-    frame at 808 ms -> tracking from 908 ms (bound: + one period + the latency, 1008 ms). After
-    re-initialisation: 5.93 cm / 8.61 deg RMSE, against 5.83 cm / 8.81 deg before the object
-    left (bound: 1.5x the error before it left, at least 8 cm / 8 deg)."""
+    first, which declares the object lost ``lost_after_ms`` later (507 ms with
+    configs/flow_fast.yaml's span bound), but not before the object really left; back in view
+    with the frame at 808 ms -> tracking from 908 ms (bound: + one period + the latency, 1008
+    ms). After re-initialisation: 5.93 cm / 8.61 deg RMSE, against 5.83 cm / 8.81 deg before the
+    object left (bound: 1.5x the error before it left, at least 8 cm / 8 deg)."""
     seq = exit_sequence
     oracle = OraclePoseSource.from_sequence(seq, seed=0, **ORACLE_NOISE)
     source = VisibleOnlySource(oracle, np.asarray(box.vertices), seq.meta.event_camera, 0.3)
