@@ -50,3 +50,22 @@ def test_flow_command_reports_bad_options(event_file, tmp_path, capsys):
     bad.write_text("radius: -1\n")
     assert main(["flow", str(event_file), "--out", str(tmp_path), "--config", str(bad)]) == 1
     assert "radius" in capsys.readouterr().err
+
+
+def test_flow_pictures_of_no_flows(tmp_path):
+    """A recording without any RoI flow (sparse noise) still gives its pictures and video."""
+    from evtrack.events import Events
+    from evtrack.flow.visualize import flow_to_rgb
+    from evtrack.io import write_events
+
+    assert flow_to_rgb(np.zeros((0, 2), np.float32)).shape == (0, 3)
+    rng = np.random.default_rng(0)
+    n = 300
+    ev = Events(rng.integers(0, 64, n), rng.integers(0, 48, n),
+                np.sort(rng.integers(0, 40_000, n)), rng.choice([-1, 1], n), (64, 48))
+    path = tmp_path / "noise.h5"
+    write_events(path, ev)
+    out = tmp_path / "out"
+    assert main(["flow", str(path), "--out", str(out), "--frame-ms", "10", "--video"]) == 0
+    assert (out / "flow.png").is_file() and (out / "flow.mp4").is_file()
+    assert len((out / "flow.csv").read_text().splitlines()) == 1  # the header only
