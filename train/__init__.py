@@ -29,7 +29,13 @@ from evtrack.train.cuboid_source import (
 )
 from evtrack.train.data import EpochSampler, PoseDataModule, PoseDataset
 from evtrack.train.fit import TrainResult, build_module, run_training
-from evtrack.train.module import LossConfig, OptimConfig, PoseLightningModule, keypoint_metrics
+from evtrack.train.module import (
+    LossConfig,
+    OptimConfig,
+    PoseLightningModule,
+    corner_identity_loss,
+    keypoint_metrics,
+)
 from evtrack.train.samples import (
     PoseSample,
     SampleSource,
@@ -51,6 +57,7 @@ __all__ = [
     "EpochSampler",
     "GaussianNoise",
     "LossConfig",
+    "corner_identity_loss",
     "ModelConfig",
     "MotionBlur",
     "ObjectConfig",

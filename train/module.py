@@ -26,7 +26,10 @@ from evtrack.errors import ConfigError
 from evtrack.models.keypoints import find_peaks
 from evtrack.models.weights import WeightsRecord
 
-__all__ = ["OptimConfig", "LossConfig", "PoseLightningModule", "keypoint_metrics", "weighted_mse"]
+__all__ = [
+    "OptimConfig", "LossConfig", "PoseLightningModule", "corner_identity_loss",
+    "keypoint_metrics", "weighted_mse",
+]
 
 
 @dataclass(frozen=True)
@@ -76,6 +79,15 @@ class LossConfig:
             field towards zero wherever the network is unsure which corner it sees, and the
             decoder then cannot group corners into instances). Off by default: in a 38-minute
             CPU run on the demo box it reached half the validation recall of per-map weights.
+        identity_weight: weight of the corner-identity term: at every cell within the core of a
+            corner's Gaussian (target >= ``identity_min_target``) the 8 corner maps, times
+            ``identity_temperature``, are read as logits of *which* corner is there and scored by
+            cross-entropy against the nearest corner. The MSE alone pays little for a corner map
+            that also fires on the other 7 corners (see ``shared_positive_weight``); this term
+            pays for exactly that confusion, and leaves the maps' values to the MSE elsewhere.
+            0 = off (DOPE's loss).
+        identity_temperature: scale from belief values (0..1) to logits.
+        identity_min_target: cells whose largest corner target is below this are not scored.
         last_stage_weight: weight of the last stage (earlier stages weigh 1).
         match_px: a predicted peak within this distance of a true keypoint counts as found
             (validation metrics).
@@ -86,19 +98,48 @@ class LossConfig:
     affinity_weight: float = 1.0
     positive_weight: float = 20.0
     shared_positive_weight: bool = False
+    identity_weight: float = 0.0
+    identity_temperature: float = 10.0
+    identity_min_target: float = 0.5
     last_stage_weight: float = 1.0
     match_px: float = 8.0
     peak_threshold: float = 0.1
 
     def __post_init__(self) -> None:
         if min(self.belief_weight, self.affinity_weight, self.positive_weight,
-               self.last_stage_weight) < 0:
+               self.last_stage_weight, self.identity_weight) < 0:
             raise ConfigError(f"loss: weights must be >= 0, got {self}")
+        if self.identity_temperature <= 0 or not 0 < self.identity_min_target <= 1:
+            raise ConfigError("loss: identity_temperature must be > 0 and identity_min_target "
+                              f"in (0, 1], got {self.identity_temperature}, "
+                              f"{self.identity_min_target}")
 
 
 def weighted_mse(pred: Tensor, target: Tensor, weight: Tensor) -> Tensor:
     """Mean over all elements of ``weight * (pred - target)**2`` (weight broadcasts)."""
     return (weight * (pred - target).square()).mean()
+
+
+def corner_identity_loss(pred: Tensor, target: Tensor, temperature: float,
+                         min_target: float) -> Tensor:
+    """Cross-entropy of *which* corner each corner cell shows, read from the 8 corner maps.
+
+    Args:
+        pred: (B, 9, h, w) predicted belief maps (channel 8, the centroid, is not used).
+        target: (B, 9, h, w) target belief maps.
+        temperature: logits are ``temperature * pred[:, :8]``.
+        min_target: cells whose largest corner target is below this are not scored.
+
+    Returns:
+        Scalar mean cross-entropy over the scored cells (0 when there are none), nats.
+    """
+    corner_target = target[:, :8]
+    peak, label = corner_target.max(dim=1)                      # (B, h, w)
+    scored = peak >= min_target
+    if not bool(scored.any()):
+        return pred.new_zeros(())
+    logits = (temperature * pred[:, :8]).movedim(1, -1)[scored]  # (N, 8)
+    return nn.functional.cross_entropy(logits, label[scored])
 
 
 def keypoint_metrics(
@@ -185,8 +226,11 @@ class PoseLightningModule(L.LightningModule):
 
     def compute_loss(
         self, stages: list[tuple[Tensor, Tensor]], belief: Tensor, affinity: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Weighted sum over stages of the belief and affinity MSEs: (total, belief, affinity).
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Weighted sum over stages of the loss terms: (total, belief, affinity, identity).
+
+        ``identity`` is the corner-identity cross-entropy (:func:`corner_identity_loss`),
+        zero unless ``identity_weight > 0``.
 
         Args:
             stages: every stage's ``(belief (B,9,h,w), affinity (B,16,h,w))``.
@@ -202,15 +246,20 @@ class PoseLightningModule(L.LightningModule):
         w_affinity = 1.0 + cfg.positive_weight * disc.to(affinity.dtype)
         lb = belief.new_zeros(())
         la = belief.new_zeros(())
+        li = belief.new_zeros(())
         for i, (b, a) in enumerate(stages):
             w = cfg.last_stage_weight if i == len(stages) - 1 else 1.0
             lb = lb + w * weighted_mse(b, belief, w_belief)
             la = la + w * weighted_mse(a, affinity, w_affinity)
-        return cfg.belief_weight * lb + cfg.affinity_weight * la, lb, la
+            if cfg.identity_weight > 0:
+                li = li + w * corner_identity_loss(b, belief, cfg.identity_temperature,
+                                                   cfg.identity_min_target)
+        total = cfg.belief_weight * lb + cfg.affinity_weight * la + cfg.identity_weight * li
+        return total, lb, la, li
 
     def _common_step(self, batch: dict[str, Tensor], stage: str) -> Tensor:
         stages = self.net.forward_stages(batch["image"])
-        loss, lb, la = self.compute_loss(stages, batch["belief"], batch["affinity"])
+        loss, lb, la, li = self.compute_loss(stages, batch["belief"], batch["affinity"])
         bs = batch["image"].shape[0]
         train = stage == "train"
         self.log(f"{stage}/loss", loss, prog_bar=True, on_step=train, on_epoch=True,
@@ -219,6 +268,9 @@ class PoseLightningModule(L.LightningModule):
                  sync_dist=not train)
         self.log(f"{stage}/loss_affinity", la, on_step=False, on_epoch=True, batch_size=bs,
                  sync_dist=not train)
+        if self.loss_config.identity_weight > 0:
+            self.log(f"{stage}/loss_identity", li, on_step=False, on_epoch=True,
+                     batch_size=bs, sync_dist=not train)
         if not train:
             found, total, errors = keypoint_metrics(
                 stages[-1][0].detach().float().cpu().numpy(), batch["belief"].cpu().numpy(),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 
 import lightning as L
 import numpy as np
@@ -27,6 +28,7 @@ from evtrack.train import (
     PoseLightningModule,
     SyntheticCuboidSource,
     TrainConfig,
+    corner_identity_loss,
     run_training,
 )
 
@@ -85,7 +87,8 @@ def test_loss_is_the_stage_sum_of_mses():
     b, a = torch.ones(1, 9, 2, 2), torch.zeros(1, 16, 2, 2)
     stages = [(torch.zeros_like(b), torch.ones_like(a)), (torch.full_like(b, 3.0),
                                                           torch.full_like(a, 2.0))]
-    total, lb, la = module.compute_loss(stages, b, a)
+    total, lb, la, li = module.compute_loss(stages, b, a)
+    assert float(li) == 0.0                # identity term off by default
     assert float(lb) == pytest.approx(1 + 2 * 4)
     assert float(la) == pytest.approx(1 + 2 * 4)
     assert float(total) == pytest.approx(9 + 0.5 * 9)
@@ -105,7 +108,7 @@ def test_positive_weighting_matches_a_cell_by_cell_sum(shared):
     a[:, :, 1:] = 0.0                      # only row 0 is inside the discs
     a[0, 2, 0, 1] = 0.0                    # a cell where dx = 0 but dy != 0 is still in the disc
     pb, pa = torch.rand(2, 9, 3, 4, generator=g), torch.randn(2, 16, 3, 4, generator=g)
-    _, lb, la = module.compute_loss([(pb, pa)], b, a)
+    _, lb, la, _ = module.compute_loss([(pb, pa)], b, a)
     expect_b = expect_a = 0.0
     for n, c, i, j in np.ndindex(*b.shape):
         target = max(float(b[n, k, i, j]) for k in range(9)) if shared else float(b[n, c, i, j])
@@ -116,6 +119,46 @@ def test_positive_weighting_matches_a_cell_by_cell_sum(shared):
         expect_a += (1 + pw * inside) * float(pa[n, c, i, j] - a[n, c, i, j]) ** 2
     assert float(lb) == pytest.approx(expect_b / b.numel(), rel=1e-5)
     assert float(la) == pytest.approx(expect_a / a.numel(), rel=1e-5)
+
+
+def test_corner_identity_loss_matches_a_cell_by_cell_cross_entropy():
+    g = torch.Generator().manual_seed(1)
+    target = torch.rand(2, 9, 3, 4, generator=g) * 0.9
+    pred = torch.rand(2, 9, 3, 4, generator=g)
+    temperature, min_target = 6.0, 0.6
+    got = corner_identity_loss(pred, target, temperature, min_target)
+    terms = []
+    for n, i, j in np.ndindex(2, 3, 4):
+        corner = [float(target[n, k, i, j]) for k in range(8)]
+        if max(corner) < min_target:
+            continue
+        label = int(np.argmax(corner))
+        logits = [temperature * float(pred[n, k, i, j]) for k in range(8)]
+        terms.append(-(logits[label] - math.log(sum(math.exp(v) for v in logits))))
+    assert terms, "the draw should score some cells"
+    assert float(got) == pytest.approx(float(np.mean(terms)), rel=1e-5)
+    # no scored cell: zero, not NaN
+    assert float(corner_identity_loss(pred, target * 0.1, temperature, min_target)) == 0.0
+
+
+def test_identity_term_penalises_a_map_firing_on_another_corner():
+    module = PoseLightningModule(create("dope_lite_tiny"),
+                                 WeightsRecord(arch="dope_lite_tiny", object_name="b",
+                                               cuboid=CUBOID),
+                                 loss=LossConfig(identity_weight=1.0))
+    target = torch.zeros(1, 9, 4, 4)
+    target[0, 0, 1, 1] = 1.0               # corner 0 at (1, 1), corner 1 at (2, 2)
+    target[0, 1, 2, 2] = 1.0
+    affinity = torch.zeros(1, 16, 4, 4)
+    right = target.clone()
+    confused = target.clone()
+    confused[0, 0, 2, 2] = 1.0             # map 0 also fires on corner 1
+    confused[0, 1, 1, 1] = 1.0
+    li_right = float(module.compute_loss([(right, affinity)], target, affinity)[3])
+    li_confused = float(module.compute_loss([(confused, affinity)], target, affinity)[3])
+    # logits 10 (right map), 10 (the confused map) and six 0s; right: one 10 and seven 0s
+    assert li_confused == pytest.approx(math.log(2 + 6 * math.exp(-10.0)), rel=1e-5)
+    assert li_right == pytest.approx(math.log(1 + 7 * math.exp(-10.0)), abs=1e-6)
 
 
 def test_negative_loss_weights_are_refused():
