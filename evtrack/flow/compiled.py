@@ -12,11 +12,11 @@ compiled event-by-event loop is the faster form of the *same* rule:
   across calls). It keeps ``history`` entries per cell, newest first, like the sequential
   reference of the tests, and tests the speed bounds as the integer ``t_k - t_i`` bounds of
   :func:`~evtrack.flow.config.dt_bounds_us`.
-* :func:`hypothesis_costs` evaluates the exact integer Eq. 3 cost of every hypothesis of
-  :func:`~evtrack.flow.registration.register_groups` (float32 squared distances with separate
-  IEEE operations, the per-event minimum, the exact rounded distance of
-  :func:`~evtrack.flow.registration.rounded_distance`, summed in int64), in parallel over the
-  hypotheses.
+* ``_costs_kernel`` evaluates the exact integer Eq. 3 cost of every hypothesis (float32
+  squared distances with separate IEEE operations, the per-event minimum, the exact rounded
+  distance of :func:`~evtrack.flow.registration.rounded_distance`, summed in int64), in
+  parallel over the groups; :mod:`evtrack.flow.registration_compiled` runs the rest of the
+  registration around it.
 
 ``FlowConfig.backend`` chooses: ``"auto"`` (default) uses these kernels on CPU when numba is
 installed, ``"torch"`` never, ``"compiled"`` always (an error without numba or on CUDA). The
@@ -40,7 +40,7 @@ try:  # numba is optional: without it the torch backend runs everywhere
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
-__all__ = ["available", "CompiledSearch", "hypothesis_costs"]
+__all__ = ["available", "CompiledSearch"]
 
 NEVER = NEVER_US  # a module global: numba freezes it as a compile-time constant
 _prange = numba.prange if numba is not None else range
@@ -277,35 +277,3 @@ def _rounded_distance(d2, cost_scale, q_max):
         elif dd == down:
             n -= 1.0
     return np.int64(n)
-
-
-def hypothesis_costs(h_idx: Tensor, h_group: Tensor, c_flow: Tensor, counts: Tensor,
-                     c_start: Tensor, c_event: Tensor, ev_per_group: Tensor,
-                     cost_scale: float, q_max: int) -> Tensor:
-    """The exact int64 Eq. 3 cost of every hypothesis (see
-    :func:`evtrack.flow.registration._hypothesis_costs`, which it equals bit for bit).
-
-    Args:
-        h_idx: (H,) candidate index of each hypothesis; h_group: (H,) its group (the
-            hypotheses of a group are consecutive).
-        c_flow: (M, 2) float32 candidate flows, grouped by group, events contiguous.
-        counts, c_start: (G,) candidates per group and the first of each.
-        c_event: (M,) index of each candidate's event among its group's kept events.
-        ev_per_group: (G,) kept events per group.
-        cost_scale: distances are rounded to ``1 / cost_scale`` px/s (a power of two).
-        q_max: cap of a rounded distance.
-    """
-    if numba is None:
-        raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
-    if h_idx.numel() == 0:
-        return torch.zeros(0, dtype=torch.int64)
-    flow = c_flow.detach().cpu().numpy().astype(np.float32, copy=False)
-    n_groups = counts.shape[0]
-    h_count = torch.bincount(h_group, minlength=n_groups)
-    h_start = torch.cumsum(h_count, 0) - h_count
-    as64 = [np.ascontiguousarray(a.detach().cpu().numpy(), dtype=np.int64)
-            for a in (h_idx, h_start, h_count, c_start, counts, c_event, ev_per_group)]
-    cost = _costs_kernel(as64[0], as64[1], as64[2], np.ascontiguousarray(flow[:, 0]),
-                         np.ascontiguousarray(flow[:, 1]), *as64[3:], float(cost_scale),
-                         float(q_max))
-    return torch.from_numpy(cost)

@@ -95,13 +95,17 @@ def hash32(value: Tensor) -> Tensor:
     return ((value & 0x7FFFFFFF) * _GOLDEN) & 0xFFFFFFFF
 
 
-def select_smallest(group: Tensor, key: Tensor, cap: int) -> Tensor:
+def select_smallest(group: Tensor, key: Tensor, cap: int, n_groups: int | None = None
+                    ) -> Tensor:
     """Per group, which items have one of the ``cap`` smallest keys (ties: earlier item).
 
     Args:
         group: (M,) int64 group ids >= 0.
         key: (M,) int64 keys in ``[0, 2^32)``.
         cap: how many to keep per group.
+        n_groups: a bound on the group ids, when they are small: items of groups with at most
+            ``cap`` items are then kept without sorting (the same answer, faster when most
+            groups are under the cap).
 
     Returns:
         (M,) bool mask of the kept items.
@@ -109,6 +113,19 @@ def select_smallest(group: Tensor, key: Tensor, cap: int) -> Tensor:
     m = group.shape[0]
     if m == 0:
         return torch.zeros(0, dtype=torch.bool, device=group.device)
+    if n_groups is not None:
+        over = torch.bincount(group, minlength=n_groups)[group] > cap
+        idx = torch.nonzero(over).reshape(-1)
+        keep = torch.ones(m, dtype=torch.bool, device=group.device)
+        if idx.numel():
+            keep[idx] = _select_smallest_sorted(group[idx], key[idx], cap)
+        return keep
+    return _select_smallest_sorted(group, key, cap)
+
+
+def _select_smallest_sorted(group: Tensor, key: Tensor, cap: int) -> Tensor:
+    """:func:`select_smallest` by one stable sort of (group, key)."""
+    m = group.shape[0]
     order = torch.sort((group << 32) | key, stable=True).indices
     g_sorted = group[order]
     pos = torch.arange(m, device=group.device)
@@ -181,8 +198,10 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
         n_ordinals: a bound on the ordinals, the same for every call on one stream (the
             hypotheses' hash keys are ``seq * n_ordinals + ordinal``: a bound taken from the
             batch would make the selection depend on how the stream was chunked).
-        compiled: evaluate the Eq. 3 costs with the compiled CPU kernel
-            (:func:`evtrack.flow.compiled.hypothesis_costs`; the same integers).
+        compiled: run the compiled CPU form
+            (:mod:`evtrack.flow.registration_compiled`): the same ``full_flow``, ``cost``,
+            ``used_events``, ``inliers`` and ``lines`` bit for bit; ``flow``, ``ratio`` and
+            ``normal_dir`` to float rounding.
 
     Returns:
         The :class:`Registration` of every group.
@@ -200,68 +219,29 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                        inliers=torch.zeros(g_count, dtype=torch.int64, device=dev))
     if group.numel() == 0 or g_count == 0:
         return out
-    # --- data term: cap the events per group by the hash of their stream index
-    run, n_runs = _runs(seq)
-    run_first = torch.zeros(n_runs, dtype=torch.int64, device=dev)
-    run_first.scatter_reduce_(0, run, torch.arange(seq.numel(), device=dev), "amin",
-                              include_self=False)
-    take = torch.index_select  # faster than advanced indexing on CPU
-    run_group = take(group, 0, run_first)
-    run_keep = select_smallest(run_group, hash32(take(seq, 0, run_first)), max_events)
-    keep = torch.nonzero(take(run_keep, 0, run)).reshape(-1)
-    # gather kept candidates by group (stable: events stay in stream order)
-    order = take(keep, 0, torch.sort(take(group, 0, keep), stable=True).indices)
-    c_group, c_seq, c_ord, c_flow = (take(v, 0, order) for v in (group, seq, ordinal, flow))
-    c_run, n_ev_total = _runs(c_seq)  # kept events, contiguous per group
-    m = c_group.numel()
-    counts = torch.bincount(c_group, minlength=g_count)
-    c_start = torch.cumsum(counts, 0) - counts
-    ev_first = torch.zeros(n_ev_total, dtype=torch.int64, device=dev)
-    ev_first.scatter_reduce_(0, c_run, torch.arange(m, device=dev), "amin", include_self=False)
-    ev_group = take(c_group, 0, ev_first)
-    ev_per_group = torch.bincount(ev_group, minlength=g_count)
-    ev_start = torch.cumsum(ev_per_group, 0) - ev_per_group
-    out.used_events = ev_per_group
-    # --- hypotheses: cap by candidate hash; rank within group gives the tie-break order
-    if c_ord.numel() and int(c_ord.max()) >= n_ordinals:
+    if ordinal.numel() and int(ordinal.max()) >= n_ordinals:
         raise ValueError(f"candidate ordinals must be < n_ordinals ({n_ordinals})")
-    h_key = hash32(c_seq * n_ordinals + c_ord)
-    h_keep = select_smallest(c_group, h_key, max_hypotheses)
-    h_idx = torch.nonzero(h_keep).reshape(-1)
-    h_group = take(c_group, 0, h_idx)
-    h_rank_order = torch.sort((h_group << 32) | take(h_key, 0, h_idx), stable=True).indices
-    h_idx, h_group = take(h_idx, 0, h_rank_order), take(h_group, 0, h_rank_order)
-    h_first = torch.ones_like(h_group, dtype=torch.bool)
-    h_first[1:] = h_group[1:] != h_group[:-1]
-    hpos = torch.arange(h_idx.numel(), device=dev)
-    h_rank = hpos - torch.cummax(torch.where(h_first, hpos, torch.zeros_like(hpos)), 0).values
-    c_event = c_run - take(ev_start, 0, c_group)
     if compiled:
-        from evtrack.flow.compiled import hypothesis_costs
+        from evtrack.flow.registration_compiled import register_groups_compiled
 
-        cost = hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, c_event, ev_per_group,
-                                COST_SCALE, _Q_MAX).to(dev)
+        res = register_groups_compiled(group, seq, ordinal, flow, g_count, max_events,
+                                       max_hypotheses, n_ordinals, line_gate, refine_iters,
+                                       COST_SCALE, _Q_MAX, _PARALLEL_EPS, _IRLS_DELTA)
+        has, full, best_cost = res["has"], res["full"], res["best_cost"]
+        ev_per_group, out.inliers, count = res["used_events"], res["inliers"], res["lines"]
+        fit = {"flow": res["fit_flow"].to(torch.float32), "ratio": res["ratio"],
+               "count": count, "major": res["major"].to(torch.float32),
+               "normal_speed": res["normal_speed"].to(torch.float32)}
     else:
-        cost = _hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, c_event,
-                                 ev_per_group, pair_budget)
-    # --- arg-min per group, ties to the smallest rank
-    combo = (cost << _RANK_BITS) | h_rank
-    best = torch.full((g_count,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
-    best.scatter_reduce_(0, h_group, combo, "amin")
-    has = best != torch.iinfo(torch.int64).max
-    best_cost = best >> _RANK_BITS
-    best_rank = best & ((1 << _RANK_BITS) - 1)
-    g_first_h = torch.full((g_count,), h_idx.numel(), dtype=torch.int64, device=dev)
-    g_first_h.scatter_reduce_(0, h_group, hpos, "amin")
-    chosen = h_idx[(g_first_h + best_rank).clamp_max(max(h_idx.numel() - 1, 0))]
-    full = torch.where(has[:, None], c_flow[chosen], nan2)
+        has, full, best_cost, ev_per_group, inliers, fit = _solve_tensor(
+            group, seq, ordinal, flow, g_count, max_events, max_hypotheses, pair_budget,
+            line_gate, refine_iters, n_ordinals)
+        out.inliers = inliers
+    out.used_events = ev_per_group
     out.full_flow = full
     out.cost = torch.where(has, best_cost.to(torch.float64) / COST_SCALE
                            / ev_per_group.clamp_min(1), torch.nan).to(torch.float32)
-    # --- constraint lines, aperture test and refinement
-    lines = _event_lines(c_group, c_run, c_flow, full, n_ev_total, ev_group, line_gate)
-    out.inliers = torch.bincount(ev_group[lines["agree"]], minlength=g_count)
-    fit = _fit_lines(lines, full, g_count, refine_iters)
+    # --- aperture test and refinement
     ratio = fit["ratio"]
     normal = has & (fit["count"] >= 2) & (ratio < aperture_ratio)
     n_dir = fit["major"]
@@ -277,6 +257,73 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     return out
 
 
+def _solve_tensor(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, g_count: int,
+                  max_events: int, max_hypotheses: int, pair_budget: int, line_gate: float,
+                  refine_iters: int, n_ordinals: int
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, dict[str, Tensor]]:
+    """The tensor form of the caps, Eq. 3, the constraint lines and their fit.
+
+    Returns:
+        ``has`` (G,) bool, ``full`` (G, 2) float32 arg-min candidate (NaN without one),
+        ``best_cost`` (G,) int64 scaled cost, ``used_events`` (G,), ``inliers`` (G,), and the
+        line fit of :func:`_fit_lines`.
+    """
+    dev = flow.device
+    nan2 = torch.full((g_count, 2), float("nan"), dtype=torch.float32, device=dev)
+    # --- data term: cap the events per group by the hash of their stream index
+    run, n_runs = _runs(seq)
+    run_first = torch.zeros(n_runs, dtype=torch.int64, device=dev)
+    run_first.scatter_reduce_(0, run, torch.arange(seq.numel(), device=dev), "amin",
+                              include_self=False)
+    take = torch.index_select  # faster than advanced indexing on CPU
+    run_group = take(group, 0, run_first)
+    run_keep = select_smallest(run_group, hash32(take(seq, 0, run_first)), max_events,
+                               n_groups=g_count)
+    keep = torch.nonzero(take(run_keep, 0, run)).reshape(-1)
+    # gather kept candidates by group (stable: events stay in stream order)
+    order = take(keep, 0, torch.sort(take(group, 0, keep), stable=True).indices)
+    c_group, c_seq, c_ord, c_flow = (take(v, 0, order) for v in (group, seq, ordinal, flow))
+    c_run, n_ev_total = _runs(c_seq)  # kept events, contiguous per group
+    m = c_group.numel()
+    counts = torch.bincount(c_group, minlength=g_count)
+    c_start = torch.cumsum(counts, 0) - counts
+    ev_first = torch.zeros(n_ev_total, dtype=torch.int64, device=dev)
+    ev_first.scatter_reduce_(0, c_run, torch.arange(m, device=dev), "amin", include_self=False)
+    ev_group = take(c_group, 0, ev_first)
+    ev_per_group = torch.bincount(ev_group, minlength=g_count)
+    ev_start = torch.cumsum(ev_per_group, 0) - ev_per_group
+    # --- hypotheses: cap by candidate hash; rank within group gives the tie-break order
+    h_key = hash32(c_seq * n_ordinals + c_ord)
+    h_keep = select_smallest(c_group, h_key, max_hypotheses, n_groups=g_count)
+    h_idx = torch.nonzero(h_keep).reshape(-1)
+    h_group = take(c_group, 0, h_idx)
+    h_rank_order = torch.sort((h_group << 32) | take(h_key, 0, h_idx), stable=True).indices
+    h_idx, h_group = take(h_idx, 0, h_rank_order), take(h_group, 0, h_rank_order)
+    h_first = torch.ones_like(h_group, dtype=torch.bool)
+    h_first[1:] = h_group[1:] != h_group[:-1]
+    hpos = torch.arange(h_idx.numel(), device=dev)
+    h_rank = hpos - torch.cummax(torch.where(h_first, hpos, torch.zeros_like(hpos)), 0).values
+    c_event = c_run - take(ev_start, 0, c_group)
+    cost = _hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, c_event,
+                             ev_per_group, pair_budget)
+    # --- arg-min per group, ties to the smallest rank
+    combo = (cost << _RANK_BITS) | h_rank
+    best = torch.full((g_count,), torch.iinfo(torch.int64).max, dtype=torch.int64, device=dev)
+    best.scatter_reduce_(0, h_group, combo, "amin")
+    has = best != torch.iinfo(torch.int64).max
+    best_cost = best >> _RANK_BITS
+    best_rank = best & ((1 << _RANK_BITS) - 1)
+    g_first_h = torch.full((g_count,), h_idx.numel(), dtype=torch.int64, device=dev)
+    g_first_h.scatter_reduce_(0, h_group, hpos, "amin")
+    chosen = h_idx[(g_first_h + best_rank).clamp_max(max(h_idx.numel() - 1, 0))]
+    full = torch.where(has[:, None], c_flow[chosen], nan2)
+    # --- constraint lines and their robust intersection
+    lines = _event_lines(c_group, c_run, c_flow, full, n_ev_total, ev_group, line_gate)
+    inliers = torch.bincount(ev_group[lines["agree"]], minlength=g_count)
+    fit = _fit_lines(lines, full, g_count, refine_iters)
+    return has, full, best_cost, ev_per_group, inliers, fit
+
+
 def _event_lines(c_group: Tensor, c_run: Tensor, c_flow: Tensor, full: Tensor, n_events: int,
                  ev_group: Tensor, gate: float) -> dict[str, Tensor]:
     """One constraint line ``n . F = s`` per event, through two of its candidates.
@@ -284,35 +331,53 @@ def _event_lines(c_group: Tensor, c_run: Tensor, c_flow: Tensor, full: Tensor, n
     The first is the event's candidate nearest to the group's flow F and must lie within
     ``gate * max(|F|, 1)`` of it (the event agrees with F); the second is its nearest
     candidate to F from a non-parallel displacement. Events without such a pair give no line.
+
+    Every test is exactly specified, so that the compiled form
+    (:mod:`evtrack.flow.registration_compiled`) makes the same choices: nearness is
+    :func:`rounded_distance` of the float32 ``dx * dx + dy * dy`` (ties to the earlier
+    candidate), agreement compares that float32 ``d2`` with ``gate^2 * max(|F|^2, 1)`` in
+    float64, and "non-parallel" is ``cross^2 > eps^2 |c|^2 |c_1|^2`` in float64 (products
+    of float32 values are exact there).
     """
     dev = c_flow.device
     m = c_flow.shape[0]
     f0 = full[c_group]
-    dist = (c_flow - f0).norm(dim=1)
-    q = torch.round(torch.nan_to_num(dist, nan=1e18).to(torch.float64) * COST_SCALE)
+    dx = c_flow[:, 0] - f0[:, 0]
+    dy = c_flow[:, 1] - f0[:, 1]
+    d2 = dx * dx
+    d2 = d2 + dy * dy
+    q = rounded_distance(torch.nan_to_num(d2, nan=float("inf")))
     idx = torch.arange(m, device=dev)
-    combo = (q.clamp_max(2.0 ** 30).to(torch.int64) << 32) | idx
+    combo = (q << 32) | idx
     big = torch.iinfo(torch.int64).max
     best1 = torch.full((n_events,), big, dtype=torch.int64, device=dev)
     best1.scatter_reduce_(0, c_run, combo, "amin")
     i1 = best1 & 0xFFFFFFFF
-    f1 = c_flow[i1[c_run]]
-    cross = (c_flow[:, 0] * f1[:, 1] - c_flow[:, 1] * f1[:, 0]).abs()
-    nonpar = cross > _PARALLEL_EPS * c_flow.norm(dim=1) * f1.norm(dim=1)
+    c64 = c_flow.to(torch.float64)
+    a = c64[i1]                                   # (E, 2) first candidate of each event
+    a_c = a[c_run]
+    cross = c64[:, 0] * a_c[:, 1] - c64[:, 1] * a_c[:, 0]
+    norm2_c = c64[:, 0] * c64[:, 0] + c64[:, 1] * c64[:, 1]
+    norm2_a = a_c[:, 0] * a_c[:, 0] + a_c[:, 1] * a_c[:, 1]
+    nonpar = cross * cross > _PARALLEL_EPS * _PARALLEL_EPS * norm2_c * norm2_a
     best2 = torch.full((n_events,), big, dtype=torch.int64, device=dev)
     best2.scatter_reduce_(0, c_run[nonpar], combo[nonpar], "amin")
     has2 = best2 != big
     i2 = torch.where(has2, best2 & 0xFFFFFFFF, i1)
-    limit = gate * full[ev_group].norm(dim=1).clamp_min(1.0)
-    ok = has2 & (dist[i1] <= limit)
-    a, b = c_flow[i1], c_flow[i2]
-    tangent = a - b
-    length = tangent.norm(dim=1).clamp_min(1e-30)
+    fg = full[ev_group]
+    f2 = fg[:, 0] * fg[:, 0]
+    f2 = f2 + fg[:, 1] * fg[:, 1]
+    limit2 = (gate * gate) * f2.to(torch.float64).clamp_min(1.0)
+    agree = d2[i1].to(torch.float64) <= limit2
+    ok = has2 & agree
+    tangent = a - c64[i2]
+    length = torch.sqrt(tangent[:, 0] * tangent[:, 0]
+                        + tangent[:, 1] * tangent[:, 1]).clamp_min(1e-30)
     normal = torch.stack([-tangent[:, 1], tangent[:, 0]], 1) / length[:, None]
-    offset = (normal * a).sum(1)
-    flip = torch.where(offset < 0, -1.0, 1.0)
+    offset = normal[:, 0] * a[:, 0] + normal[:, 1] * a[:, 1]
+    flip = torch.where(offset < 0, -1.0, 1.0).to(torch.float64)
     return {"normal": (normal * flip[:, None])[ok], "offset": (offset * flip)[ok],
-            "group": ev_group[ok], "agree": dist[i1] <= limit}
+            "group": ev_group[ok], "agree": agree}
 
 
 def _fit_lines(lines: dict[str, Tensor], start: Tensor, g_count: int, iters: int

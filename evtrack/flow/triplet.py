@@ -284,7 +284,9 @@ class TripletFlow(nn.Module):
             first = torch.ones_like(s, dtype=torch.bool)
             first[1:] = s[1:] != s[:-1]
             run = torch.cumsum(first.to(torch.int64), 0) - 1
-            run_keep = select_smallest(g[first], hash32(s[first]), cfg.max_events_per_roi)
+            open_keys = p.g_keys[~done_g]  # sorted, and every open candidate's key is one
+            run_keep = select_smallest(torch.searchsorted(open_keys, g[first]), hash32(s[first]),
+                                       cfg.max_events_per_roi, n_groups=open_keys.numel())
             keep_idx = torch.nonzero(keep_c).reshape(-1)[run_keep[run]]
         else:
             keep_idx = torch.nonzero(keep_c).reshape(-1)

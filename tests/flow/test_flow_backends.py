@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from evtrack.errors import ConfigError, EvtrackError
 from evtrack.flow import FlowConfig, FlowResult, TripletFlow
-from evtrack.flow.registration import COST_SCALE, rounded_distance
+from evtrack.flow.registration import COST_SCALE, register_groups, rounded_distance
 from evtrack.flow.scenes import translating_texture
 
 compiled = pytest.importorskip("evtrack.flow.compiled")
@@ -101,6 +101,70 @@ def test_both_backends_give_the_same_flow_bit_for_bit():
                  "event_flow"):
         assert torch.equal(torch.nan_to_num(getattr(a, name).float(), 1e30),
                            torch.nan_to_num(getattr(b, name).float(), 1e30)), name
+
+
+def _random_registration_input(seed: int):
+    """Candidates of events in groups, with what makes registration hard: groups over both
+    caps, repeated flows (ties in every arg-min), collinear candidates (one constraint line:
+    aperture), a zero flow, and events with one candidate."""
+    rng = np.random.default_rng(seed)
+    n_groups = 40
+    group, seq, ordinal, flow = [], [], [], []
+    ev = 0
+    for _ in range(int(rng.integers(200, 900))):
+        g = int(rng.integers(0, n_groups)) if rng.random() < 0.8 else 3  # group 3: crowded
+        base = rng.normal(0, 400, 2) if g % 4 else np.array([300.0, -120.0])
+        kind = rng.random()
+        k = int(rng.integers(1, 7))
+        if kind < 0.3:    # candidates on one line through base: s d / (n . d)
+            normal = np.array([np.cos(g), np.sin(g)])
+            dirs = rng.normal(0, 1, (k, 2))
+            dirs = dirs[(dirs @ normal) > 0.3] if len(dirs) else dirs
+            cands = [float(normal @ base) * d / float(normal @ d) for d in dirs]
+        elif kind < 0.4:  # exact repeats (ties)
+            cands = [np.round(base / 50.0) * 50.0] * k
+        elif kind < 0.45:
+            cands = [np.zeros(2)]
+        else:
+            cands = list(base + rng.normal(0, 60, (k, 2)))
+        for o, c in enumerate(cands):
+            group.append(g)
+            seq.append(ev)
+            ordinal.append(int(rng.integers(0, 50)) * 8 + o)
+            flow.append(c)
+        ev += 1
+    for g in range(n_groups, n_groups + 8):  # two events, one candidate each: a cost tie
+        a = rng.normal(0, 300, 2)
+        for o, c in enumerate((a, -a)):
+            group.append(g)
+            seq.append(ev)
+            ordinal.append(o)
+            flow.append(c)
+            ev += 1
+    return (torch.tensor(group), torch.tensor(seq), torch.tensor(ordinal),
+            torch.tensor(np.array(flow), dtype=torch.float32), n_groups + 8)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_registration_equals_the_tensor_registration(seed):
+    group, seq, ordinal, flow, n_groups = _random_registration_input(seed)
+    args = (group, seq, ordinal, flow, n_groups, 12, 9, 0.05, 10_000)
+    kw = {"refine": True, "line_gate": 0.35, "refine_iters": 5, "n_ordinals": 1024}
+    a = register_groups(*args, **kw)
+    b = register_groups(*args, compiled=True, **kw)
+    assert int((a.used_events == 12).sum()) >= 1, "a group should exceed the event cap"
+    assert int(a.normal.sum()) >= 1 and int((~a.normal & (a.lines >= 2)).sum()) >= 1
+    for name in ("full_flow", "cost", "used_events", "inliers", "lines"):
+        assert torch.equal(torch.nan_to_num(getattr(a, name).float(), 1e30),
+                           torch.nan_to_num(getattr(b, name).float(), 1e30)), name
+    # through sqrt / atan2 / cos / sin and their own summation order: float rounding only
+    torch.testing.assert_close(a.ratio, b.ratio, rtol=1e-5, atol=1e-6)
+    clear = (a.ratio - 0.05).abs() > 1e-4  # away from the aperture threshold
+    assert torch.equal(a.normal[clear], b.normal[clear])
+    torch.testing.assert_close(a.flow[clear], b.flow[clear], rtol=1e-4, atol=1e-3,
+                               equal_nan=True)
+    torch.testing.assert_close(a.normal_dir[clear], b.normal_dir[clear], rtol=1e-5,
+                               atol=1e-5, equal_nan=True)
 
 
 def _exact_rounded(d2: float) -> int:

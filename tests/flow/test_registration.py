@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from evtrack.flow.registration import COST_SCALE, register_groups, select_smallest
@@ -84,6 +85,21 @@ def test_select_smallest_keeps_cap_per_group():
     keep = select_smallest(group, key, 2)
     # group 0: keys 3 (idx 2) and 3 (idx 3) win over 5 and 9; ties keep the earlier item
     assert keep.tolist() == [False, True, True, True, True, False, True]
+    assert select_smallest(group, key, 2, n_groups=3).tolist() == keep.tolist()
+
+
+@pytest.mark.parametrize("cap", [1, 3, 8])
+def test_select_smallest_skips_groups_under_the_cap_with_the_same_answer(cap):
+    g = torch.Generator().manual_seed(cap)
+    group = torch.randint(0, 50, (2000,), generator=g) ** 2 % 50   # uneven group sizes
+    key = torch.randint(0, 40, (2000,), generator=g)                 # many ties
+    brute = []
+    for i in range(2000):  # kept iff fewer than cap items of its group come before it
+        same = (group == group[i]).nonzero().reshape(-1).tolist()
+        before = sum(1 for j in same if (int(key[j]), j) < (int(key[i]), i))
+        brute.append(before < cap)
+    assert select_smallest(group, key, cap).tolist() == brute
+    assert select_smallest(group, key, cap, n_groups=50).tolist() == brute
 
 
 def _line_candidates(normals, speeds, directions, seed=0):

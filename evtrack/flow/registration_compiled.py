@@ -1,0 +1,292 @@
+"""Compiled CPU form of :func:`evtrack.flow.registration.register_groups` (numba).
+
+The tensor registration is a chain of sorts, scatters and masks over all candidates of a
+batch; on a CPU its cost is mostly the passes and the per-call overhead, not arithmetic
+(the tracker registers a few thousand events every few milliseconds). Here the same rule
+runs group by group in compiled loops:
+
+1. :func:`_arrange_kernel`: the data-term cap (per group, the ``max_events`` events with the
+   smallest hash of their stream index, ties to the earlier event), the kept candidates laid
+   out by group with events in stream order, and the hypotheses (per group, the
+   ``max_hypotheses`` candidates with the smallest hash of (stream index, ordinal), ties to
+   the earlier candidate) in rank order;
+2. :func:`evtrack.flow.compiled._costs_kernel`: the exact integer Eq. 3 costs (in parallel);
+3. :func:`_solve_kernel`: the arg-min (ties to the smallest rank), the events' constraint
+   lines, the inlier count and the IRLS intersection of the lines.
+
+Everything up to the lines is integer or exactly specified float arithmetic (float32 squared
+distances with separate IEEE operations, :func:`~evtrack.flow.registration.rounded_distance`,
+float64 comparisons), so ``full_flow``, ``cost``, ``used_events``, ``inliers`` and ``lines``
+equal the tensor path's bit for bit. The refined ``flow``, ``ratio`` and ``normal_dir`` go
+through ``sqrt``, ``atan2``, ``cos`` and ``sin`` and a summation order of their own; they agree
+with the tensor path to float rounding (``tests/flow/test_flow_backends.py`` pins both).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evtrack.flow.compiled import _costs_kernel, _njit, _rounded_distance, numba
+
+__all__ = ["register_groups_compiled"]
+
+_GOLDEN = 2654435761
+_RANK_BITS = 20
+_POS_BITS = 31  # (hash << 31) | position: a hash < 2^32 and a position < 2^31 fit in int64
+
+
+@_njit()
+def _hash32(value):
+    return ((value & 0x7FFFFFFF) * _GOLDEN) & 0xFFFFFFFF
+
+
+@_njit()
+def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypotheses,
+                    n_ordinals):
+    """Steps 1 of the module docstring. Candidates of one event are consecutive in the input
+    and events come in stream order."""
+    m = group.shape[0]
+    # events (runs of equal stream index)
+    n_runs = 0
+    for i in range(m):
+        if i == 0 or seq[i] != seq[i - 1]:
+            n_runs += 1
+    run_first = np.empty(n_runs + 1, np.int64)
+    r = 0
+    for i in range(m):
+        if i == 0 or seq[i] != seq[i - 1]:
+            run_first[r] = i
+            r += 1
+    run_first[n_runs] = m
+    # the events of each group, in stream order
+    runs_per_group = np.zeros(n_groups, np.int64)
+    for r in range(n_runs):
+        runs_per_group[group[run_first[r]]] += 1
+    group_run_start = np.zeros(n_groups + 1, np.int64)
+    for g in range(n_groups):
+        group_run_start[g + 1] = group_run_start[g] + runs_per_group[g]
+    fill = group_run_start[:n_groups].copy()
+    runs_by_group = np.empty(n_runs, np.int64)
+    for r in range(n_runs):
+        g = group[run_first[r]]
+        runs_by_group[fill[g]] = r
+        fill[g] += 1
+    # data-term cap, then the kept candidates by group
+    keep = np.ones(n_runs, np.bool_)
+    ev_per_group = np.zeros(n_groups, np.int64)
+    counts = np.zeros(n_groups, np.int64)
+    for g in range(n_groups):
+        r0, r1 = group_run_start[g], group_run_start[g + 1]
+        k = r1 - r0
+        if k > max_events:
+            keys = np.empty(k, np.int64)
+            for j in range(k):
+                keys[j] = (_hash32(seq[run_first[runs_by_group[r0 + j]]]) << _POS_BITS) | j
+            order = np.argsort(keys)
+            for j in range(max_events, k):
+                keep[runs_by_group[r0 + order[j]]] = False
+        for j in range(r0, r1):
+            rr = runs_by_group[j]
+            if keep[rr]:
+                ev_per_group[g] += 1
+                counts[g] += run_first[rr + 1] - run_first[rr]
+    c_start = np.zeros(n_groups, np.int64)
+    for g in range(1, n_groups):
+        c_start[g] = c_start[g - 1] + counts[g - 1]
+    n_kept = c_start[n_groups - 1] + counts[n_groups - 1] if n_groups else 0
+    c_seq = np.empty(n_kept, np.int64)
+    c_x = np.empty(n_kept, np.float32)
+    c_y = np.empty(n_kept, np.float32)
+    c_event = np.empty(n_kept, np.int64)
+    h_key = np.empty(n_kept, np.int64)
+    c = 0
+    for g in range(n_groups):
+        e = 0
+        for j in range(group_run_start[g], group_run_start[g + 1]):
+            rr = runs_by_group[j]
+            if not keep[rr]:
+                continue
+            for i in range(run_first[rr], run_first[rr + 1]):
+                c_seq[c] = seq[i]
+                c_x[c] = flow[i, 0]
+                c_y[c] = flow[i, 1]
+                c_event[c] = e
+                h_key[c] = _hash32(seq[i] * n_ordinals + ordinal[i])
+                c += 1
+            e += 1
+    # hypotheses: per group the smallest (hash, position), in that order (the rank order)
+    h_count = np.zeros(n_groups, np.int64)
+    for g in range(n_groups):
+        h_count[g] = min(counts[g], max_hypotheses)
+    h_start = np.zeros(n_groups, np.int64)
+    for g in range(1, n_groups):
+        h_start[g] = h_start[g - 1] + h_count[g - 1]
+    n_h = h_start[n_groups - 1] + h_count[n_groups - 1] if n_groups else 0
+    h_cand = np.empty(n_h, np.int64)
+    for g in range(n_groups):
+        k = counts[g]
+        if k == 0:
+            continue
+        keys = np.empty(k, np.int64)
+        for j in range(k):
+            keys[j] = (h_key[c_start[g] + j] << _POS_BITS) | j
+        order = np.argsort(keys)
+        for j in range(h_count[g]):
+            h_cand[h_start[g] + j] = c_start[g] + order[j]
+    return (c_seq, c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
+            h_count)
+
+
+@_njit()
+def _solve_kernel(cost, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
+                  ev_per_group, cost_scale, q_max, parallel_eps, line_gate, irls_delta,
+                  refine_iters):
+    """Step 3 of the module docstring, per group."""
+    n_groups = counts.shape[0]
+    full = np.full((n_groups, 2), np.nan, np.float32)
+    has = np.zeros(n_groups, np.bool_)
+    best_cost = np.zeros(n_groups, np.int64)
+    inliers = np.zeros(n_groups, np.int64)
+    lines = np.zeros(n_groups, np.int64)
+    fit_flow = np.zeros((n_groups, 2), np.float64)
+    ratio = np.ones(n_groups, np.float64)
+    major = np.zeros((n_groups, 2), np.float64)
+    major[:, 0] = 1.0  # the tensor path's direction where there are no lines (theta = 0)
+    normal_speed = np.zeros(n_groups, np.float64)
+    gate2 = line_gate * line_gate
+    eps2 = parallel_eps * parallel_eps
+    for g in range(n_groups):
+        if h_count[g] == 0:
+            continue
+        # arg-min of (cost, rank)
+        best = -1
+        for j in range(h_count[g]):
+            combo = (cost[h_start[g] + j] << _RANK_BITS) | j
+            if best < 0 or combo < best:
+                best = combo
+        chosen = h_cand[h_start[g] + (best & ((1 << _RANK_BITS) - 1))]
+        has[g] = True
+        best_cost[g] = best >> _RANK_BITS
+        fx, fy = c_x[chosen], c_y[chosen]
+        full[g, 0], full[g, 1] = fx, fy
+        f2 = fx * fx
+        f2 = f2 + fy * fy
+        lim2 = gate2 * max(np.float64(f2), 1.0)
+        # one constraint line per kept event
+        n_ev = ev_per_group[g]
+        ln_x = np.empty(n_ev, np.float64)
+        ln_y = np.empty(n_ev, np.float64)
+        ln_s = np.empty(n_ev, np.float64)
+        n_lines = 0
+        c = c_start[g]
+        c_end = c_start[g] + counts[g]
+        while c < c_end:
+            e0 = c
+            e = c_event[c]
+            while c < c_end and c_event[c] == e:
+                c += 1
+            i1 = -1
+            q1 = np.int64(0)
+            d2_1 = np.float32(0.0)
+            for i in range(e0, c):
+                dx = c_x[i] - fx
+                dy = c_y[i] - fy
+                d2 = dx * dx
+                d2 = d2 + dy * dy
+                q = _rounded_distance(d2, cost_scale, q_max)
+                if i1 < 0 or q < q1:
+                    i1, q1, d2_1 = i, q, d2
+            ax, ay = np.float64(c_x[i1]), np.float64(c_y[i1])
+            a2 = ax * ax + ay * ay
+            i2 = -1
+            q2 = np.int64(0)
+            for i in range(e0, c):
+                bx, by = np.float64(c_x[i]), np.float64(c_y[i])
+                cross = bx * ay - by * ax
+                if cross * cross <= eps2 * (bx * bx + by * by) * a2:
+                    continue  # parallel to the first (the first itself included)
+                dx = c_x[i] - fx
+                dy = c_y[i] - fy
+                d2 = dx * dx
+                d2 = d2 + dy * dy
+                q = _rounded_distance(d2, cost_scale, q_max)
+                if i2 < 0 or q < q2:
+                    i2, q2 = i, q
+            agree = np.float64(d2_1) <= lim2
+            if agree:
+                inliers[g] += 1
+            if agree and i2 >= 0:
+                tx = ax - np.float64(c_x[i2])
+                ty = ay - np.float64(c_y[i2])
+                length = max(np.sqrt(tx * tx + ty * ty), 1e-30)
+                nx, ny = -ty / length, tx / length
+                s = nx * ax + ny * ay
+                if s < 0:
+                    nx, ny, s = -nx, -ny, -s
+                ln_x[n_lines], ln_y[n_lines], ln_s[n_lines] = nx, ny, s
+                n_lines += 1
+        lines[g] = n_lines
+        # IRLS intersection of the lines, from the Eq. 3 solution
+        vx, vy = np.float64(fx), np.float64(fy)
+        delta = irls_delta * max(np.sqrt(vx * vx + vy * vy), 1.0)
+        for _ in range(max(1, refine_iters)):
+            a = b = cc = r0 = r1 = 0.0
+            for i in range(n_lines):
+                nx, ny, s = ln_x[i], ln_y[i], ln_s[i]
+                w = 1.0 / max(abs(nx * vx + ny * vy - s), delta)
+                a += w * (nx * nx)
+                b += w * (nx * ny)
+                cc += w * (ny * ny)
+                r0 += (w * s) * nx
+                r1 += (w * s) * ny
+            half_tr = 0.5 * (a + cc)
+            rad = np.sqrt((0.5 * (a - cc)) ** 2 + b * b)
+            l_max, l_min = half_tr + rad, half_tr - rad
+            ratio[g] = max(l_min / max(l_max, 1e-300), 0.0) if l_max > 0 else 1.0
+            theta = 0.5 * np.arctan2(2 * b, a - cc)
+            major[g, 0], major[g, 1] = np.cos(theta), np.sin(theta)
+            normal_speed[g] = (major[g, 0] * r0 + major[g, 1] * r1) / max(l_max, 1e-300)
+            det = a * cc - b * b
+            if n_lines >= 2 and det > 1e-12 * max(l_max, 1e-300) ** 2:
+                vx = (cc * r0 - b * r1) / det
+                vy = (a * r1 - b * r0) / det
+        fit_flow[g, 0], fit_flow[g, 1] = vx, vy
+    return full, has, best_cost, inliers, lines, fit_flow, ratio, major, normal_speed
+
+
+def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor,
+                             n_groups: int, max_events: int, max_hypotheses: int,
+                             n_ordinals: int, line_gate: float, refine_iters: int,
+                             cost_scale: float, q_max: int, parallel_eps: float,
+                             irls_delta: float) -> dict[str, Tensor]:
+    """The per-group solution of Eq. 3 and the line fit, compiled (CPU tensors in and out).
+
+    Args: as :func:`evtrack.flow.registration.register_groups` (``group`` in
+    ``[0, n_groups)``, candidates of one event consecutive, events in stream order), with the
+    registration's constants.
+
+    Returns:
+        A dict of (G,)-leading tensors: ``full`` (float32 arg-min candidate, NaN without
+        one), ``has``, ``best_cost`` (int64, scaled), ``used_events``, ``inliers``, ``lines``,
+        ``fit_flow`` (float64 IRLS intersection), ``ratio``, ``major`` (float64 unit
+        dominant normal), ``normal_speed``.
+    """
+    if numba is None:
+        raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
+    as64 = [np.ascontiguousarray(v.detach().cpu().numpy(), dtype=np.int64)
+            for v in (group, seq, ordinal)]
+    f = np.ascontiguousarray(flow.detach().cpu().numpy(), dtype=np.float32)
+    (c_seq, c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
+     h_count) = _arrange_kernel(*as64, f, n_groups, max_events, max_hypotheses, n_ordinals)
+    cost = _costs_kernel(h_cand, h_start, h_count, c_x, c_y, c_start, counts, c_event,
+                         ev_per_group, float(cost_scale), float(q_max))
+    out = _solve_kernel(cost, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
+                        ev_per_group, float(cost_scale), float(q_max), float(parallel_eps),
+                        float(line_gate), float(irls_delta), int(refine_iters))
+    names = ("full", "has", "best_cost", "inliers", "lines", "fit_flow", "ratio", "major",
+             "normal_speed")
+    res = {k: torch.from_numpy(v) for k, v in zip(names, out, strict=True)}
+    res["used_events"] = torch.from_numpy(ev_per_group)
+    return res
