@@ -256,44 +256,47 @@ class TripletFlow(nn.Module):
             # now (their pruning below waits for a later call; it gives the same selection)
             return FlowResult.empty(self.device, event_start=self._emitted,
                                     with_events=self.return_event_flow)
-        done_g = p.g_keys < open_key
-        done_c = p.gkey < open_key
-        keys = p.g_keys[done_g]
+        # pending candidates are in stream order, so their windows never decrease and the
+        # closed ones (key < open_key <=> window < the open window) are a prefix; g_keys are
+        # sorted, so the closed groups are a prefix too
+        n_g = int(torch.searchsorted(p.g_keys, open_key))
+        n_c = int((p.gkey < open_key).sum())
+        keys = p.g_keys[:n_g]
         n_done_events = int((p.ev_gkey < open_key).sum()) if self.return_event_flow else 0
-        c_local = torch.searchsorted(keys, p.gkey[done_c])
-        reg = register_groups(c_local, p.seq[done_c], p.ordinal[done_c], p.flow[done_c],
+        c_local = torch.searchsorted(keys, p.gkey[:n_c])
+        reg = register_groups(c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c],
                               keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
                               cfg.aperture_ratio, cfg.pair_budget, cfg.refine, cfg.line_gate,
                               cfg.refine_iters, compiled=cfg.use_compiled(self.device.type),
                               n_ordinals=self._n_ordinals)
-        support = p.g_support[done_g]
+        support = p.g_support[:n_g]
         agree = reg.inliers.to(torch.float64) >= (float(cfg.min_inlier_fraction)
                                                   * reg.used_events.to(torch.float64))
         reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0]) & agree
-        result = self._rows(keys, reported, reg, support, p.g_events[done_g])
+        result = self._rows(keys, reported, reg, support, p.g_events[:n_g])
         if self.return_event_flow:
             result.event_flow = self._event_flows(
-                c_local, p.seq[done_c], p.ordinal[done_c], p.flow[done_c],
+                c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c],
                 torch.where(reported[:, None], reg.full_flow, torch.nan), n_done_events)
         result.event_start = self._emitted
         self._emitted += n_done_events
-        keep_c = ~done_c
-        g, s = p.gkey[keep_c], p.seq[keep_c]
+        g, s = p.gkey[n_c:], p.seq[n_c:]
         if not self.return_event_flow and g.numel():
             # prune the open windows to the events the registration can ever use
             first = torch.ones_like(s, dtype=torch.bool)
             first[1:] = s[1:] != s[:-1]
             run = torch.cumsum(first.to(torch.int64), 0) - 1
-            open_keys = p.g_keys[~done_g]  # sorted, and every open candidate's key is one
+            open_keys = p.g_keys[n_g:]  # sorted, and every open candidate's key is one
             run_keep = select_smallest(torch.searchsorted(open_keys, g[first]), hash32(s[first]),
                                        cfg.max_events_per_roi, n_groups=open_keys.numel())
-            keep_idx = torch.nonzero(keep_c).reshape(-1)[run_keep[run]]
+            keep = run_keep[run]
+            sel = slice(n_c, None) if bool(keep.all()) else n_c + torch.nonzero(keep).reshape(-1)
         else:
-            keep_idx = torch.nonzero(keep_c).reshape(-1)
+            sel = slice(n_c, None)
         self._pending = _Pending(
-            gkey=p.gkey[keep_idx], seq=p.seq[keep_idx], ordinal=p.ordinal[keep_idx],
-            flow=p.flow[keep_idx], g_keys=p.g_keys[~done_g], g_events=p.g_events[~done_g],
-            g_support=p.g_support[~done_g], ev_gkey=p.ev_gkey[n_done_events:])
+            gkey=p.gkey[sel], seq=p.seq[sel], ordinal=p.ordinal[sel], flow=p.flow[sel],
+            g_keys=p.g_keys[n_g:], g_events=p.g_events[n_g:], g_support=p.g_support[n_g:],
+            ev_gkey=p.ev_gkey[n_done_events:])
         return result
 
     def _rows(self, keys: Tensor, reported: Tensor, reg, support: Tensor,
