@@ -1,4 +1,4 @@
-"""Compiled CPU kernels of the flow (numba): the candidate search and the Eq. 3 costs.
+"""Compiled CPU kernels of the flow (numba): the candidate search and the rounded distance.
 
 The batched tensor search of :mod:`evtrack.flow.candidates` runs on CPU and CUDA, but on a
 CPU most of its time goes to the passes it needs for causality: on a fast object at
@@ -12,11 +12,9 @@ compiled event-by-event loop is the faster form of the *same* rule:
   across calls). It keeps ``history`` entries per cell, newest first, like the sequential
   reference of the tests, and tests the speed bounds as the integer ``t_k - t_i`` bounds of
   :func:`~evtrack.flow.config.dt_bounds_us`.
-* ``_costs_kernel`` evaluates the exact integer Eq. 3 cost of every hypothesis (float32
-  squared distances with separate IEEE operations, the per-event minimum, the exact rounded
-  distance of :func:`~evtrack.flow.registration.rounded_distance`, summed in int64), in
-  parallel over the groups; :mod:`evtrack.flow.registration_compiled` runs the rest of the
-  registration around it.
+* :mod:`evtrack.flow.registration_compiled` is the compiled form of the registration; it
+  uses ``_rounded_distance`` here (the exact rounded distance of
+  :func:`~evtrack.flow.registration.rounded_distance`, for one float32 value).
 
 ``FlowConfig.backend`` chooses: ``"auto"`` (default) uses these kernels on CPU when numba is
 installed, ``"torch"`` never, ``"compiled"`` always (an error without numba or on CUDA). The
@@ -226,36 +224,6 @@ class CompiledSearch:
             capacity *= 2
         self.next_seq += n
         return Candidates.cat(parts)
-
-
-@_njit(parallel=True)
-def _costs_kernel(h_cand, h_start, h_count, c_x, c_y, c_start, counts, c_event, ev_per_group,
-                  cost_scale, q_max):
-    """Per group (in parallel), per hypothesis: the sum over events of the rounded distance
-    to the event's nearest candidate. Hypotheses of a group are consecutive."""
-    n_g = h_start.shape[0]
-    cost = np.zeros(h_cand.shape[0], dtype=np.int64)
-    for g in _prange(n_g):
-        if h_count[g] == 0:
-            continue
-        mins = np.empty(ev_per_group[g], dtype=np.float32)
-        c0, c1 = c_start[g], c_start[g] + counts[g]
-        for h in range(h_start[g], h_start[g] + h_count[g]):
-            hx, hy = c_x[h_cand[h]], c_y[h_cand[h]]
-            mins[:] = np.inf
-            for c in range(c0, c1):
-                dx = hx - c_x[c]
-                dy = hy - c_y[c]
-                d2 = dx * dx
-                d2 = d2 + dy * dy
-                e = c_event[c]
-                if d2 < mins[e]:
-                    mins[e] = d2
-            total = 0
-            for e in range(mins.shape[0]):
-                total += _rounded_distance(mins[e], cost_scale, q_max)
-            cost[h] = total
-    return cost
 
 
 @_njit()

@@ -10,9 +10,11 @@ runs group by group in compiled loops:
    out by group with events in stream order, and the hypotheses (per group, the
    ``max_hypotheses`` candidates with the smallest hash of (stream index, ordinal), ties to
    the earlier candidate) in rank order;
-2. :func:`evtrack.flow.compiled._costs_kernel`: the exact integer Eq. 3 costs (in parallel);
-3. :func:`_solve_kernel`: the arg-min (ties to the smallest rank), the events' constraint
-   lines, the inlier count and the IRLS intersection of the lines.
+2. :func:`_solve_kernel`, in parallel over the groups: the exact integer Eq. 3 cost of the
+   hypotheses (the one nearest the median first, then the others in rank order), each
+   abandoned once its partial sum shows it cannot win (the arg-min, ties to the smallest
+   rank, is that of the full evaluation), then the events' constraint lines, the inlier
+   count and the IRLS intersection of the lines.
 
 Everything up to the lines is integer or exactly specified float arithmetic (float32 squared
 distances with separate IEEE operations, :func:`~evtrack.flow.registration.rounded_distance`,
@@ -28,12 +30,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.flow.compiled import _costs_kernel, _njit, _rounded_distance, numba
+from evtrack.flow.compiled import _njit, _prange, _rounded_distance, numba
 
 __all__ = ["register_groups_compiled"]
 
 _GOLDEN = 2654435761
-_RANK_BITS = 20
+_NO_BOUND = np.int64(1) << 62
 _POS_BITS = 31  # (hash << 31) | position: a hash < 2^32 and a position < 2^31 fit in int64
 
 
@@ -42,11 +44,11 @@ def _hash32(value):
     return ((value & 0x7FFFFFFF) * _GOLDEN) & 0xFFFFFFFF
 
 
-@_njit()
+@_njit(parallel=True)
 def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypotheses,
                     n_ordinals):
-    """Steps 1 of the module docstring. Candidates of one event are consecutive in the input
-    and events come in stream order."""
+    """Step 1 of the module docstring. Candidates of one event are consecutive in the input
+    and events come in stream order. The per-group work runs in parallel over the groups."""
     m = group.shape[0]
     # events (runs of equal stream index)
     n_runs = 0
@@ -77,7 +79,7 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
     keep = np.ones(n_runs, np.bool_)
     ev_per_group = np.zeros(n_groups, np.int64)
     counts = np.zeros(n_groups, np.int64)
-    for g in range(n_groups):
+    for g in _prange(n_groups):
         r0, r1 = group_run_start[g], group_run_start[g + 1]
         k = r1 - r0
         if k > max_events:
@@ -96,20 +98,18 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
     for g in range(1, n_groups):
         c_start[g] = c_start[g - 1] + counts[g - 1]
     n_kept = c_start[n_groups - 1] + counts[n_groups - 1] if n_groups else 0
-    c_seq = np.empty(n_kept, np.int64)
     c_x = np.empty(n_kept, np.float32)
     c_y = np.empty(n_kept, np.float32)
     c_event = np.empty(n_kept, np.int64)
     h_key = np.empty(n_kept, np.int64)
-    c = 0
-    for g in range(n_groups):
+    for g in _prange(n_groups):
+        c = c_start[g]
         e = 0
         for j in range(group_run_start[g], group_run_start[g + 1]):
             rr = runs_by_group[j]
             if not keep[rr]:
                 continue
             for i in range(run_first[rr], run_first[rr + 1]):
-                c_seq[c] = seq[i]
                 c_x[c] = flow[i, 0]
                 c_y[c] = flow[i, 1]
                 c_event[c] = e
@@ -125,7 +125,7 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
         h_start[g] = h_start[g - 1] + h_count[g - 1]
     n_h = h_start[n_groups - 1] + h_count[n_groups - 1] if n_groups else 0
     h_cand = np.empty(n_h, np.int64)
-    for g in range(n_groups):
+    for g in _prange(n_groups):
         k = counts[g]
         if k == 0:
             continue
@@ -135,15 +135,43 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
         order = np.argsort(keys)
         for j in range(h_count[g]):
             h_cand[h_start[g] + j] = c_start[g] + order[j]
-    return (c_seq, c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
-            h_count)
+    return c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start, h_count
 
 
 @_njit()
-def _solve_kernel(cost, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
+def _hypothesis_cost(hx, hy, c_x, c_y, c_event, c0, c1, bound, cost_scale, q_max):
+    """``sum_events min_c rounded_distance(|h - c|^2)`` over candidates ``c0..c1`` (events
+    contiguous), or any value ``>= bound`` as soon as the partial sum reaches ``bound`` (the
+    terms are >= 0, so such a hypothesis cannot win)."""
+    total = np.int64(0)
+    best = np.float32(np.inf)
+    e = c_event[c0]
+    for c in range(c0, c1):
+        if c_event[c] != e:
+            total += _rounded_distance(best, cost_scale, q_max)
+            if total >= bound:
+                return total
+            e = c_event[c]
+            best = np.float32(np.inf)
+        dx = hx - c_x[c]
+        dy = hy - c_y[c]
+        d2 = dx * dx
+        d2 = d2 + dy * dy
+        if d2 < best:
+            best = d2
+    return total + _rounded_distance(best, cost_scale, q_max)
+
+
+@_njit(parallel=True)
+def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                   ev_per_group, cost_scale, q_max, parallel_eps, line_gate, irls_delta,
                   refine_iters):
-    """Step 3 of the module docstring, per group."""
+    """Steps 2 and 3 of the module docstring, in parallel over the groups.
+
+    Each hypothesis is evaluated only until its partial cost shows it cannot beat the best so
+    far (a later rank must be strictly cheaper, an earlier one at most as costly), so the
+    arg-min and its cost are those of the full evaluation.
+    """
     n_groups = counts.shape[0]
     full = np.full((n_groups, 2), np.nan, np.float32)
     has = np.zeros(n_groups, np.bool_)
@@ -157,18 +185,38 @@ def _solve_kernel(cost, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_s
     normal_speed = np.zeros(n_groups, np.float64)
     gate2 = line_gate * line_gate
     eps2 = parallel_eps * parallel_eps
-    for g in range(n_groups):
+    for g in _prange(n_groups):
         if h_count[g] == 0:
             continue
-        # arg-min of (cost, rank)
-        best = -1
-        for j in range(h_count[g]):
-            combo = (cost[h_start[g] + j] << _RANK_BITS) | j
-            if best < 0 or combo < best:
-                best = combo
-        chosen = h_cand[h_start[g] + (best & ((1 << _RANK_BITS) - 1))]
+        # arg-min of (cost, rank). The hypothesis nearest the median flow goes first (it is
+        # usually the winner or close, so the bound cuts the others short); then the others
+        # in rank order. A tie goes to the smaller rank.
+        c0, c1 = c_start[g], c_start[g] + counts[g]
+        h0, nh = h_start[g], h_count[g]
+        hx = np.empty(nh, np.float32)
+        hy = np.empty(nh, np.float32)
+        for j in range(nh):
+            hx[j], hy[j] = c_x[h_cand[h0 + j]], c_y[h_cand[h0 + j]]
+        mx, my = np.median(hx), np.median(hy)
+        first = 0
+        for j in range(1, nh):
+            if abs(hx[j] - mx) + abs(hy[j] - my) < abs(hx[first] - mx) + abs(hy[first] - my):
+                first = j
+        g_best = _hypothesis_cost(hx[first], hy[first], c_x, c_y, c_event, c0, c1, _NO_BOUND,
+                                  cost_scale, q_max)
+        best_rank = first
+        for j in range(nh):
+            if j == first:
+                continue
+            # an earlier rank also wins a tie: it must reach best + 1 to lose
+            bound = g_best + 1 if j < best_rank else g_best
+            cost = _hypothesis_cost(hx[j], hy[j], c_x, c_y, c_event, c0, c1, bound, cost_scale,
+                                    q_max)
+            if cost < bound:
+                g_best, best_rank = cost, j
+        chosen = h_cand[h0 + best_rank]
         has[g] = True
-        best_cost[g] = best >> _RANK_BITS
+        best_cost[g] = g_best
         fx, fy = c_x[chosen], c_y[chosen]
         full[g, 0], full[g, 1] = fx, fy
         f2 = fx * fx
@@ -278,11 +326,9 @@ def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: 
     as64 = [np.ascontiguousarray(v.detach().cpu().numpy(), dtype=np.int64)
             for v in (group, seq, ordinal)]
     f = np.ascontiguousarray(flow.detach().cpu().numpy(), dtype=np.float32)
-    (c_seq, c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
+    (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
      h_count) = _arrange_kernel(*as64, f, n_groups, max_events, max_hypotheses, n_ordinals)
-    cost = _costs_kernel(h_cand, h_start, h_count, c_x, c_y, c_start, counts, c_event,
-                         ev_per_group, float(cost_scale), float(q_max))
-    out = _solve_kernel(cost, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
+    out = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                         ev_per_group, float(cost_scale), float(q_max), float(parallel_eps),
                         float(line_gate), float(irls_delta), int(refine_iters))
     names = ("full", "has", "best_cost", "inliers", "lines", "fit_flow", "ratio", "major",
