@@ -4,7 +4,7 @@ Prints one table: for each chunk size, events per second of
 
 * ``search``: the candidate search alone (burst filter + triplets), and
 * ``flow``: the whole ``TripletFlow`` (search + RoI registration), fed one ``update()`` per
-  chunk as a live stream would,
+  chunk as a live stream would (``update`` works in pieces of the config's ``chunk_size``),
 
 for each backend (``torch``: batched tensor code; ``compiled``: the numba kernels of
 ``evtrack.flow.compiled``, CPU only) on CPU with each of ``--threads`` thread counts (default
@@ -31,6 +31,7 @@ Usage::
     python benchmarks/bench_flow_speed.py
     python benchmarks/bench_flow_speed.py --size 640x480 --duration-ms 20 --chunks 10000,1000000
     python benchmarks/bench_flow_speed.py --sim '' --sequence path/to/sequence
+    python benchmarks/bench_flow_speed.py --config configs/flow_fast.yaml   # + that preset
 """
 
 from __future__ import annotations
@@ -99,6 +100,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="folder of the simulated scene")
     parser.add_argument("--sequence", type=Path, action="append", default=[],
                         help="a sequence folder to measure as well (repeatable)")
+    parser.add_argument("--config", type=Path, action="append", default=[],
+                        help="a YAML flow config to measure besides the defaults (repeatable; "
+                             "e.g. configs/flow_fast.yaml)")
     args = parser.parse_args(argv)
     thread_counts = [int(v) for v in args.threads.split(",")]
     torch.set_num_threads(thread_counts[0])
@@ -114,8 +118,11 @@ def main(argv: list[str] | None = None) -> int:
 
         scenes.append((f"sequence {folder}", Sequence.load(folder).events))
     print(f"torch {torch.__version__}, CPU threads {thread_counts}")
+    configs = [("defaults", FlowConfig())]
+    configs += [(str(path), FlowConfig.from_yaml(path)) for path in args.config]
     for name, ev in scenes:
-        _measure(name, ev, args, thread_counts)
+        for cfg_name, base in configs:
+            _measure(name, ev, args, thread_counts, base, cfg_name)
     print("\ntarget: >= 2,000,000 ev/s on 2 CPU cores, >= 50,000,000 ev/s on one GPU "
           "(flow column)")
     return 0
@@ -142,15 +149,18 @@ def _sim_scene(obj: str, folder: Path) -> Events:
     return Sequence.load(out).events
 
 
-def _measure(name: str, ev: Events, args, thread_counts: list[int]) -> None:
-    """The table of one scene."""
+def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowConfig,
+             cfg_name: str) -> None:
+    """The table of one scene and one flow config."""
     w, h = ev.sensor_size
     rate_in = len(ev) / max(ev.duration_us, 1) * 1e6
     print(f"\nscene: {name}, {len(ev)} events over {ev.duration_us / 1000:.1f} ms "
           f"({rate_in / 1e6:.1f} M ev/s in the stream)")
-    cfg = FlowConfig(sensor_size=(w, h))
+    cfg = base.replace(sensor_size=(w, h))
     onsets = _count_onsets(cfg, ev)
-    print(f"config: radius {cfg.radius}, history {cfg.history}, refractory {cfg.refractory_us} µs"
+    print(f"config {cfg_name}: radius {cfg.radius}, history {cfg.history}, refractory "
+          f"{cfg.refractory_us} µs, tolerance {cfg.tolerance_rel:g}, span bound "
+          f"{cfg.max_span_us or 'none'} µs, pieces of {cfg.chunk_size:,} events"
           f" -> {onsets / len(ev):.1%} of the events are burst onsets that are matched")
 
     sys.path.insert(0, str(ROOT / "tests" / "flow"))
@@ -179,7 +189,8 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int]) -> None:
         evd = ev.to(dev)
         calib = _calibration(dev)
         for chunk in (int(c) for c in args.chunks.split(",")):
-            c = cfg.replace(chunk_size=chunk, device=str(dev), backend=backend)
+            # update() splits a chunk into pieces of the config's chunk_size, as for a user
+            c = cfg.replace(device=str(dev), backend=backend)
             make_search = CompiledSearch if backend == "compiled" else CandidateSearch
 
             def search(c=c, evd=evd, dev=dev, make_search=make_search, chunk=chunk):
