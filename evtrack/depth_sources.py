@@ -66,12 +66,19 @@ def roi_depth(depth_map: np.ndarray, uv: np.ndarray, offsets: np.ndarray,
     ok = inside & np.isfinite(z) & (z > 0)
     if z_range is not None:
         ok &= (z >= z_range[0]) & (z <= z_range[1])
-    z = np.where(ok, z, np.nan)
-    out = np.full(len(uv), np.nan)
-    has = ok.any(1)
-    if has.any():
-        out[has] = np.nanmedian(z[has], axis=1)
-    return out
+    return _row_medians(np.where(ok, z, np.inf), ok.sum(1))
+
+
+def _row_medians(values: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Median of the first ``counts[i]`` sorted values of each row (the valid ones; the
+    others are ``+inf``), NaN where ``counts[i] == 0``: ``np.nanmedian`` without its masked
+    arrays (several times faster on the tracker's small patches, same values)."""
+    values = np.sort(values, axis=1)
+    rows = np.arange(len(values))
+    k = np.maximum(counts, 1)
+    lo = values[rows, (k - 1) // 2]
+    hi = values[rows, k // 2]
+    return np.where(counts > 0, (lo + hi) / 2.0, np.nan)
 
 
 class DepthSource:

@@ -73,6 +73,33 @@ def test_roi_depth_median_range_and_missing() -> None:
     assert roi_depth(depth, np.array([[14.6, 9.0]]), off, None)[0] == 2.0
 
 
+def test_roi_depth_equals_a_nanmedian_reference() -> None:
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.2, 2.0, (40, 50)).astype(np.float32)
+    depth[rng.random((40, 50)) < 0.3] = np.nan          # holes
+    depth[rng.random((40, 50)) < 0.1] = 0.0             # invalid zeros
+    depth[:12, :12] = np.nan                            # a patch with no depth at all
+    off = patch_offsets(3, 1)
+    uv = np.concatenate([rng.uniform(-4, 54, (300, 2)), [[4.0, 4.0]]])
+    for z_range in (None, (0.5, 1.5)):
+        got = roi_depth(depth, uv, off, z_range)
+        centre = np.rint(uv).astype(int)
+        for i, (cx, cy) in enumerate(centre):   # brute force, point by point
+            vals = []
+            for dx, dy in off:
+                x, y = cx + dx, cy + dy
+                if 0 <= x < 50 and 0 <= y < 40:
+                    v = float(depth[y, x])
+                    if np.isfinite(v) and v > 0 and (z_range is None
+                                                     or z_range[0] <= v <= z_range[1]):
+                        vals.append(v)
+            if vals:
+                assert got[i] == np.median(vals), i
+            else:
+                assert np.isnan(got[i]), i
+    assert np.isnan(roi_depth(depth, uv[-1:], off)[0])
+
+
 def test_sensor_depth_reprojection_against_rendering(box) -> None:
     """Depth rendered in an RGB camera, carried into a different event camera, equals the
     depth rendered in the event camera (away from the silhouette's edge)."""
