@@ -129,9 +129,10 @@ class FlowConfig:
         backend: ``"auto"``: on CPU, the compiled kernels of :mod:`evtrack.flow.compiled`
             (numba) when numba is installed, else the batched tensor code; on CUDA, the
             tensor code. ``"torch"``: always the tensor code. ``"compiled"``: always the
-            kernels (CPU only; an error without numba). Both give the same candidates and
-            flows, bit for bit; on 2 CPU cores the kernels were 1.6-3.5x faster
-            (``benchmarks/bench_flow_speed.py``).
+            kernels (CPU only; an error without numba). Both give the same candidates, the
+            same RoIs with the same Eq. 3 solutions, costs and inlier counts, bit for bit;
+            the refined flows agree to float rounding. On 2 CPU cores the kernels were 2.5-4x
+            faster (``benchmarks/bench_flow_speed.py``).
     """
 
     sensor_size: tuple[int, int] | None = None
