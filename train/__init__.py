@@ -33,6 +33,7 @@ from evtrack.train.module import (
     LossConfig,
     OptimConfig,
     PoseLightningModule,
+    corner_identity_hits,
     corner_identity_loss,
     keypoint_metrics,
 )
@@ -57,6 +58,7 @@ __all__ = [
     "EpochSampler",
     "GaussianNoise",
     "LossConfig",
+    "corner_identity_hits",
     "corner_identity_loss",
     "ModelConfig",
     "MotionBlur",

@@ -28,6 +28,7 @@ from evtrack.train import (
     PoseLightningModule,
     SyntheticCuboidSource,
     TrainConfig,
+    corner_identity_hits,
     corner_identity_loss,
     run_training,
 )
@@ -159,6 +160,22 @@ def test_identity_term_penalises_a_map_firing_on_another_corner():
     # logits 10 (right map), 10 (the confused map) and six 0s; right: one 10 and seven 0s
     assert li_confused == pytest.approx(math.log(2 + 6 * math.exp(-10.0)), rel=1e-5)
     assert li_right == pytest.approx(math.log(1 + 7 * math.exp(-10.0)), abs=1e-6)
+
+
+def test_corner_identity_hits_reads_the_maps_at_each_corner_peak():
+    target = torch.zeros(1, 9, 6, 6)
+    for k, (i, j) in enumerate([(0, 0), (0, 5), (5, 0), (5, 5)]):
+        target[0, k, i, j] = 1.0
+        target[0, k, 1 if i == 0 else 4, j] = 0.6      # the Gaussian's shoulder: not scored
+    pred = torch.zeros(1, 9, 6, 6)
+    pred[0, 0, 0, 0] = 0.9                          # corner 0: right
+    pred[0, 1, 0, 5] = 0.4
+    pred[0, 3, 0, 5] = 0.5                          # corner 1: map 3 is stronger, a miss
+    pred[0, 2, 5, 0] = 0.7                          # corner 2: right
+    pred[0, 8, 5, 5] = 5.0                          # corner 3: only the centroid map fires;
+    pred[0, 3, 5, 5] = 0.1                          # among the corner maps, map 3 wins
+    assert corner_identity_hits(pred, target) == (3, 4)
+    assert corner_identity_hits(pred, torch.zeros_like(target)) == (0, 0)
 
 
 def test_negative_loss_weights_are_refused():
