@@ -576,7 +576,9 @@ class Tracker:
         res: FlowResult | None = None
         if self.method in ("full", "velocity"):
             with _Timer(st.time_s, "flow"):
-                res = FlowResult.cat([self.flow.update(ev), self.flow.flush()])
+                # group ends are whole steps, and steps whole flow windows (the config
+                # checks it): every window of the group is over, one registration reports all
+                res = self.flow.update(ev, until_us=t_end)
             res_t = res.t.cpu()
         ev_cut = torch.searchsorted(ev.t, t0 + step * torch.arange(
             1, (t_end - t0) // step + 1, dtype=torch.int64)).tolist() if len(ev) else None

@@ -152,18 +152,41 @@ class TripletFlow(nn.Module):
         first = self.update(events)
         return FlowResult.cat([first, self.flush()])
 
-    def update(self, events: Events) -> FlowResult:
+    def update(self, events: Events, until_us: int | None = None) -> FlowResult:
         """Add the next events of the stream; return the RoI windows they complete.
 
+        Args:
+            events: the next events (time-sorted, not before earlier ones).
+            until_us: optional promise that no later event is earlier than this time (µs),
+                e.g. a live source's clock or the end of a batch of time: the windows that
+                end at or before it are complete and are reported now, in the same
+                registration as those the events close. A later event before it raises
+                :class:`EventsError`. The results equal those without the promise, only
+                sooner.
+
         Raises:
-            EventsError: unsorted events, events before the previous batch, events outside
-                the sensor, or bad polarity.
+            EventsError: unsorted events, events before the previous batch (or before an
+                earlier ``until_us``), events after ``until_us``, events outside the sensor,
+                or bad polarity.
         """
         self._check(events)
+        if until_us is not None:
+            until_us = int(until_us)
+            if len(events) and until_us < events.t_end:
+                raise EventsError(f"flow input: until_us={until_us} µs is before the last "
+                                  f"event (t={events.t_end} µs)")
         parts = [FlowResult.empty(self.device, self._emitted, self.return_event_flow)]
         size = self.config.chunk_size
-        for start in range(0, len(events), size):
-            parts.append(self._register_piece(*self._search_piece(events[start:start + size])))
+        starts = range(0, len(events), size)
+        for start in starts:
+            last = start == starts[-1] and until_us is not None
+            piece = self._search_piece(events[start:start + size])
+            parts.append(self._register_piece(*piece, finalise=not last))
+        if until_us is not None and self._search is not None:
+            self._last_t = max(self._last_t if self._last_t is not None else until_us,
+                               until_us)
+            cols, rows = self.num_rois
+            parts.append(self._finalise(until_us // self.config.window_us * cols * rows))
         return FlowResult.cat(parts)
 
     def flush(self) -> FlowResult:
@@ -216,10 +239,14 @@ class TripletFlow(nn.Module):
         return x, y, t, self._search(x, y, t, ev.p.to(dev)), seq0
 
     def _register_piece(self, x: Tensor, y: Tensor, t: Tensor, cands: Candidates,
-                        seq0: int) -> FlowResult:
-        """Add searched events to the pending windows; register the windows they close."""
+                        seq0: int, finalise: bool = True) -> FlowResult:
+        """Add searched events to the pending windows; register the windows they close
+        (unless ``finalise`` is false: the caller registers them)."""
         gkey = self._group_keys(x, y, t)
         self._add_pending(gkey, cands, seq0)
+        if not finalise:
+            return FlowResult.empty(self.device, event_start=self._emitted,
+                                    with_events=self.return_event_flow)
         cols, rows = self.num_rois
         w_open = int(torch.div(t[-1], self.config.window_us, rounding_mode="floor"))
         return self._finalise(w_open * cols * rows)

@@ -101,6 +101,54 @@ def test_streaming_equals_one_call(texture):
     assert whole.event_flow.shape == (len(ev), 2) and joined.event_start == 0
 
 
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+@pytest.mark.parametrize("event_flow", [False, True])
+def test_until_reports_windows_by_time_with_the_same_results(texture, backend, event_flow):
+    ev, _ = texture
+    cfg = FlowConfig(roi_size=24, window_us=3_000, max_events_per_roi=16, max_hypotheses=12,
+                     backend=backend)
+    whole = TripletFlow(cfg, return_event_flow=event_flow)(ev)
+    flow = TripletFlow(cfg, return_event_flow=event_flow)
+    # time batches: some end on a window boundary, some inside a window, one holds no event
+    ends = [int(ev.t[0]) + d for d in (2_000, 6_000, 6_500, 7_000, 15_000, 21_000)]
+    ends.append(int(ev.t[-1]) + 1)
+    parts, start = [], 0
+    for end in ends:
+        stop = int(torch.searchsorted(ev.t, torch.tensor([end]))[0])
+        part = flow.update(ev[start:stop], until_us=end)
+        window_end = (part.window + 1) * cfg.window_us
+        assert bool((window_end <= end).all())            # only windows that are over
+        # every window that is over is reported now, not at a later call
+        closed_now = part.window.unique().tolist()
+        assert all(w * cfg.window_us < end for w in closed_now)
+        parts.append(part)
+        start = stop
+    assert start == len(ev)
+    parts.append(flow.flush())
+    joined = FlowResult.cat(parts)
+    assert len(joined) == len(whole) > 10
+    for name in ("xy", "t", "flow", "support", "cost", "normal", "roi", "window", "n_events"):
+        torch.testing.assert_close(getattr(joined, name), getattr(whole, name), equal_nan=True)
+    if event_flow:
+        torch.testing.assert_close(joined.event_flow, whole.event_flow, equal_nan=True)
+    # windows over by the last promise were all reported before the flush
+    last_done = ends[-1] // cfg.window_us
+    assert not bool((parts[-1].window < last_done).any())
+
+
+def test_until_is_a_promise_about_later_events(texture):
+    ev, _ = texture
+    flow = TripletFlow(FlowConfig(roi_size=24, window_us=3_000))
+    t_mid = int(ev.t[len(ev) // 2])
+    with pytest.raises(EventsError, match="until_us"):
+        flow.update(ev[: len(ev) // 2 + 1], until_us=t_mid - 1)   # an event after the promise
+    flow = TripletFlow(FlowConfig(roi_size=24, window_us=3_000))
+    cut = int(torch.searchsorted(ev.t, torch.tensor([t_mid]))[0])
+    flow.update(ev[:cut], until_us=t_mid + 500)
+    with pytest.raises(EventsError, match="before"):
+        flow.update(ev[cut:])                                     # starts before the promise
+
+
 def test_hypothesis_selection_does_not_depend_on_the_chunking():
     """The hash keys of the capped hypotheses use a fixed bound on the candidate ordinals;
     one taken from each registration batch made this scene's flows depend on the chunking."""

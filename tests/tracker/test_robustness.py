@@ -181,9 +181,9 @@ def _record_flow_calls(tracker: Tracker) -> list[tuple[int, int, int]]:
     calls: list[tuple[int, int, int]] = []
     update = tracker.flow.update
 
-    def recorded(ev: Events):
+    def recorded(ev: Events, **kwargs):
         calls.append((len(ev), int(ev.t[0]) if len(ev) else -1, int(ev.t[-1]) if len(ev) else -1))
-        return update(ev)
+        return update(ev, **kwargs)
 
     tracker.flow.update = recorded
     return calls
