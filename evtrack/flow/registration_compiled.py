@@ -166,7 +166,7 @@ def _hypothesis_cost(hx, hy, c_x, c_y, c_event, c0, c1, bound, cost_scale, q_max
 def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                   ev_per_group, cost_scale, q_max, parallel_eps, line_gate, irls_delta,
                   refine_iters):
-    """Steps 2 and 3 of the module docstring, in parallel over the groups.
+    """Step 2 of the module docstring, in parallel over the groups.
 
     Each hypothesis is evaluated only until its partial cost shows it cannot beat the best so
     far (a later rank must be strictly cheaper, an earlier one at most as costly), so the

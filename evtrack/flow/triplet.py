@@ -169,12 +169,12 @@ class TripletFlow(nn.Module):
                 earlier ``until_us``), events after ``until_us``, events outside the sensor,
                 or bad polarity.
         """
-        self._check(events)
-        if until_us is not None:
+        if until_us is not None:  # checked before anything changes
             until_us = int(until_us)
-            if len(events) and until_us < events.t_end:
+            if isinstance(events, Events) and len(events) and until_us < events.t_end:
                 raise EventsError(f"flow input: until_us={until_us} µs is before the last "
                                   f"event (t={events.t_end} µs)")
+        self._check(events)
         parts = [FlowResult.empty(self.device, self._emitted, self.return_event_flow)]
         size = self.config.chunk_size
         starts = range(0, len(events), size)

@@ -142,6 +142,7 @@ def test_until_is_a_promise_about_later_events(texture):
     t_mid = int(ev.t[len(ev) // 2])
     with pytest.raises(EventsError, match="until_us"):
         flow.update(ev[: len(ev) // 2 + 1], until_us=t_mid - 1)   # an event after the promise
+    assert len(flow.update(ev)) > 0                               # nothing was taken in
     flow = TripletFlow(FlowConfig(roi_size=24, window_us=3_000))
     cut = int(torch.searchsorted(ev.t, torch.tensor([t_mid]))[0])
     flow.update(ev[:cut], until_us=t_mid + 500)
