@@ -313,7 +313,7 @@ def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: 
 
     Args: as :func:`evtrack.flow.registration.register_groups` (``group`` in
     ``[0, n_groups)``, candidates of one event consecutive, events in stream order), with the
-    registration's constants.
+    registration's constants. The kernels run on ``torch.get_num_threads()`` threads.
 
     Returns:
         A dict of (G,)-leading tensors: ``full`` (float32 arg-min candidate, NaN without
@@ -323,6 +323,8 @@ def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: 
     """
     if numba is None:
         raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
+    # the parallel kernels use as many threads as torch is allowed (torch.set_num_threads)
+    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
     as64 = [np.ascontiguousarray(v.detach().cpu().numpy(), dtype=np.int64)
             for v in (group, seq, ordinal)]
     f = np.ascontiguousarray(flow.detach().cpu().numpy(), dtype=np.float32)
