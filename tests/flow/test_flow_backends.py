@@ -167,6 +167,29 @@ def test_compiled_registration_equals_the_tensor_registration(seed):
                                atol=1e-5, equal_nan=True)
 
 
+def test_compiled_flow_leaves_torch_threads_as_set():
+    """numba's OpenMP layer resets the process's thread count when it first starts; the flow
+    must leave the caller's ``torch.set_num_threads`` in place (fresh process: first start)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch\n"
+        "from evtrack.flow import FlowConfig, TripletFlow\n"
+        "from evtrack.flow.scenes import translating_texture\n"
+        "ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=20_000,"
+        " seed=5)\n"
+        "torch.set_num_threads(1)\n"
+        "res = TripletFlow(FlowConfig(sensor_size=(64, 48), roi_size=16, backend='compiled'))(ev)"
+        "\n"
+        "assert len(res) > 0\n"
+        "print(torch.get_num_threads())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "1", out.stdout + out.stderr
+
+
 def _exact_rounded(d2: float) -> int:
     """round(sqrt(d2) * COST_SCALE), ties to even, capped, in rational arithmetic."""
     cap = 1 << 25
