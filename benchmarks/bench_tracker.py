@@ -2,6 +2,7 @@
 
     python benchmarks/bench_tracker.py [--size 320x240] [--duration 1.0] [--threads 2 1]
                                        [--methods full pose] [--sequence DIR] [--weights W.pt]
+                                       [--caps 0 2000 1000] [--save-sequence DIR]
 
 Simulates a ``faster`` sequence of the procedural box (or takes ``--sequence``), then tracks it
 with each method and thread count in this process, side by side. The pose source is the
@@ -15,6 +16,8 @@ Columns:
     group p50/p95: processing time of one step group (``flow_batch_steps`` velocity steps:
         one flow call and the filter steps) — the latency of an output in live use.
     filters/step: mean time of one velocity-filter + pose-filter step (µs).
+    cap: ``max_events_per_step`` (events per 1 ms step entering the flow; thinned above it):
+        ``--caps`` compares the speed and the error of several budgets.
 
 Timings on a shared machine are noisy; rerun when it is quiet.
 """
@@ -65,9 +68,13 @@ def _pose_source(seq: Sequence, weights: str | None):
     return NetworkPoseSource(est, seq.meta.T_event_rgb), f"network {Path(weights).name}"
 
 
-def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | None) -> dict:
+def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | None,
+         cap: int | None) -> dict:
     torch.set_num_threads(threads)
-    cfg = TrackerConfig.from_dict({**config, "method": method, "torch_threads": threads})
+    changes = {**config, "method": method, "torch_threads": threads}
+    if cap is not None:
+        changes["max_events_per_step"] = cap
+    cfg = TrackerConfig.from_dict(changes)
     source, source_name = _pose_source(seq, weights)
     tracker = Tracker.for_sequence(seq, cfg, source)
     groups: list[float] = []
@@ -85,7 +92,8 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
     span = (int(traj.t_us[-1]) - int(traj.t_us[0])) * 1e-6 if len(traj) > 1 else float("nan")
     st = tracker.stats
     filt = st.time_s.get("velocity", 0.0) + st.time_s.get("pose", 0.0)
-    row = {"method": method, "threads": threads, "source": source_name, "events": st.events,
+    row = {"method": method, "threads": threads, "cap": cfg.max_events_per_step,
+           "thinned": st.events_thinned, "source": source_name, "events": st.events,
            "seq_s": span, "proc_s": wall, "rtf": wall / span, "ev_per_s": st.events / wall,
            "flow": st.time_s.get("flow", 0.0), "velocity": st.time_s.get("velocity", 0.0),
            "pose": st.time_s.get("pose", 0.0),
@@ -111,29 +119,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--roi-size", type=int, default=None,
                     help="flow RoI size (default: 32 scaled to the image width / 640)")
     ap.add_argument("--weights", help="pose-network weights (default: the oracle)")
+    ap.add_argument("--caps", type=int, nargs="+", default=[None], metavar="N",
+                    help="max_events_per_step values to compare (0: no cap; default: the "
+                         "config's)")
+    ap.add_argument("--save-sequence", type=Path, metavar="DIR",
+                    help="keep the simulated sequence in DIR (reuse it with --sequence DIR/seq)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         if args.sequence is not None:
             seq = Sequence.load(args.sequence)
         else:
             w, h = (int(v) for v in args.size.lower().split("x"))
-            seq = _simulate((w, h), args.duration, Path(tmp))
+            seq = _simulate((w, h), args.duration, args.save_sequence or Path(tmp))
         width = seq.meta.event_camera.width
         roi = args.roi_size or max(8, round(32 * width / 640))
         config = {"flow": {"roi_size": roi}}
-        rows = [_run(seq, m, th, config, args.weights) for th in args.threads
-                for m in args.methods]
+        rows = [_run(seq, m, th, config, args.weights, cap) for th in args.threads
+                for cap in args.caps for m in args.methods]
     cam = seq.meta.event_camera
     print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, "
           f"{rows[0]['events']} events over {rows[0]['seq_s']:.2f} s, pose source "
           f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every 5 steps")
-    head = (f"{'method':<10} {'thr':>3} {'proc s':>7} {'rtf':>6} {'ev/s':>9} {'flow':>6} "
+    head = (f"{'method':<10} {'thr':>3} {'cap':>6} {'thinned':>8} {'proc s':>7} {'rtf':>6} "
+            f"{'ev/s':>9} {'flow':>6} "
             f"{'veloc':>6} {'pose':>6} {'frames':>6} {'grp p50':>8} {'grp p95':>8} "
             f"{'filt/step':>9}  error")
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['method']:<10} {r['threads']:>3} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
+        print(f"{r['method']:<10} {r['threads']:>3} {r['cap']:>6} {r['thinned']:>8} "
+              f"{r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
               f"{r['ev_per_s']:>9.0f} {r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} "
               f"{r['frames']:>6.2f} {r['group_p50_ms']:>6.2f}ms {r['group_p95_ms']:>6.2f}ms "
               f"{r['step_us']:>7.0f}us  {r.get('error', '')}")

@@ -82,6 +82,7 @@ from evtrack.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.silhouette import Silhouette, SilhouettePolygon
 from evtrack.tracking_config import TrackerConfig
 from evtrack.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING, Trajectory
+from evtrack.utils import threads_per_job
 
 __all__ = ["Tracker", "TrackerStats"]
 
@@ -879,7 +880,7 @@ class Tracker:
         """
         threads = torch.get_num_threads()
         if self.config.torch_threads > 0:
-            torch.set_num_threads(self.config.torch_threads)
+            torch.set_num_threads(threads_per_job(self.config.torch_threads))
         try:
             return self._track(sequence, progress)
         finally:

@@ -168,10 +168,15 @@ class TrackerConfig:
             poses only), ``"frame-flow"`` (ROFT-like: dense RGB flow -> twist measurements of a
             constant-velocity pose UKF), ``"ge"`` (1-DoF generative event model).
         device: torch device of the flow and the filters (``"cpu"``, ``"cuda"``).
-        torch_threads: CPU threads torch uses during :meth:`Tracker.track` (restored after);
-            0 leaves torch's setting. One by default: the per-step tensors are tiny, and extra
-            threads mostly synchronise (measured on 2 busy cores: 2 threads made a run 20x
-            slower than 1). Streaming callers set ``torch.set_num_threads`` themselves.
+        torch_threads: CPU threads torch (and the flow's compiled kernels, which follow
+            torch's count) use during :meth:`Tracker.track`, restored after; never more than
+            the cores this process may use; 0 leaves torch's setting. Two by default: on 2
+            cores the flow runs a third faster than on one (``benchmarks/bench_tracker.py
+            --threads 1 2``: real-time factor 3.0 against 3.9) and the tiny per-step filter
+            ops cost the same. Threads beyond the free cores are far slower (2 threads on 2
+            busy cores made a run 20x slower than 1), so ``evtrack evaluate --jobs N`` gives
+            each job its share of the cores. Streaming callers set ``torch.set_num_threads``
+            themselves.
         velocity_step_us: the velocity filter runs once per step (µs); the tracker outputs a
             pose and a twist at the end of every step (1 kHz by default). Steps are aligned on
             absolute time (multiples of the step).
@@ -243,7 +248,7 @@ class TrackerConfig:
 
     method: str = "full"
     device: str = "cpu"
-    torch_threads: int = 1
+    torch_threads: int = 2
     velocity_step_us: int = 1000
     flow_batch_steps: int = 5
     mask_margin_px: float = 8.0

@@ -1,4 +1,4 @@
-"""Small shared utilities: atomic file writes."""
+"""Small shared utilities: atomic file writes, CPU thread budgets."""
 
 from __future__ import annotations
 
@@ -8,7 +8,10 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_write_text", "atomic_write_bytes"]
+__all__ = [
+    "atomic_path", "atomic_write_text", "atomic_write_bytes", "usable_cpu_count",
+    "threads_per_job",
+]
 
 
 @contextlib.contextmanager
@@ -56,3 +59,29 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def usable_cpu_count() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
+def threads_per_job(requested: int, jobs: int = 1, cores: int | None = None) -> int:
+    """Torch threads for each of ``jobs`` concurrent jobs, so that they do not oversubscribe.
+
+    Args:
+        requested: threads asked for per job (0: as many as the share allows).
+        jobs: jobs running at the same time.
+        cores: cores to share (default: :func:`usable_cpu_count`).
+
+    Returns:
+        ``min(requested, cores // jobs)``, at least 1 (``cores // jobs`` when ``requested``
+        is 0).
+    """
+    if requested < 0 or jobs < 1:
+        raise ValueError(f"need requested >= 0 and jobs >= 1, got {requested} and {jobs}")
+    share = max(1, (usable_cpu_count() if cores is None else cores) // jobs)
+    return share if requested == 0 else min(requested, share)

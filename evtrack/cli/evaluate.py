@@ -70,7 +70,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--video", action="store_true",
                    help="write an overlay video per sequence (full method and ground truth)")
     p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="torch CPU threads per run (default: the config's torch_threads, 1)")
+                   help="torch CPU threads per run (default: the config's torch_threads, 2; with "
+                        "--jobs N, at most each job's share of the cores)")
     p.add_argument("--jobs", type=int, default=1, metavar="N",
                    help="runs tracked in parallel worker processes (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -37,7 +37,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    metavar=("METRES", "RADIANS"),
                    help="oracle noise per axis (default: 0.01 m, 0.03 rad)")
     p.add_argument("--device", default=None, help="torch device (overrides the config's)")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads while tracking (default: the config's torch_threads)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -65,8 +66,6 @@ def _pose_source(args: argparse.Namespace, seq):
 
 
 def run(args: argparse.Namespace) -> int:
-    import torch
-
     from evtrack import Sequence
     from evtrack.eval.metrics import tracking_errors
     from evtrack.tracker import Tracker
@@ -76,10 +75,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {args.out}: use a .csv, .h5 or .hdf5 file")
     seq = Sequence.load(args.sequence)
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
-    changes = {k: v for k, v in (("method", args.method), ("device", args.device)) if v}
+    changes = {k: v for k, v in (("method", args.method), ("device", args.device),
+                                 ("torch_threads", args.threads)) if v}
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
-    if args.threads:
-        torch.set_num_threads(args.threads)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
     traj = tracker.track(seq, progress=not args.quiet)
     traj.save(args.out)

@@ -21,6 +21,7 @@ from evtrack.eval.metrics import TrackingErrors, tracking_errors
 from evtrack.eval.pose_setup import PoseSourceSpec, make_pose_source
 from evtrack.eval.sequences import BenchmarkSequence
 from evtrack.tracking_config import METHODS, TrackerConfig
+from evtrack.utils import threads_per_job
 
 __all__ = ["RunSpec", "RunResult", "ABLATIONS", "DEFAULT_METHODS", "run_specs", "run_one",
            "run_benchmark", "trajectory_path", "pose_warnings"]
@@ -158,13 +159,18 @@ def run_benchmark(sequences: list[BenchmarkSequence], runs: list[RunSpec],
         weights: object -> weights file (:func:`~evtrack.eval.pose_setup.resolve_weights`).
         out_dir: results folder (trajectories go under ``trajectories/``).
         jobs: worker processes (1: in this process).
-        torch_threads: torch CPU threads per run (``None``: the config's ``torch_threads``).
+        torch_threads: torch CPU threads per run (``None``: the config's ``torch_threads``);
+            with several jobs, at most each job's share of the cores
+            (:func:`~evtrack.utils.threads_per_job`), since oversubscribed threads are far slower.
         progress: show a tqdm bar.
     """
     from tqdm import tqdm
 
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
+    if jobs > 1:
+        torch_threads = threads_per_job(
+            base.torch_threads if torch_threads is None else torch_threads, jobs)
     tasks = [(s, r, base, pose, weights.get(s.object_name), Path(out_dir), torch_threads)
              for s in sequences for r in runs]
     bar = tqdm(total=len(tasks), desc="evaluate", unit="run", disable=not progress)
