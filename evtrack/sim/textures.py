@@ -19,6 +19,8 @@ __all__ = [
     "background_texture",
     "checker_texture",
     "hatch",
+    "corner_palette",
+    "corner_coded_panel",
 ]
 
 _LETTERS = "ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789"
@@ -52,16 +54,20 @@ def _contrasting(color: tuple[int, int, int]) -> tuple[int, int, int]:
     return (245, 245, 240) if lum < 128 else (20, 20, 25)
 
 
-def hatch(img: np.ndarray, base: tuple[int, int, int], spacing: int | None = None) -> None:
-    """Draw a fine diagonal hatching in a darker shade of ``base`` over ``img`` (in place).
+def hatch(img: np.ndarray, base: tuple[int, int, int], spacing: int | None = None,
+          darkness: float = 0.7, thickness: int | None = None) -> None:
+    """Draw a fine diagonal hatching in a darker shade of ``base`` (``darkness`` times its
+    value) over ``img`` (in place): lines ``spacing`` pixels apart along a row, ``thickness``
+    pixels thick (default a third of the spacing).
 
     Printed packaging is rarely flat; the hatching gives every area edges, hence events.
     """
     h, w = img.shape[:2]
-    shade = tuple(int(v) for v in np.clip(np.array(base) * 0.7, 0, 255))
+    shade = tuple(int(v) for v in np.clip(np.array(base) * darkness, 0, 255))
     spacing = spacing or max(6, w // 90)
+    thickness = thickness or max(1, spacing // 3)
     for k in range(-h, w + h, spacing):
-        cv2.line(img, (k, 0), (k + h, h), shade, max(1, spacing // 3), cv2.LINE_AA)
+        cv2.line(img, (k, 0), (k + h, h), shade, thickness, cv2.LINE_AA)
 
 
 def _word(rng: np.random.Generator, lo: int, hi: int) -> str:
@@ -131,6 +137,54 @@ def printed_panel(rng: np.random.Generator, width: int, height: int,
         _put_text_fit(img, " ".join(_word(rng, 2, 6) for _ in range(4)), (x0, y, x1, y + line_h),
                       ink, cv2.FONT_HERSHEY_SIMPLEX, 1)
         y += int(line_h * rng.uniform(1.5, 3.0))
+    cv2.rectangle(img, (0, 0), (width - 1, height - 1), ink, max(2, width // 100))
+    return img
+
+
+def corner_palette(rng: np.random.Generator, count: int = 8) -> list[tuple[int, int, int]]:
+    """``count`` vivid sRGB colours, hues evenly spread (45° apart for 8), high saturation and
+    value, in a seeded order from a seeded start: colours that stay apart under lighting,
+    blur, noise and small hue jitter (one per box corner)."""
+    start = int(rng.integers(0, 180))
+    hues = (start + np.arange(count) * 180 // count) % 180
+    colors = []
+    for h in rng.permutation(hues):
+        hsv = np.array([[[h, rng.integers(200, 256), rng.integers(215, 256)]]], dtype=np.uint8)
+        colors.append(tuple(int(v) for v in cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0]))
+    return colors
+
+
+def corner_coded_panel(rng: np.random.Generator, width: int, height: int,
+                       quadrant_colors: tuple) -> np.ndarray:
+    """One face of a corner-coded box: four quadrants, each on the colour of the box corner
+    it touches, with hatching and lines of small dark text (edges for events) and a dark rim.
+
+    Args:
+        rng: random generator (consumed).
+        width, height: image size in pixels.
+        quadrant_colors: sRGB colours of the ``(top-left, top-right, bottom-left,
+            bottom-right)`` quadrants.
+
+    Returns:
+        (height, width, 3) uint8 sRGB.
+    """
+    img = np.empty((height, width, 3), np.uint8)
+    hw, hh = width // 2, height // 2
+    ink = (25, 25, 30)
+    for k, (r0, r1, c0, c1) in enumerate(((0, hh, 0, hw), (0, hh, hw, width),
+                                          (hh, height, 0, hw), (hh, height, hw, width))):
+        quad = img[r0:r1, c0:c1]
+        quad[:] = quadrant_colors[k]
+        hatch(quad, quadrant_colors[k], spacing=14, darkness=0.5, thickness=2)
+        qh, qw = quad.shape[:2]
+        line_h = max(5, qh // 9)
+        y = int(qh * rng.uniform(0.25, 0.4))
+        while y + line_h < qh * 0.8:  # text kept off the corner itself
+            x0 = int(qw * rng.uniform(0.15, 0.3))
+            x1 = int(qw * rng.uniform(0.6, 0.85))
+            _put_text_fit(quad, " ".join(_word(rng, 2, 5) for _ in range(3)),
+                          (x0, y, x1, y + line_h), ink, cv2.FONT_HERSHEY_SIMPLEX, 1)
+            y += int(line_h * rng.uniform(1.6, 2.6))
     cv2.rectangle(img, (0, 0), (width - 1, height - 1), ink, max(2, width // 100))
     return img
 

@@ -17,8 +17,8 @@ from evtrack.sim.objects import (
 )
 
 # YCB extents (sorted, metres) the procedural stand-ins should resemble
-YCB_LIKE = {"box": (0.072, 0.164, 0.213), "can": (0.068, 0.068, 0.102),
-            "bottle": (0.067, 0.097, 0.191)}
+YCB_LIKE = {"box": (0.072, 0.164, 0.213), "coded_box": (0.072, 0.164, 0.213),
+            "can": (0.068, 0.068, 0.102), "bottle": (0.067, 0.097, 0.191)}
 
 
 @pytest.mark.parametrize("kind", PROCEDURAL_OBJECTS)
@@ -30,7 +30,7 @@ def test_procedural_objects(kind: str) -> None:
     assert np.allclose(np.linalg.norm(a.normals, axis=1), 1.0, atol=1e-5)
     # closed surface with normals pointing outwards: positive volume, faces agree with normals
     tm = a.to_trimesh()
-    assert tm.volume > 0.5 * np.prod(a.extents) * (0.5 if kind != "box" else 1.0)
+    assert tm.volume > 0.5 * np.prod(a.extents) * (1.0 if "box" in kind else 0.5)
     ok = np.linalg.norm(tm.face_normals, axis=1) > 0
     centroid_dir = tm.triangles_center[ok]
     assert ((tm.face_normals[ok] * centroid_dir).sum(1) > 0).mean() > 0.95
