@@ -6,7 +6,7 @@ estimator, and the most confident detection is compared with the ground-truth po
 frame's timestamp: median translation and rotation error, ADD and ADD-S pass rates at 10% of
 the object's diameter, and the detection rate.
 
-    python benchmarks/bench_pose_accuracy.py --weights models/weights/box_dope_lite_base.pt
+    python benchmarks/bench_pose_accuracy.py            # the shipped demo weights (coded_box)
     python benchmarks/bench_pose_accuracy.py --weights W.pt --sequence DIR [--sequence DIR ...]
     python benchmarks/bench_pose_accuracy.py --weights W.pt --decode strongest --decode search
 """
@@ -24,7 +24,9 @@ import trimesh
 
 from evtrack import Sequence
 from evtrack.cli import main as evtrack_main
+from evtrack.demo import DEMO_OBJECT
 from evtrack.eval.pose_metrics import pose_accuracy
+from evtrack.eval.pose_setup import find_object_weights
 from evtrack.models import DecodeConfig, TorchPoseEstimator
 
 TARGETS = {"median_translation_cm": 2.0, "median_rotation_deg": 5.0, "add_pass": 0.8}
@@ -64,8 +66,10 @@ def evaluate(seq: Sequence, weights: Path, max_points: int = 2000,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--weights", type=Path, required=True, help="weights file (.pt)")
-    parser.add_argument("--object", default="box", help="object to simulate (default: box)")
+    parser.add_argument("--weights", type=Path, default=None,
+                        help="weights file (.pt; default: the shipped weights for --object)")
+    parser.add_argument("--object", default=DEMO_OBJECT,
+                        help=f"object to simulate (default: the demo's, {DEMO_OBJECT})")
     parser.add_argument("--sequence", type=Path, action="append", default=[],
                         help="evaluate these sequence folders instead of simulating")
     parser.add_argument("--duration", type=float, default=1.0,
@@ -78,6 +82,8 @@ def main() -> None:
                              "strongest peak, the search over corner identities, with or without "
                              "RANSAC PnP (see evtrack.models.decode)")
     args = parser.parse_args()
+    if args.weights is None:
+        args.weights = find_object_weights(args.object)
     decodings = {name: DecodeConfig(correspondence="search" if "search" in name else "strongest",
                                     ransac="ransac" in name)
                  for name in (args.decode or ["strongest"])}

@@ -2,10 +2,11 @@
 
 Steps (each reusing the library):
 
-1. Simulate a short ``faster``-preset sequence of the shipped procedural object ``box`` (texture
-   seed 0, the textures the shipped pose network was trained on) with :mod:`evtrack.sim`.
+1. Simulate a short ``faster``-preset sequence of the shipped procedural object ``coded_box``
+   (a box with colour-coded corners, texture seed 0, the texture the shipped pose network was
+   trained on) with :mod:`evtrack.sim`.
 2. Track it with the methods ``velocity``, ``pose`` and ``full`` (:class:`evtrack.Tracker`),
-   poses at 5 Hz from the shipped pose-network weights for ``box`` (or ``--oracle``).
+   poses at 5 Hz from the shipped pose-network weights for ``coded_box`` (or ``--oracle``).
 3. Write the tables, trajectories, plots and an overlay video (:mod:`evtrack.eval.report`)
    and print the RMSE of each method against the ground truth.
 
@@ -32,8 +33,10 @@ from evtrack.tracking_config import TrackerConfig
 __all__ = ["DemoOptions", "DemoResult", "run_demo", "demo_weights", "demo_tracker_config",
            "DEMO_OBJECT", "DEMO_METHODS", "summary_table"]
 
-DEMO_OBJECT = "box"
-"""The shipped procedural object the demo tracks."""
+DEMO_OBJECT = "coded_box"
+"""The shipped procedural object the demo tracks (:func:`evtrack.sim.objects.make_coded_box`)."""
+DEMO_TRAINING_CONFIG = "configs/pose_demo_coded_box.yaml"
+"""The config that trains the shipped weights for it."""
 DEMO_OBJECT_SEED = 0
 """Its texture seed: the one the shipped weights were trained on."""
 DEMO_PRESET = "faster"
@@ -53,7 +56,7 @@ class DemoOptions:
         out: output folder.
         duration: simulated seconds.
         size: ``(width, height)`` of the simulated cameras, pixels.
-        weights: pose-network weights for ``box`` (default: the shipped ones).
+        weights: pose-network weights for ``coded_box`` (default: the shipped ones).
         oracle: use ground-truth poses with noise (1 cm, 0.03 rad) instead of a network.
         seed: seed of the trajectory, the scene, the sensor noise and the oracle.
         overwrite: replace the outputs of an earlier demo in ``out``.
@@ -97,7 +100,7 @@ class DemoResult:
 
 
 def demo_weights(weights: Path | None = None) -> Path:
-    """The pose-network weights for ``box``: ``weights`` checked, or the shipped ones.
+    """The pose-network weights for the demo object: ``weights`` checked, or the shipped ones.
 
     Raises:
         ConfigError: none shipped (saying how to make them or to use ``--oracle``), or a file
@@ -116,10 +119,10 @@ def demo_weights(weights: Path | None = None) -> Path:
     except ConfigError:
         raise ConfigError(
             f"no shipped pose-network weights for the demo object {DEMO_OBJECT!r} in "
-            f"{zoo_dir()}. Train them with 'evtrack train --config configs/pose_demo_box.yaml' "
-            "and pass the result with --weights runs/pose/box_dope_lite_base/"
-            "box_dope_lite_base.pt (or copy it into that folder), or run 'evtrack demo "
-            "--oracle' to use ground-truth poses with noise instead of a network") from None
+            f"{zoo_dir()}. Train them with 'evtrack train --config {DEMO_TRAINING_CONFIG}' "
+            f"and pass the result with --weights runs/pose/{DEMO_OBJECT}_dope_lite_small/"
+            f"{DEMO_OBJECT}_dope_lite_small.pt (or copy it into that folder), or run 'evtrack "
+            "demo --oracle' to use ground-truth poses with noise instead of a network") from None
 
 
 def demo_tracker_config(width: int) -> TrackerConfig:

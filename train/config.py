@@ -221,12 +221,17 @@ class ModelConfig:
         name: registered model (``evtrack.models.list_models()``).
         kwargs: hyper-parameter overrides for its entry point.
         mean, std: input normalisation of RGB in [0, 1] (stored in the weights record).
+        init_weights: start from these weights (a weights file or an ``evtrack train``
+            checkpoint of the same architecture and object) instead of a random
+            initialisation: fine-tuning, or more epochs with a fresh schedule. Unlike
+            ``--resume``, the optimiser, schedule and epoch count start afresh.
     """
 
     name: str = "dope_lite_base"
     kwargs: dict[str, Any] = field(default_factory=dict)
     mean: tuple[float, float, float] = IMAGENET_MEAN
     std: tuple[float, float, float] = IMAGENET_STD
+    init_weights: str | None = None
 
 
 @dataclass(frozen=True)

@@ -17,12 +17,18 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import lightning as L
+import numpy as np
 import torch
 import yaml
 
 from evtrack.errors import ConfigError
 from evtrack.models.factory import create
-from evtrack.models.weights import WeightsRecord, load_weights_file, write_model_card
+from evtrack.models.weights import (
+    WeightsError,
+    WeightsRecord,
+    load_weights_file,
+    write_model_card,
+)
 from evtrack.train.config import TrainConfig
 from evtrack.train.data import PoseDataModule
 from evtrack.train.module import PoseLightningModule
@@ -47,7 +53,10 @@ class TrainResult:
 def build_module(config: TrainConfig) -> tuple[PoseLightningModule, PoseDataModule]:
     """The Lightning module (fresh network) and data module a config describes."""
     cuboid = config.object.cuboid()
-    net = create(config.model.name, **config.model.kwargs)
+    if config.model.init_weights is not None:
+        net = _initial_network(config)
+    else:
+        net = create(config.model.name, **config.model.kwargs)
     record = WeightsRecord(
         arch=config.model.name, arch_kwargs=dict(config.model.kwargs),
         object_name=config.object.name, cuboid=cuboid, input_size=tuple(config.data.image_size),
@@ -62,6 +71,23 @@ def build_module(config: TrainConfig) -> tuple[PoseLightningModule, PoseDataModu
     data = PoseDataModule(config.data, config.object.name, cuboid, config.object.mesh,
                           config.model.mean, config.model.std)
     return module, data
+
+
+def _initial_network(config: TrainConfig):
+    """The network loaded from ``model.init_weights``, checked against the config, in train
+    mode (:func:`evtrack.models.create` refuses another architecture, object or
+    hyper-parameters; the record's input normalisation must match too)."""
+    path = Path(config.model.init_weights)
+    if not path.is_file():
+        raise ConfigError(f"model.init_weights: {path} not found")
+    net = create(config.model.name, weights=path, object_name=config.object.name,
+                 **config.model.kwargs)
+    record, _ = load_weights_file(path)
+    if (not np.allclose(record.mean, config.model.mean)
+            or not np.allclose(record.std, config.model.std)):
+        raise WeightsError(path, f"was trained with input mean/std {record.mean}/{record.std}, "
+                                 f"the config has {config.model.mean}/{config.model.std}")
+    return net.train()
 
 
 def resolve_resume(resume: str | None, run_dir: Path) -> str | None:

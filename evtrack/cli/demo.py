@@ -11,13 +11,14 @@ __all__ = ["register", "run"]
 
 DESCRIPTION = """\
 The quickest look at evtrack, with nothing to download: simulates a short sequence of the
-shipped procedural object 'box' moving fast (events, 60 FPS motion-blurred RGB-D and ground
-truth), tracks it with three methods -- 'velocity' (event optical flow only), 'pose' (the pose
-network at 5 Hz only) and 'full' (both, the paper's method) -- prints each one's RMSE against
-the ground truth, and writes the trajectories, tables, plots and an overlay video into --out.
-The pose network is the shipped one for 'box' (models/weights), or --weights, or --oracle
-(ground-truth poses with noise: a test of the tracker, not of a network). A few minutes on 2
-CPU cores with the defaults.
+shipped procedural object 'coded_box' (a box whose corners are colour-coded) moving fast
+(events, 60 FPS motion-blurred RGB-D and ground truth), tracks it with three methods --
+'velocity' (event optical flow only), 'pose' (the pose network at 5 Hz only) and 'full' (both,
+the paper's method) -- prints each one's RMSE against the ground truth, and writes the
+trajectories, tables, plots and an overlay video into --out. The pose network is the shipped
+one for 'coded_box' (models/weights), or --weights, or --oracle (ground-truth poses with
+noise: a test of the tracker, not of a network). A few minutes on 2 CPU cores with the
+defaults.
 """
 
 
@@ -44,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"camera size in pixels (default: {d.size[0]}x{d.size[1]})")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--weights", type=Path, default=None,
-                     help="pose-network weights for 'box' (default: the shipped ones)")
+                     help="pose-network weights for 'coded_box' (default: the shipped ones)")
     src.add_argument("--oracle", action="store_true",
                      help="ground-truth poses with noise instead of the pose network")
     p.add_argument("--seed", type=int, default=d.seed,

@@ -72,8 +72,8 @@ def training_hint(object_name: str) -> str:
 
     if object_name in YCB_OBJECTS:
         return f"evtrack train --config configs/pose_ycb_{object_name}.yaml"
-    if object_name == "box":
-        return "evtrack train --config configs/pose_demo_box.yaml"
+    if object_name in ("box", "coded_box"):
+        return f"evtrack train --config configs/pose_demo_{object_name}.yaml"
     if object_name in PROCEDURAL_OBJECTS:
         return (f"evtrack train --config configs/pose_demo_box.yaml "
                 f"--set object.name={object_name}")

@@ -504,8 +504,8 @@ def resolve_object(spec: str, *, seed: int = 0, ycb_dir: str | Path | None = Non
     """An object by name or path.
 
     Args:
-        spec: a procedural name (``box``, ``coded_box``, ``can``, ``bottle``), a YCB name (``003_cracker_box``
-            or ``cracker_box``), or a mesh file path.
+        spec: a procedural name (``box``, ``coded_box``, ``can``, ``bottle``), a YCB name
+            (``003_cracker_box`` or ``cracker_box``), or a mesh file path.
         seed: texture seed of procedural objects.
         ycb_dir: folder of the YCB meshes (see :func:`find_ycb_dir`).
 

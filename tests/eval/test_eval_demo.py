@@ -23,18 +23,18 @@ def test_demo_with_the_oracle(tmp_path, capsys):
     assert main(["demo", "--out", str(out), "--oracle", *TINY]) == 0
     printed = capsys.readouterr().out
     for text in ("velocity (events only)", "pose (5 Hz poses only)", "full (events + poses)",
-                 "ORACLE", "position (cm)", str(out / "videos" / "box_faster.mp4")):
+                 "ORACLE", "position (cm)", str(out / "videos" / "coded_box_faster.mp4")):
         assert text in printed
-    seq = Sequence.load(out / "box_faster")
-    assert seq.meta.object_name == "box" and seq.meta.event_camera.size == (64, 48)
+    seq = Sequence.load(out / "coded_box_faster")
+    assert seq.meta.object_name == "coded_box" and seq.meta.event_camera.size == (64, 48)
     assert seq.meta.extra["config"]["trajectory"]["preset"] == "faster"
-    assert seq.meta.extra["object"]["source"] == "procedural:box:seed=0"
-    assert iio.imread(out / "videos" / "box_faster.mp4").shape[0] == seq.num_rgb
+    assert seq.meta.extra["object"]["source"] == "procedural:coded_box:seed=0"
+    assert iio.imread(out / "videos" / "coded_box_faster.mp4").shape[0] == seq.num_rgb
     rows = [r for r in csv.DictReader((out / "results.csv").open()) if r["table"] == "sequence"]
     assert [r["run"] for r in rows] == ["velocity", "pose", "full"]
     for r in rows:  # the table printed holds the CSV's numbers
         assert f"{float(r['position_rmse_cm']):.2f} ± {float(r['position_std_cm']):.2f}" in printed
-    for name in ("box_faster_tracking.png", "error_vs_pixel_velocity.png",
+    for name in ("coded_box_faster_tracking.png", "error_vs_pixel_velocity.png",
                  "pixel_velocity_cdf.png"):
         assert (out / "plots" / name).stat().st_size > 5000
     # a second run refuses to mix its outputs with the first's, unless told to replace them
@@ -47,15 +47,15 @@ def test_demo_without_weights_says_what_to_do(tmp_path, monkeypatch, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), *TINY]) == 1
     err = capsys.readouterr().err
-    assert "no shipped pose-network weights for the demo object 'box'" in err
-    assert "evtrack train --config configs/pose_demo_box.yaml" in err and "--oracle" in err
+    assert "no shipped pose-network weights for the demo object 'coded_box'" in err
+    assert "evtrack train --config configs/pose_demo_coded_box.yaml" in err and "--oracle" in err
     assert not out.exists()  # stopped before simulating
 
 
 def test_demo_weights_lookup(tmp_path, monkeypatch):
     zoo = tmp_path / "zoo"
     save_tiny_weights(zoo / "can_dope_lite_tiny.pt", object_name="can")
-    box = save_tiny_weights(zoo / "box_dope_lite_tiny.pt")
+    box = save_tiny_weights(zoo / "coded_box_dope_lite_tiny.pt", object_name="coded_box")
     monkeypatch.setattr(weights_module, "zoo_dir", lambda: zoo)
     assert demo_weights() == box
     assert demo_weights(box) == box

@@ -232,6 +232,34 @@ def test_resume_continues_from_the_last_checkpoint(trained_run):
         run_training(more, resume=str(cfg.output_dir) + "/missing.ckpt", verbose=False)
 
 
+def test_init_weights_starts_from_trained_weights_with_a_fresh_schedule(trained_run, tmp_path):
+    cfg, first = trained_run
+    base = {**cfg.to_dict(), "output_dir": str(tmp_path), "run_name": "fine"}
+    tuned = TrainConfig.from_dict({**base, "model": {**base["model"],
+                                                     "init_weights": str(first.weights)},
+                                   "trainer": {**cfg.trainer, "max_epochs": 1}})
+    from evtrack.train.fit import build_module
+
+    module, _ = build_module(tuned)
+    start, _ = load_model(first.weights)
+    torch.testing.assert_close(module.net.state_dict(), start.state_dict())  # not random
+    assert module.net.training
+    result = run_training(tuned, verbose=False)
+    record = load_model(result.weights)[1]
+    assert record.training["epochs"] == 1 and record.training["steps"] == 3  # a fresh count
+    # weights of another object, a missing file, another input normalisation: refused
+    for change, error, text in (
+        ({"object": {**base["object"], "name": "mug"}}, WeightsError, "not 'mug'"),
+        ({"model": {**base["model"], "init_weights": str(tmp_path / "no.pt")}}, ConfigError,
+         "not found"),
+        ({"model": {**base["model"], "init_weights": str(first.weights),
+                    "mean": [0.5, 0.5, 0.5]}}, WeightsError, "mean/std"),
+    ):
+        bad = {**base, "model": {**base["model"], "init_weights": str(first.weights)}, **change}
+        with pytest.raises(error, match=text):
+            build_module(TrainConfig.from_dict(bad))
+
+
 def test_train_and_export_commands(trained_run, tmp_path, capsys):
     cfg, result = trained_run
     config_file = result.run_dir / "config.yaml"
