@@ -9,6 +9,8 @@ Example::
         det.pose, det.confidence, det.keypoints                    # (4,4) object->camera, ...
     export_onnx(net, "pose.onnx")
     onnx_estimator = OnnxPoseEstimator("pose.onnx", camera)        # same interface
+    refiner = DepthRefiner.from_mesh("object.glb")                  # RGB-D: ICP on the depth
+    poses = refiner.refine_detections(estimator(rgb), depth, camera.K())
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from evtrack.models.decode import (
     extract_instances,
     solve_pose,
 )
+from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner, RefineResult
 from evtrack.models.dope_lite import DopeLite, DopeLiteConfig
 from evtrack.models.estimator import PoseEstimator, TorchPoseEstimator, preprocess
 from evtrack.models.factory import create, load_model
@@ -47,6 +50,8 @@ __all__ = [
     "NUM_KEYPOINTS",
     "Cuboid",
     "DecodeConfig",
+    "DepthRefineConfig",
+    "DepthRefiner",
     "DopeLite",
     "DopeLiteConfig",
     "ExportError",
@@ -54,6 +59,7 @@ __all__ = [
     "OnnxPoseEstimator",
     "PoseDetection",
     "PoseEstimator",
+    "RefineResult",
     "TorchPoseEstimator",
     "WeightsError",
     "WeightsRecord",
