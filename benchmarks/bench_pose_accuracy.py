@@ -9,6 +9,11 @@ the object's diameter, and the detection rate.
     python benchmarks/bench_pose_accuracy.py            # the shipped demo weights (coded_box)
     python benchmarks/bench_pose_accuracy.py --weights W.pt --sequence DIR [--sequence DIR ...]
     python benchmarks/bench_pose_accuracy.py --weights W.pt --decode strongest --decode search
+    python benchmarks/bench_pose_accuracy.py --depth-refine   # also each decoding + depth ICP
+
+With ``--depth-refine`` every decoding gets a second row, ``<decoding>+depth``: the same
+detections refined on the sequence's depth frames (:class:`evtrack.models.DepthRefiner`, ICP
+with the object's mesh), as an RGB-D user would run it; the network alone is the first row.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from evtrack.cli import main as evtrack_main
 from evtrack.demo import DEMO_OBJECT
 from evtrack.eval.pose_metrics import pose_accuracy
 from evtrack.eval.pose_setup import find_object_weights
-from evtrack.models import DecodeConfig, TorchPoseEstimator
+from evtrack.models import DecodeConfig, DepthRefiner, TorchPoseEstimator
 
 TARGETS = {"median_translation_cm": 2.0, "median_rotation_deg": 5.0, "add_pass": 0.8}
 
@@ -42,9 +47,11 @@ def simulate(out: Path, obj: str, preset: str, seed: int, duration: float) -> Pa
 
 
 def evaluate(seq: Sequence, weights: Path, max_points: int = 2000,
-             decode: DecodeConfig | None = None) -> tuple[dict, float]:
+             decode: DecodeConfig | None = None, refine: bool = False) -> tuple[dict, float]:
     camera = seq.meta.rgb_camera or seq.meta.event_camera
     est = TorchPoseEstimator.from_weights(weights, camera, decode=decode)
+    refiner = DepthRefiner.from_mesh(seq.mesh_file) if refine else None
+    K = camera.K().numpy()
     mesh = trimesh.load(seq.mesh_file, force="mesh")
     pts = np.asarray(mesh.vertices, np.float64)
     if len(pts) > max_points:
@@ -58,7 +65,10 @@ def evaluate(seq: Sequence, weights: Path, max_points: int = 2000,
         # ground truth is object -> event camera; the estimator sees the RGB camera
         truths.append(np.linalg.inv(T_event_rgb) @ truth)
         best = max(dets, key=lambda d: d.confidence) if dets else None
-        estimates.append(None if best is None else best.pose.numpy())
+        pose = None if best is None else best.pose.numpy()
+        if pose is not None and refiner is not None:
+            pose = refiner.refine(pose, seq.depth(i), K).pose
+        estimates.append(pose)
     per_frame_ms = (time.perf_counter() - t0) / max(seq.num_rgb, 1) * 1000
     return pose_accuracy(estimates, truths, pts).as_dict(), per_frame_ms
 
@@ -76,6 +86,8 @@ def main() -> None:
                         help="seconds per simulated sequence (60 frames per second)")
     parser.add_argument("--seed", type=int, default=1000, help="first simulation seed")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
+    parser.add_argument("--depth-refine", action="store_true",
+                        help="also each decoding refined on the depth frames (ICP)")
     parser.add_argument("--decode", action="append", default=[],
                         choices=["strongest", "search", "ransac", "search+ransac"],
                         help="decoding to evaluate (repeatable; default: strongest): each corner's "
@@ -100,8 +112,10 @@ def main() -> None:
             preset = (seq.meta.extra.get("config", {}).get("trajectory", {}).get("preset", "?")
                       if isinstance(seq.meta.extra, dict) else "?")
             for label, decode in decodings.items():
-                acc, ms = evaluate(seq, args.weights, decode=decode)
-                rows.append((folder.name, preset, label, acc, ms))
+                for refine in (False, True) if args.depth_refine else (False,):
+                    acc, ms = evaluate(seq, args.weights, decode=decode, refine=refine)
+                    rows.append((folder.name, preset, label + ("+depth" if refine else ""),
+                                 acc, ms))
 
     print(f"weights: {args.weights}  threads: {args.threads}")
     header = (f"{'sequence':<28} {'preset':<8} {'decode':<14} {'frames':>6} {'det.rate':>8} "

@@ -58,6 +58,7 @@ class DemoOptions:
         size: ``(width, height)`` of the simulated cameras, pixels.
         weights: pose-network weights for ``coded_box`` (default: the shipped ones).
         oracle: use ground-truth poses with noise (1 cm, 0.03 rad) instead of a network.
+        depth_refine: refine the network's poses on the depth frames (ICP with the mesh).
         seed: seed of the trajectory, the scene, the sensor noise and the oracle.
         overwrite: replace the outputs of an earlier demo in ``out``.
         jobs: worker processes tracking the methods in parallel.
@@ -69,6 +70,7 @@ class DemoOptions:
     size: tuple[int, int] = (320, 240)
     weights: Path | None = None
     oracle: bool = False
+    depth_refine: bool = False
     seed: int = 0
     overwrite: bool = False
     jobs: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
@@ -84,6 +86,8 @@ class DemoOptions:
             raise ConfigError(f"--size must be at least 32x24, got {w}x{h}")
         if self.oracle and self.weights is not None:
             raise ConfigError("give either --weights or --oracle, not both")
+        if self.oracle and self.depth_refine:
+            raise ConfigError("--depth-refine refines a pose network's poses; not with --oracle")
         if self.jobs < 1:
             raise ConfigError(f"--jobs must be >= 1, got {self.jobs}")
 
@@ -174,7 +178,8 @@ def run_demo(opts: DemoOptions, log=print) -> DemoResult:
         spec, weights = PoseSourceSpec("oracle", seed=opts.seed), None
     else:
         weights = demo_weights(opts.weights)
-        spec = PoseSourceSpec("network", weights=weights, seed=opts.seed)
+        spec = PoseSourceSpec("network", weights=weights, seed=opts.seed,
+                              depth_refine=opts.depth_refine)
     w, h = opts.size
     seq_dir = opts.out / f"{DEMO_OBJECT}_{DEMO_PRESET}"
     seconds: dict[str, float] = {}

@@ -6,8 +6,9 @@ event camera frame::
     measurement = source(t_us, rgb, depth)      # PoseMeasurement | None
 
 * :class:`NetworkPoseSource` wraps a pose network estimator (:mod:`evtrack.models`:
-  ``TorchPoseEstimator``, ``OnnxPoseEstimator``): the most confident detection, carried from
-  the RGB camera into the event camera with ``T_event_rgb``.
+  ``TorchPoseEstimator``, ``OnnxPoseEstimator``): the most confident detection, refined on
+  the frame's depth when given a :class:`~evtrack.models.DepthRefiner`, carried from the RGB
+  camera into the event camera with ``T_event_rgb``.
 * :class:`OraclePoseSource` is **not an estimator**: it returns the ground-truth pose of a
   simulated sequence with synthetic noise, outliers and dropouts. It exists to test the tracker
   and to measure the filtering side independently of any network; results obtained with it say
@@ -25,6 +26,7 @@ import torch
 from scipy.spatial.transform import Rotation
 from torch import Tensor
 
+from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 
 __all__ = [
@@ -93,7 +95,12 @@ class PoseMeasurement:
 
 @runtime_checkable
 class PoseSource(Protocol):
-    """Anything callable as ``source(t_us, rgb, depth) -> PoseMeasurement | None``."""
+    """Anything callable as ``source(t_us, rgb, depth) -> PoseMeasurement | None``.
+
+    The tracker passes the frame's depth map (metres, registered to ``rgb``) only to sources
+    whose ``uses_depth`` attribute is true (it then loads the depth frames for them), and
+    ``None`` otherwise.
+    """
 
     def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None
                  ) -> PoseMeasurement | None: ...
@@ -108,6 +115,12 @@ class NetworkPoseSource:
         T_event_rgb: (4, 4) maps RGB-camera points into the event camera (identity default).
         min_confidence: detections below it are ignored.
         cov: (6, 6) measurement covariance handed to the filter, or ``None`` for its default.
+        refiner: a :class:`~evtrack.models.DepthRefiner`: when a frame comes with a depth map
+            (registered to the RGB image), the detection's pose is refined on it first; a pose
+            the depth cannot refine is used as the network gave it (counted in
+            :attr:`refine_refused`).
+        camera: the RGB camera (intrinsics, distortion) for the refiner; default: the
+            estimator's ``camera``.
 
     A detection whose pose is not a finite rigid transform (see :class:`PoseMeasurement`)
     gives no measurement (the tracker counts the call as a miss) and is counted in
@@ -116,7 +129,7 @@ class NetworkPoseSource:
 
     def __init__(self, estimator: Callable[[np.ndarray], Sequence],
                  T_event_rgb: Tensor | None = None, min_confidence: float = 0.0,
-                 cov: Tensor | None = None) -> None:
+                 cov: Tensor | None = None, refiner=None, camera=None) -> None:
         self.estimator = estimator
         self.T_event_rgb = (torch.eye(4, dtype=torch.float64) if T_event_rgb is None
                             else torch.as_tensor(T_event_rgb, dtype=torch.float64))
@@ -124,7 +137,30 @@ class NetworkPoseSource:
             raise ConfigError(f"T_event_rgb must be (4, 4), got {tuple(self.T_event_rgb.shape)}")
         self.min_confidence = float(min_confidence)
         self.cov = cov
+        self.refiner = refiner
+        self.camera = camera if camera is not None else getattr(estimator, "camera", None)
+        if refiner is not None and self.camera is None:
+            raise ConfigError("a depth refiner needs the RGB camera: pass camera=...")
         self.invalid = 0
+        self.refined = 0
+        self.refine_refused = 0
+
+    @property
+    def uses_depth(self) -> bool:
+        """Whether the source reads the depth frames (the tracker loads them for it)."""
+        return self.refiner is not None
+
+    def _refine(self, pose: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        cam = self.camera
+        if isinstance(cam, PinholeCamera):
+            K = cam.K().numpy()
+            dist = None if cam.dist is None else cam.dist.numpy()
+        else:
+            K, dist = np.asarray(cam, np.float64), None
+        res = self.refiner.refine(pose, np.asarray(depth), K, dist)
+        self.refined += int(res.refined)
+        self.refine_refused += int(not res.refined)
+        return res.pose
 
     def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None = None
                  ) -> PoseMeasurement | None:
@@ -132,10 +168,12 @@ class NetworkPoseSource:
         if not detections:
             return None
         best = max(detections, key=lambda d: d.confidence)
-        pose = torch.as_tensor(np.asarray(best.pose), dtype=torch.float64)
+        pose = np.asarray(best.pose, np.float64)
+        if self.refiner is not None and depth is not None and np.isfinite(pose).all():
+            pose = self._refine(pose, depth)
         try:
-            return PoseMeasurement(t_us, self.T_event_rgb @ pose, self.cov,
-                                   float(best.confidence))
+            return PoseMeasurement(t_us, self.T_event_rgb @ torch.as_tensor(pose),
+                                   self.cov, float(best.confidence))
         except ValueError:
             self.invalid += 1
             return None

@@ -472,9 +472,15 @@ class Tracker:
             with _Timer(self.stats.time_s, "frames"):
                 self._process_frame(t_us, rgb, depth)
 
+    @property
+    def _source_uses_depth(self) -> bool:
+        return bool(getattr(self.pose_source, "uses_depth", False))
+
     def _process_frame(self, t_us: int, rgb: FrameInput, depth: FrameInput) -> None:
+        depth_map: np.ndarray | None = None
         if depth is not None and isinstance(self.depth, SensorDepth):
-            self.depth.set_frame(t_us, depth() if callable(depth) else depth)
+            depth_map = depth() if callable(depth) else depth
+            self.depth.set_frame(t_us, depth_map)
         if rgb is None:
             return
         get_rgb = rgb if callable(rgb) else (lambda: rgb)
@@ -488,8 +494,11 @@ class Tracker:
         if self._wants_pose(t_us):
             self.stats.pose_calls += 1
             image = image if image is not None else get_rgb()
+            if depth_map is None and depth is not None and self._source_uses_depth:
+                depth_map = depth() if callable(depth) else depth
             with _Timer(self.stats.time_s, "pose_source"):
-                m = self.pose_source(t_us, image, None)
+                m = self.pose_source(t_us, image,
+                                     depth_map if self._source_uses_depth else None)
             available = t_us + self.config.pose_latency_us
             if m is not None and m.confidence >= self.config.pose_min_confidence:
                 self.push_pose(m, available_us=available)

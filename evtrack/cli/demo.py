@@ -48,6 +48,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="pose-network weights for 'coded_box' (default: the shipped ones)")
     src.add_argument("--oracle", action="store_true",
                      help="ground-truth poses with noise instead of the pose network")
+    p.add_argument("--depth-refine", action="store_true",
+                   help="refine the network's poses on the depth frames (ICP with the mesh) "
+                        "before tracking; the paper's estimator is RGB only")
     p.add_argument("--seed", type=int, default=d.seed,
                    help="seed of the motion, scene, sensor noise and oracle (default: 0)")
     p.add_argument("--overwrite", action="store_true",
@@ -66,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--weights {args.weights}: file not found")
     opts = DemoOptions(out=args.out, duration=args.duration, size=args.size,
                        weights=args.weights, oracle=args.oracle, seed=args.seed,
+                       depth_refine=args.depth_refine,
                        overwrite=args.overwrite, jobs=args.jobs, progress=not args.quiet)
     res = run_demo(opts)
     out = opts.out

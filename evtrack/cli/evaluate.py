@@ -64,6 +64,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    metavar=("METRES", "RADIANS"),
                    help="oracle noise per axis (default: 0.01 m, 0.03 rad)")
     p.add_argument("--seed", type=int, default=0, help="seed of the oracle's noise (default 0)")
+    p.add_argument("--depth-refine", action="store_true",
+                   help="refine each network pose on the RGB-D depth frame (ICP with the "
+                        "object's mesh) before the tracker uses it; the paper's estimator "
+                        "is RGB only")
     p.add_argument("--config", type=Path, default=None,
                    help="tracker config YAML every run starts from (default: "
                         "configs/tracker.yaml's defaults); the runs set 'method' themselves")
@@ -84,13 +88,16 @@ def pose_spec(args: argparse.Namespace):
 
     if args.oracle_noise is not None and not args.oracle:
         raise ConfigError("--oracle-noise needs --oracle")
+    if args.oracle and getattr(args, "depth_refine", False):
+        raise ConfigError("--depth-refine refines a pose network's poses; not with --oracle")
     if args.oracle:
         noise = args.oracle_noise or (0.01, 0.03)
         return PoseSourceSpec("oracle", oracle_std_translation=noise[0],
                               oracle_std_rotation=noise[1], seed=args.seed)
     if args.weights_dir is not None and not args.weights_dir.is_dir():
         raise ConfigError(f"--weights-dir {args.weights_dir}: folder not found")
-    return PoseSourceSpec("network", weights_dir=args.weights_dir, seed=args.seed)
+    return PoseSourceSpec("network", weights_dir=args.weights_dir, seed=args.seed,
+                          depth_refine=getattr(args, "depth_refine", False))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -36,6 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--oracle-noise", type=float, nargs=2, default=(0.01, 0.03),
                    metavar=("METRES", "RADIANS"),
                    help="oracle noise per axis (default: 0.01 m, 0.03 rad)")
+    p.add_argument("--depth-refine", action="store_true",
+                   help="refine each network pose on the sequence's depth frames (ICP with the "
+                        "object's mesh)")
     p.add_argument("--device", default=None, help="torch device (overrides the config's)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads while tracking (default: the config's torch_threads)")
@@ -48,6 +51,8 @@ def _pose_source(args: argparse.Namespace, seq):
 
     if args.oracle and args.weights is not None:
         raise ConfigError("give either --weights or --oracle, not both")
+    if args.oracle and args.depth_refine:
+        raise ConfigError("--depth-refine refines a pose network's poses; not with --oracle")
     if args.oracle:
         return OraclePoseSource.from_sequence(seq, std_translation=args.oracle_noise[0],
                                               std_rotation=args.oracle_noise[1])
@@ -62,7 +67,12 @@ def _pose_source(args: argparse.Namespace, seq):
         from evtrack.models import TorchPoseEstimator
 
         est = TorchPoseEstimator.from_weights(args.weights, cam)
-    return NetworkPoseSource(est, seq.meta.T_event_rgb)
+    refiner = None
+    if args.depth_refine:
+        from evtrack.models import DepthRefiner
+
+        refiner = DepthRefiner.from_mesh(seq.mesh_file)
+    return NetworkPoseSource(est, seq.meta.T_event_rgb, refiner=refiner, camera=cam)
 
 
 def run(args: argparse.Namespace) -> int:

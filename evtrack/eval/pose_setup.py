@@ -35,6 +35,9 @@ class PoseSourceSpec:
         oracle_std_translation: oracle noise per axis, metres.
         oracle_std_rotation: oracle noise per axis (rotation vector), radians.
         seed: seed of the oracle's draws (the network is deterministic).
+        depth_refine: refine the network's poses on the RGB-D depth frames
+            (:class:`~evtrack.models.DepthRefiner` with the sequence's mesh); the paper's
+            pose estimator uses RGB only.
     """
 
     kind: str = "network"
@@ -43,8 +46,11 @@ class PoseSourceSpec:
     oracle_std_translation: float = 0.01
     oracle_std_rotation: float = 0.03
     seed: int = 0
+    depth_refine: bool = False
 
     def __post_init__(self) -> None:
+        if self.depth_refine and self.kind != "network":
+            raise ConfigError("depth refinement applies to a pose network, not the oracle")
         if self.kind not in ("network", "oracle"):
             raise ConfigError(f"pose source kind must be 'network' or 'oracle', got {self.kind!r}")
         for name in ("oracle_std_translation", "oracle_std_rotation"):
@@ -60,10 +66,11 @@ class PoseSourceSpec:
             return (f"ORACLE (ground-truth poses + Gaussian noise {cm:g} cm, "
                     f"{math.degrees(self.oracle_std_rotation):.3g} deg per axis, seed "
                     f"{self.seed}): measures the tracker's filters, not a pose network")
+        refine = " + depth refinement (ICP on the RGB-D depth)" if self.depth_refine else ""
         if self.weights is not None:
-            return f"pose network {self.weights}"
+            return f"pose network {self.weights}{refine}"
         where = self.weights_dir if self.weights_dir is not None else "the shipped zoo"
-        return f"pose network (weights per object from {where})"
+        return f"pose network (weights per object from {where}){refine}"
 
 
 def training_hint(object_name: str) -> str:
@@ -148,4 +155,9 @@ def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
     scale = record.input_size[1] / cam.width
     est = TorchPoseEstimator.from_weights(weights, cam, object_name=sequence.meta.object_name,
                                           input_scale=scale)
-    return NetworkPoseSource(est, sequence.meta.T_event_rgb)
+    refiner = None
+    if spec.depth_refine:
+        from evtrack.models import DepthRefiner
+
+        refiner = DepthRefiner.from_mesh(sequence.mesh_file)
+    return NetworkPoseSource(est, sequence.meta.T_event_rgb, refiner=refiner, camera=cam)
