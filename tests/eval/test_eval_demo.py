@@ -28,6 +28,7 @@ def test_demo_with_the_oracle(tmp_path, capsys):
     seq = Sequence.load(out / "coded_box_faster")
     assert seq.meta.object_name == "coded_box" and seq.meta.event_camera.size == (64, 48)
     assert seq.meta.extra["config"]["trajectory"]["preset"] == "faster"
+    assert seq.meta.rates["render_hz"] == 4000.0  # event timing within 0.25 ms
     assert seq.meta.extra["object"]["source"] == "procedural:coded_box:seed=0"
     assert iio.imread(out / "videos" / "coded_box_faster.mp4").shape[0] == seq.num_rgb
     rows = [r for r in csv.DictReader((out / "results.csv").open()) if r["table"] == "sequence"]
