@@ -1,10 +1,12 @@
 """Pose-network accuracy on held-out synthetic frames (motion-blurred 60 FPS RGB).
 
-For each preset (regular, faster) a sequence of the object is simulated with a seed the
-training renders never used (or given with --sequence), every RGB frame goes through the
-estimator, and the most confident detection is compared with the ground-truth pose at the
+For each preset (regular, faster) ``--per-preset`` sequences of the object are simulated with
+seeds the training renders never used (or given with --sequence), every RGB frame goes through
+the estimator, and the most confident detection is compared with the ground-truth pose at the
 frame's timestamp: median translation and rotation error, ADD and ADD-S pass rates at 10% of
-the object's diameter, and the detection rate.
+the object's diameter, and the detection rate. One row per sequence, then one per preset over
+all its frames pooled (``all <preset>``): single sequences differ a lot (a pose the network
+finds hard can fill a whole second), so the targets are checked on the pooled rows.
 
     python benchmarks/bench_pose_accuracy.py            # the shipped demo weights (coded_box)
     python benchmarks/bench_pose_accuracy.py --weights W.pt --sequence DIR [--sequence DIR ...]
@@ -47,7 +49,9 @@ def simulate(out: Path, obj: str, preset: str, seed: int, duration: float) -> Pa
 
 
 def evaluate(seq: Sequence, weights: Path, max_points: int = 2000,
-             decode: DecodeConfig | None = None, refine: bool = False) -> tuple[dict, float]:
+             decode: DecodeConfig | None = None, refine: bool = False
+             ) -> tuple[list, list, np.ndarray, float]:
+    """Estimates (4x4 or None), true poses (4x4, RGB camera), mesh points and ms per frame."""
     camera = seq.meta.rgb_camera or seq.meta.event_camera
     est = TorchPoseEstimator.from_weights(weights, camera, decode=decode)
     refiner = DepthRefiner.from_mesh(seq.mesh_file) if refine else None
@@ -70,7 +74,7 @@ def evaluate(seq: Sequence, weights: Path, max_points: int = 2000,
             pose = refiner.refine(pose, seq.depth(i), K).pose
         estimates.append(pose)
     per_frame_ms = (time.perf_counter() - t0) / max(seq.num_rgb, 1) * 1000
-    return pose_accuracy(estimates, truths, pts).as_dict(), per_frame_ms
+    return estimates, truths, pts, per_frame_ms
 
 
 def main() -> None:
@@ -85,6 +89,8 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=1.0,
                         help="seconds per simulated sequence (60 frames per second)")
     parser.add_argument("--seed", type=int, default=1000, help="first simulation seed")
+    parser.add_argument("--per-preset", type=int, default=3,
+                        help="simulated sequences per preset (seeds --seed, --seed+1, ...)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads")
     parser.add_argument("--depth-refine", action="store_true",
                         help="also each decoding refined on the depth frames (ICP)")
@@ -101,34 +107,46 @@ def main() -> None:
                  for name in (args.decode or ["strongest"])}
     torch.set_num_threads(args.threads)
 
+    if args.per_preset < 1:
+        parser.error("--per-preset must be >= 1")
     with tempfile.TemporaryDirectory() as tmp:
         folders = list(args.sequence) or [
-            simulate(Path(tmp), args.object, preset, args.seed + k, args.duration)
-            for k, preset in enumerate(("regular", "faster"))
+            simulate(Path(tmp), args.object, preset, args.seed + 2 * k + j, args.duration)
+            for k in range(args.per_preset) for j, preset in enumerate(("regular", "faster"))
         ]
-        rows = []
+        rows, pooled = [], {}
         for folder in folders:
             seq = Sequence.load(folder)
             preset = (seq.meta.extra.get("config", {}).get("trajectory", {}).get("preset", "?")
                       if isinstance(seq.meta.extra, dict) else "?")
             for label, decode in decodings.items():
                 for refine in (False, True) if args.depth_refine else (False,):
-                    acc, ms = evaluate(seq, args.weights, decode=decode, refine=refine)
-                    rows.append((folder.name, preset, label + ("+depth" if refine else ""),
-                                 acc, ms))
+                    est, truth, pts, ms = evaluate(seq, args.weights, decode=decode,
+                                                   refine=refine)
+                    label_r = label + ("+depth" if refine else "")
+                    rows.append((folder.name, preset, label_r,
+                                 pose_accuracy(est, truth, pts).as_dict(), ms))
+                    pool = pooled.setdefault((preset, label_r), ([], [], pts, []))
+                    pool[0].extend(est)
+                    pool[1].extend(truth)
+                    pool[3].append(ms)
+    for (preset, label), (est, truth, pts, ms) in sorted(pooled.items()):
+        rows.append((f"all {preset} ({sum(1 for r in rows if r[1] == preset and r[2] == label)})",
+                     preset, label, pose_accuracy(est, truth, pts).as_dict(), float(np.mean(ms))))
 
     print(f"weights: {args.weights}  threads: {args.threads}")
-    header = (f"{'sequence':<28} {'preset':<8} {'decode':<14} {'frames':>6} {'det.rate':>8} "
+    header = (f"{'sequence':<28} {'preset':<8} {'decode':<16} {'frames':>6} {'det.rate':>8} "
               f"{'med t cm':>9} {'med R deg':>9} {'ADD<10%':>8} {'ADD-S<10%':>9} {'ms/frame':>9}")
     print(header)
     print("-" * len(header))
     for name, preset, label, a, ms in rows:
-        print(f"{name:<28} {preset:<8} {label:<14} {a['frames']:>6} {a['detection_rate']:>8.3f} "
+        print(f"{name:<28} {preset:<8} {label:<16} {a['frames']:>6} {a['detection_rate']:>8.3f} "
               f"{a['median_translation_cm']:>9.2f} {a['median_rotation_deg']:>9.2f} "
               f"{a['add_pass']:>8.3f} {a['adds_pass']:>9.3f} {ms:>9.1f}")
-    print("targets on regular frames: median <= 2 cm and <= 5 deg, ADD pass >= 0.80")
+    print("targets on regular frames (all sequences pooled): median <= 2 cm and <= 5 deg, "
+          "ADD pass >= 0.80")
     for name, preset, label, a, _ in rows:
-        if preset == "regular":
+        if preset == "regular" and name.startswith("all "):
             ok = (a["median_translation_cm"] <= TARGETS["median_translation_cm"]
                   and a["median_rotation_deg"] <= TARGETS["median_rotation_deg"]
                   and a["add_pass"] >= TARGETS["add_pass"])

@@ -1,0 +1,62 @@
+"""The shipped demo weights: loadable safely, within the size budget, documented, and locating
+the demo object in held-out renders (a regression test of their quality, not the benchmark)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from evtrack.demo import DEMO_OBJECT
+from evtrack.models import TorchPoseEstimator, load_model
+from evtrack.models.weights import list_weights, zoo_dir
+
+
+def _shipped():
+    found = [(p, r) for p, r in list_weights() if r.object_name == DEMO_OBJECT]
+    assert found, f"no shipped weights for the demo object {DEMO_OBJECT!r} in {zoo_dir()}"
+    return found[0]
+
+
+def test_shipped_weights_are_safe_small_and_documented() -> None:
+    path, record = _shipped()
+    assert path.stat().st_size <= 10 * 2**20
+    raw = torch.load(path, weights_only=True)  # plain data only
+    assert raw["format"] == "evtrack.pose_weights"
+    card = path.with_suffix(".md").read_text()
+    for text in (record.arch, DEMO_OBJECT, "wall_time_s", "val/keypoint_recall"):
+        assert text in card
+    net, rec = load_model(path, object_name=DEMO_OBJECT)
+    assert sum(p.numel() for p in net.parameters()) <= 5_000_000
+    assert rec.training["wall_time_s"] > 0
+
+
+def test_shipped_weights_locate_the_demo_object_in_held_out_renders() -> None:
+    pytest.importorskip("moderngl")
+    from evtrack.train.sim_source import SimSource, SimSourceOptions, sim_object_cuboid
+
+    path, record = _shipped()
+    h, w = record.input_size
+    source = SimSource(DEMO_OBJECT, sim_object_cuboid(DEMO_OBJECT), 12, (h, w),
+                       object_name=DEMO_OBJECT, seed=987_654,  # never a training seed
+                       options=SimSourceOptions(samples_per_scene=12, z_range=(0.4, 0.9)))
+    try:
+        samples = [source[i] for i in range(len(source))]
+    finally:
+        source.close()
+    est = TorchPoseEstimator.from_weights(path, samples[0].K)
+    dt, dr = [], []
+    for s in samples:
+        dets = est(s.image)
+        assert dets, "no detection"
+        T = dets[0].pose.numpy()
+        truth = s.poses[0]
+        dt.append(np.linalg.norm(T[:3, 3] - truth[:3, 3]))
+        c = np.clip((np.trace(T[:3, :3] @ truth[:3, :3].T) - 1) / 2, -1, 1)
+        dr.append(math.degrees(math.acos(c)))
+    # the shipped weights measure median 2.2 cm / 6.8 deg on these 12 frames (stage-1 weights:
+    # 9.7 cm, four rotations flipped); the bounds leave margin for numeric drift only
+    assert np.median(dt) < 0.04, np.round(dt, 3)
+    assert np.median(dr) < 12.0, np.round(dr, 1)
