@@ -179,6 +179,10 @@ class PoseTwistUKFConfig(PoseUKFConfig):
         alpha, alpha_dt: the twist is multiplied by ``alpha ** (dt / alpha_dt)`` in each
             predict; 1 (default) is the constant-velocity model, < 1 the decaying model of
             :class:`VelocityKFConfig`.
+        object_centred: ``q_linear``/``init_std_linear`` are spreads of the velocity of the
+            object's origin, independent of ``ω`` (default; the object turns about itself), and
+            are mapped into the camera-frame ``v_o`` at the current position (see
+            :class:`~evtrack.filters.PoseTwistUKF`); False: spreads of ``v_o`` itself.
     """
 
     q_linear: float = 10.0
@@ -189,6 +193,7 @@ class PoseTwistUKFConfig(PoseUKFConfig):
     meas_std_angular: float = 0.2
     alpha: float = 1.0
     alpha_dt: float = 1e-3
+    object_centred: bool = True
 
     def __post_init__(self) -> None:
         _check_ukf_common(self)
