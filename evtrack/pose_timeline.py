@@ -177,6 +177,30 @@ class PoseTimeline:
             self._snaps[i] = self._snapshot()
         return True
 
+    def pose_at(self, t_us: int) -> tuple[Tensor, Tensor] | None:
+        """``(t (3,), q (4,))`` the filter had at a kept past time ``t_us`` <= :attr:`now`:
+        the state after the last step ending at or before it, predicted to ``t_us`` (with
+        that step's twist for a twist-driven filter); measurements inside that step are not
+        applied. ``None`` outside the kept past or when the filter had no pose then. The
+        current state is left as it was."""
+        t_us = int(t_us)
+        times = self._times
+        if t_us < times[0] or t_us > self.now:
+            return None
+        j = bisect.bisect_right(list(times), t_us) - 1
+        state = dict(zip(self.names, self._snaps[j], strict=True))
+        if "initialized" in state and not bool(state["initialized"][0]):
+            return None
+        if t_us == times[j]:
+            return state["t"][0].clone(), state["q"][0].clone()
+        current = self._snapshot()
+        try:
+            self._restore(self._snaps[j])
+            self._predict(t_us - times[j], self._twists[j + 1])
+            return self.filter.t[0].clone(), self.filter.q[0].clone()
+        finally:
+            self._restore(current)
+
     def pose_at_now(self) -> tuple[Tensor, Tensor]:
         """``(t (3,), q (4,))`` of the current state."""
         return self.filter.t[0], self.filter.q[0]

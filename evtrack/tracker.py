@@ -60,6 +60,7 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -126,7 +127,8 @@ class TrackerStats:
             pose below ``pose_min_confidence``.
         poses_rejected: poses rejected by the gate; reinitialisations: filter re-inits after
             rejections; lost: times the object was declared lost.
-        twist_measurements: frame-flow twist measurements fused.
+        twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
+            measured on kept frame pairs when a late pose started the track.
         time_s: processing time per stage (flow, velocity, pose, frames, other).
     """
 
@@ -149,6 +151,7 @@ class TrackerStats:
     reinitialisations: int = 0
     lost: int = 0
     twist_measurements: int = 0
+    twists_replayed: int = 0
     time_s: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -318,6 +321,7 @@ class Tracker:
         self.ukf.reset(1)
         if self.method == "frame-flow":
             self.dense_flow.reset()
+            self._ff_backlog: deque[tuple[Any, tuple | None]] = deque()
         if self.method == "ge":
             self.ge.reset()
         if isinstance(self.depth, SensorDepth):
@@ -749,6 +753,8 @@ class Tracker:
         self.stats.reinitialisations += max(0, int(self.ukf.reinitialised[0]) - reinit)
         if self.initialized and not was_init:
             self._out_of_view_us = 0
+            if self.method == "frame-flow":
+                self._replay_frame_flow(m.t_us)
 
     def _fuse_twist(self, t_us: int, twist: Tensor, cov: Tensor) -> None:
         if not self.initialized:
@@ -758,19 +764,47 @@ class Tracker:
 
     # ------------------------------------------------------------------ frame-flow
     def _frame_flow(self, t_us: int, rgb: np.ndarray) -> None:
-        """Dense flow from the previous frame -> one twist measurement (event camera frame)."""
+        """Dense flow from the previous frame -> one twist measurement (event camera frame).
+
+        Frame pairs are also kept for ``history_ms`` (with the depth frame of their time):
+        when a pose starts the track, it arrives ``pose_latency_ms`` after its frame was taken,
+        and the pairs since that frame are measured then, each at the pose the timeline gives
+        for its time (:meth:`_replay_frame_flow`), as the event flow carries a late first pose
+        to the present in the full method.
+        """
         pair = self.dense_flow.push(t_us, rgb)
-        if pair is None or not self.initialized:
+        if pair is None:
             return
-        pose_ev = self.pose(pair.t0_us)
+        depth = ((self.depth.map, self.depth.t_us) if isinstance(self.depth, SensorDepth)
+                 else None)
+        self._ff_backlog.append((pair, depth))
+        horizon = t_us - self.config.history_ms * 1e3
+        while self._ff_backlog and self._ff_backlog[0][0].t0_us < horizon:
+            self._ff_backlog.popleft()
+        if not self.initialized:
+            return
+        measured = self._measure_frame_pair(pair, self.pose(pair.t0_us), t_us)
+        if measured is not None:
+            dtype = self.ukf.t.dtype
+            V_ev, cov_ev = measured
+            self._schedule(t_us, (pair.t_mid_us, V_ev.to(dtype), cov_ev.to(dtype)))
+            self._apply_due(self._t)
+
+    def _measure_frame_pair(self, pair, pose_ev: np.ndarray, t_us: int
+                            ) -> tuple[Tensor, Tensor] | None:
+        """The twist (1, 6) and its covariance (1, 6, 6), event camera frame, that the dense
+        flow of ``pair`` measures for the object at ``pose_ev`` (at the pair's first frame);
+        ``None`` when no flow sample falls on the object."""
+        if not np.isfinite(pose_ev).all():
+            return None
         pose_rgb = (self.T_rgb_event @ torch.from_numpy(pose_ev)).numpy()
         poly = self.rgb_silhouette.polygon(pose_rgb)
         if poly is None:
-            return
+            return None
         cfg = self.config.frame_flow
         pts = grid_in_polygon(poly, pair.flow.shape[:2], cfg.grid_px, cfg.max_samples)
         if len(pts) == 0:
-            return
+            return None
         uv, flow = pair.sample(pts)
         z = self._roi_depth(pts.astype(np.float64), poly, pose_rgb, t_now=t_us)
         kw = {"dtype": self.frame_kf.twist.dtype, "device": self.device}
@@ -780,11 +814,34 @@ class Tracker:
                                  torch.as_tensor(flow, **kw).unsqueeze(0),
                                  torch.zeros(1, len(uv), dtype=torch.bool, device=self.device))
         A = self.rgb_to_event_twist.to(**kw)
-        V_ev = (A @ V[0]).unsqueeze(0)
-        cov_ev = (A @ self.frame_kf.cov[0] @ A.T).unsqueeze(0)
+        return (A @ V[0]).unsqueeze(0), (A @ self.frame_kf.cov[0] @ A.T).unsqueeze(0)
+
+    def _replay_frame_flow(self, t_start: int) -> None:
+        """Measure the kept frame pairs from ``t_start`` (the pose that started the track) to
+        now, in order, each at the timeline's pose for its first frame."""
+        from evtrack.geometry import tq_to_matrix
+
         dtype = self.ukf.t.dtype
-        self._schedule(t_us, (pair.t_mid_us, V_ev.to(dtype), cov_ev.to(dtype)))
-        self._apply_due(self._t)
+        for pair, depth in list(self._ff_backlog):
+            if pair.t0_us < t_start or pair.t_mid_us > self.timeline.now:
+                continue
+            tq = self.timeline.pose_at(pair.t0_us)
+            if tq is None:
+                continue
+            pose_ev = tq_to_matrix(tq[0].double(), tq[1].double()).cpu().numpy()
+            saved = None
+            if depth is not None and isinstance(self.depth, SensorDepth):
+                saved = (self.depth.map, self.depth.t_us)
+                self.depth.map, self.depth.t_us = depth
+            try:
+                measured = self._measure_frame_pair(pair, pose_ev, pair.t1_us)
+            finally:
+                if saved is not None:
+                    self.depth.map, self.depth.t_us = saved
+            if measured is not None and self.timeline.add(
+                    pair.t_mid_us, "twist", (measured[0].to(dtype),), measured[1].to(dtype)):
+                self.stats.twist_measurements += 1
+                self.stats.twists_replayed += 1
 
     # ------------------------------------------------------------------ loss and output
     def _check_view(self, t1: int) -> None:

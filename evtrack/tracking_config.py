@@ -158,7 +158,8 @@ def _pose_twist_defaults() -> PoseTwistUKFConfig:
     # The pose process noise of the full method's UKF (_pose_ukf_defaults): the dense-flow twist
     # drifts as the event twist does, and a tighter noise made the gate reject good poses
     # (oracle poses, the four YCB `faster` sequences at 4 kHz: 28.4 cm / 39.7 deg with the
-    # filter's defaults, 21.8 cm / 38.5 deg with these).
+    # filter's defaults, 21.8 cm / 38.5 deg with these; 18.4 cm / 33.7 deg once the frame
+    # pairs before a late first pose were measured too).
     return PoseTwistUKFConfig(q_translation=0.01, q_rotation=0.3)
 
 

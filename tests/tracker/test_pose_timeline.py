@@ -88,3 +88,44 @@ def test_too_late_is_dropped() -> None:
     before = filt.t.clone()
     assert not line.add(10_000, "pose", _meas(0))
     assert line.late == 1 and torch.equal(filt.t, before)
+
+
+def test_pose_at_a_past_time_equals_a_plain_filter_stopped_there() -> None:
+    # the constant-velocity filter after a twist measurement: its pose at 4.4 ms, asked after
+    # 10 ms of steps, is the pose a plain filter has when predicted exactly to 4.4 ms
+    z = torch.tensor([[0.3, -0.1, 0.2, 0.5, 1.0, -0.5]], dtype=torch.float64)
+    ref, filt = PoseTwistUKF(1), PoseTwistUKF(1)
+    for f in (ref, filt):
+        _start(f)
+    line = PoseTimeline(filt, horizon_us=20_000)
+    for k in range(10):
+        line.step((k + 1) * STEP)
+    line.add(2 * STEP, "twist", (z,))
+    for dt in (STEP, STEP, None, STEP, STEP, 400):  # the timeline's steps; None: the twist
+        if dt is None:
+            ref.update_twist(z)
+        else:
+            ref.predict(dt * 1e-6)
+    t, q = line.pose_at(4_400)
+    torch.testing.assert_close(t, ref.t[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(q, ref.q[0], rtol=0, atol=1e-12)
+    # the twist-driven filter: the step's own twist carries the pose inside the step
+    twists = _twists(10)
+    ref, filt = PoseUKF(1), PoseUKF(1)
+    for f in (ref, filt):
+        _start(f)
+    line = PoseTimeline(filt, horizon_us=20_000)
+    for k in range(10):
+        line.step((k + 1) * STEP, twists[k])
+    for k in range(6):
+        ref.predict(twists[k], STEP * 1e-6)
+    ref.predict(twists[6], 0.3e-3)
+    t, q = line.pose_at(6_300)
+    torch.testing.assert_close(t, ref.t[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(q, ref.q[0], rtol=0, atol=1e-12)
+    assert line.pose_at(10_001) is None and line.pose_at(-1) is None
+    # before the filter has a pose there is none
+    fresh = PoseTwistUKF(1)
+    empty = PoseTimeline(fresh, horizon_us=20_000)
+    empty.step(STEP)
+    assert empty.pose_at(500) is None
