@@ -680,6 +680,9 @@ class Tracker:
     def _velocity_step(self, dt: float, res: FlowResult, poly: SilhouettePolygon | None,
                        pose: np.ndarray | None) -> Tensor:
         """VelocityKF predict + update from the step's RoI flows; returns the twist (1, 6)."""
+        if self.config.velocity_kf.object_centred:
+            self.vkf.set_pivot(None if pose is None or not np.isfinite(pose).all()
+                               else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
         if len(res) == 0 or (poly is None and pose is not None):
             return self.vkf.predict(dt)
         cfg = self.config

@@ -169,6 +169,27 @@ class VelocityKF(CompilableSteps, nn.Module):
         self.skipped_depth = torch.zeros(B, dtype=torch.int64, device=kw["device"])
         self.skipped_flow = torch.zeros(B, dtype=torch.int64, device=kw["device"])
 
+    def set_pivot(self, pivot: Tensor | None) -> None:
+        """Make the process noise independent in the object's own motion about ``pivot``.
+
+        The state ``[v_o, ω]`` is the camera-frame twist (``v_o``: velocity of the point at the
+        camera's origin). With a pivot ``p`` (3,) metres, camera frame (the object's centre),
+        ``q_linear`` becomes the spread of the pivot's velocity ``v = v_o + ω × p`` and the
+        noise is ``A Q Aᵀ`` with ``A = [[I, [p]×], [0, I]]``: an unexpected turn of the object
+        about itself no longer has to be explained by a velocity of the camera-origin point.
+        ``None`` restores the diagonal noise of the config. One pivot for all tracks.
+        """
+        Q = torch.diag(self.q_density)
+        if pivot is not None:
+            p = torch.as_tensor(pivot, dtype=Q.dtype, device=Q.device).reshape(3)
+            A = torch.eye(6, dtype=Q.dtype, device=Q.device)
+            A[0, 4], A[0, 5] = -p[2], p[1]
+            A[1, 3], A[1, 5] = p[2], -p[0]
+            A[2, 3], A[2, 4] = -p[1], p[0]
+            Q = A @ Q @ A.T
+            Q = 0.5 * (Q + Q.T)
+        self.q_matrix = Q
+
     def _load_from_state_dict(
         self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
     ):  # noqa: ANN001 - torch's signature

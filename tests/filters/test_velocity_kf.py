@@ -384,3 +384,26 @@ def test_inputs_are_checked() -> None:
         kf.update(uv, depth, flow, mask=torch.ones(2, 4))
     with pytest.raises(ValueError, match="dt must be"):
         kf.predict(torch.ones(3))
+
+
+def test_pivot_noise_is_the_object_centred_spread() -> None:
+    # process noise independent in the pivot's velocity v and ω, seen as [v_o, ω] with
+    # v_o = v - ω × p: its covariance by sampling equals q_matrix after set_pivot
+    cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
+    kf = VelocityKF(cam)
+    diagonal = kf.q_matrix.clone()
+    p = torch.tensor([0.1, -0.2, 0.7], dtype=torch.float64)
+    kf.set_pivot(p)
+    g = torch.Generator().manual_seed(0)
+    n = 400_000
+    qd = kf.q_density
+    v = torch.randn(n, 3, generator=g, dtype=torch.float64) * qd[:3].sqrt()
+    w = torch.randn(n, 3, generator=g, dtype=torch.float64) * qd[3:].sqrt()
+    X = torch.cat([v - torch.cross(w, p.expand_as(w), dim=-1), w], dim=1)
+    sampled = X.T @ X / n
+    assert float((sampled - kf.q_matrix).abs().max() / kf.q_matrix.abs().max()) < 0.01
+    assert torch.equal(kf.q_matrix, kf.q_matrix.T)
+    kf.predict(1e-3)  # the predict adds it
+    torch.testing.assert_close(kf.cov[0] - kf.init_var.diag() * 0.25, 1e-3 * kf.q_matrix)
+    kf.set_pivot(None)
+    assert torch.equal(kf.q_matrix, diagonal)

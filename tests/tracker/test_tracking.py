@@ -12,6 +12,7 @@ import torch
 from tracker_helpers import make_tracker, stream
 
 from evtrack.eval.metrics import tracking_errors
+from evtrack.filters import VelocityKF
 from evtrack.trajectory import STATUS_TRACKING, STATUS_WAITING
 
 
@@ -146,6 +147,21 @@ def test_frame_flow_measures_the_frames_a_late_first_pose_missed(fast_sequence, 
     assert with_replay.position_rmse_cm < 0.6 * without.position_rmse_cm
 
 
+def test_velocity_noise_pivots_about_the_tracked_object(fast_sequence, runs) -> None:
+    """velocity_kf.object_centred (default): the velocity filter's process noise is set about
+    the object's current position (off: the paper's diagonal noise)."""
+    _, tracker, _ = runs.get("full")
+    Q = tracker.vkf.q_matrix
+    p = torch.from_numpy(tracker.pose()[:3, 3])
+    expected = VelocityKF(tracker.camera)
+    expected.set_pivot(p)  # about the final pose; Q was set at the last step's predicted pose
+    torch.testing.assert_close(Q, expected.q_matrix, rtol=0.02, atol=1.0)
+    assert float(Q[:3, 3:].abs().max()) > 0
+    plain, _ = make_tracker(fast_sequence, method="full", velocity_kf={"object_centred": False})
+    plain.track(fast_sequence)
+    assert torch.equal(plain.vkf.q_matrix, torch.diag(plain.vkf.q_density))
+
+
 def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
     """Depth rendered from the mesh at the predicted pose instead of the sensor's. Before the
     first pose there is no model depth (the velocity waits), so compare after 0.3 s."""
@@ -154,8 +170,9 @@ def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
     gt = fast_sequence.ground_truth
     err = tracking_errors(traj, gt, t_start_us=300_000)
     ref = tracking_errors(runs.get("full")[0], gt, t_start_us=300_000)
-    # measured after 0.3 s: model 6.4 cm / 11.7 deg, sensor 5.4 / 10.3 (model depth is taken
-    # at the predicted pose, so a pose error also scales the velocity)
+    # measured after 0.3 s: model 6.7 cm / 10.9 deg, sensor 5.9 / 8.4 (model depth is taken
+    # at the predicted pose, so a pose error also scales the velocity; with the paper's
+    # diagonal velocity noise: model 6.4 / 11.7, sensor 5.4 / 10.3)
     assert tracker.depth.renders > 50 and tracker.stats.depth_fallbacks == 0
     assert err.position_rmse_cm < 1.4 * ref.position_rmse_cm
-    assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 2.0
+    assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 3.5
