@@ -149,9 +149,10 @@ def _pose_only_defaults() -> PoseUKFConfig:
 
 
 def _frame_flow_kf_defaults() -> VelocityKFConfig:
-    # One twist per frame pair from dense (full, not normal) flow: no decay inside the pair.
+    # One twist per frame pair from dense (full, not normal) flow: no decay inside the pair
+    # and no process noise (the filter starts afresh on each pair, so no pivot either).
     return VelocityKFConfig(normal_flow=False, assume_normal=False, flow_std=20.0,
-                            init_std_linear=2.0, init_std_angular=6.0)
+                            init_std_linear=2.0, init_std_angular=6.0, object_centred=False)
 
 
 def _pose_twist_defaults() -> PoseTwistUKFConfig:
