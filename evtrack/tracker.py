@@ -769,22 +769,22 @@ class Tracker:
     def _frame_flow(self, t_us: int, rgb: np.ndarray) -> None:
         """Dense flow from the previous frame -> one twist measurement (event camera frame).
 
-        Frame pairs are also kept for ``history_ms`` (with the depth frame of their time):
-        when a pose starts the track, it arrives ``pose_latency_ms`` after its frame was taken,
-        and the pairs since that frame are measured then, each at the pose the timeline gives
-        for its time (:meth:`_replay_frame_flow`), as the event flow carries a late first pose
-        to the present in the full method.
+        While no pose has started the track, frame pairs are kept for ``history_ms`` (with the
+        depth frame of their time): the pose that starts it arrives ``pose_latency_ms`` after
+        its frame was taken, and the pairs since that frame are measured then, each at the pose
+        the timeline gives for its time (:meth:`_replay_frame_flow`), as the event flow carries
+        a late first pose to the present in the full method.
         """
         pair = self.dense_flow.push(t_us, rgb)
         if pair is None:
             return
-        depth = ((self.depth.map, self.depth.t_us) if isinstance(self.depth, SensorDepth)
-                 else None)
-        self._ff_backlog.append((pair, depth))
-        horizon = t_us - self.config.history_ms * 1e3
-        while self._ff_backlog and self._ff_backlog[0][0].t0_us < horizon:
-            self._ff_backlog.popleft()
         if not self.initialized:
+            depth = ((self.depth.map, self.depth.t_us) if isinstance(self.depth, SensorDepth)
+                     else None)
+            self._ff_backlog.append((pair, depth))
+            horizon = t_us - self.config.history_ms * 1e3
+            while self._ff_backlog and self._ff_backlog[0][0].t0_us < horizon:
+                self._ff_backlog.popleft()
             return
         measured = self._measure_frame_pair(pair, self.pose(pair.t0_us), t_us)
         if measured is not None:
@@ -825,7 +825,8 @@ class Tracker:
         from evtrack.geometry import tq_to_matrix
 
         dtype = self.ukf.t.dtype
-        for pair, depth in list(self._ff_backlog):
+        backlog, self._ff_backlog = self._ff_backlog, deque()
+        for pair, depth in backlog:
             if pair.t0_us < t_start or pair.t_mid_us > self.timeline.now:
                 continue
             tq = self.timeline.pose_at(pair.t0_us)

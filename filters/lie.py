@@ -30,6 +30,7 @@ __all__ = [
     "se3_exp",
     "pose_boxplus",
     "pose_boxminus",
+    "pivot_map",
 ]
 
 # |v|/|q| below which log uses its series 2/w (error ~|v|^2/3, below float64 resolution).
@@ -146,3 +147,21 @@ def pose_boxplus(t: Tensor, q: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
 def pose_boxminus(t1: Tensor, q1: Tensor, t0: Tensor, q0: Tensor) -> Tensor:
     """``(t1, q1) ⊟ (t0, q0) = [t1 - t0, log(q1 ⊗ q0⁻¹)]`` (*,6), the inverse of ⊞."""
     return torch.cat([t1 - t0, quat_log(quat_mul(q1, quat_conj(q0)))], dim=-1)
+
+
+def pivot_map(p: Tensor) -> Tensor:
+    """``A = [[I, [p]×], [0, I]]`` (*,6,6) for pivots ``p`` (*,3), metres.
+
+    Maps the twist ``[v, ω]`` of a motion about ``p`` (``v``: the velocity of the point ``p``)
+    to the camera-frame twist ``[v_o, ω]`` of :func:`evtrack.geometry.integrate_twist`
+    (``v_o = v − ω × p = v + p × ω``); a covariance ``Σ`` of ``[v, ω]`` becomes ``A Σ Aᵀ``.
+    Built from stacks and concatenations only (ONNX-exportable).
+    """
+    zero = torch.zeros_like(p[..., 0])
+    px, py, pz = p.unbind(-1)
+    cross = torch.stack([zero, -pz, py, pz, zero, -px, -py, px, zero], dim=-1)
+    cross = cross.reshape(*p.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=p.dtype, device=p.device).expand_as(cross)
+    top = torch.cat([eye, cross], dim=-1)
+    bottom = torch.cat([torch.zeros_like(eye), eye], dim=-1)
+    return torch.cat([top, bottom], dim=-2)

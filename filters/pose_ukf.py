@@ -44,7 +44,14 @@ from torch import Tensor, nn
 from evtrack.filters import fast_path as fp
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig
-from evtrack.filters.lie import pose_boxminus, pose_boxplus, quat_mul, quat_rotate, se3_exp
+from evtrack.filters.lie import (
+    pivot_map,
+    pose_boxminus,
+    pose_boxplus,
+    quat_mul,
+    quat_rotate,
+    se3_exp,
+)
 from evtrack.filters.linalg import spd_inverse, spd_solve, symmetrize
 from evtrack.filters.ukf import merwe_weights, quat_mean, sigma_offsets, weighted_cov
 
@@ -614,21 +621,9 @@ class PoseTwistUKF(_PoseFilter):
         if cov is None and t is not None and self.config.object_centred:
             self.cov = self._with_object_twist_cov(self.cov, self.t)
 
-    def _object_twist_map(self, t: Tensor) -> Tensor:
-        """``A(t)`` (B,6,6): the object's own twist ``[v, ω]`` -> the camera-frame ``[v_o, ω]``."""
-        zero = torch.zeros_like(t[:, 0])
-        tx, ty, tz = t.unbind(-1)
-        t_cross = torch.stack(
-            [zero, -tz, ty, tz, zero, -tx, -ty, tx, zero], dim=-1
-        ).reshape(-1, 3, 3)
-        eye = torch.eye(3, dtype=t.dtype, device=t.device).expand_as(t_cross)
-        top = torch.cat([eye, t_cross], dim=-1)
-        bottom = torch.cat([torch.zeros_like(eye), eye], dim=-1)
-        return torch.cat([top, bottom], dim=-2)
-
     def _twist_block(self, diag: Tensor, t: Tensor) -> Tensor:
         """(B,6,6) covariance in ``[v_o, ω]`` of independent object-frame spreads ``diag`` (6,)."""
-        A = self._object_twist_map(t)
+        A = pivot_map(t)
         D = torch.eye(6, dtype=diag.dtype, device=diag.device) * diag  # diag_embed: no ONNX op
         return symmetrize(A @ D.expand_as(A) @ A.transpose(-1, -2))
 

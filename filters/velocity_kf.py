@@ -49,6 +49,7 @@ from evtrack.filters import fast_path as fp
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.interaction import undistort_flow
+from evtrack.filters.lie import pivot_map
 from evtrack.filters.linalg import spd_inverse
 from evtrack.filters.weighting import laplacian_weights
 
@@ -181,11 +182,7 @@ class VelocityKF(CompilableSteps, nn.Module):
         """
         Q = torch.diag(self.q_density)
         if pivot is not None:
-            p = torch.as_tensor(pivot, dtype=Q.dtype, device=Q.device).reshape(3)
-            A = torch.eye(6, dtype=Q.dtype, device=Q.device)
-            A[0, 4], A[0, 5] = -p[2], p[1]
-            A[1, 3], A[1, 5] = p[2], -p[0]
-            A[2, 3], A[2, 4] = -p[1], p[0]
+            A = pivot_map(torch.as_tensor(pivot, dtype=Q.dtype, device=Q.device).reshape(3))
             Q = A @ Q @ A.T
             Q = 0.5 * (Q + Q.T)
         self.q_matrix = Q

@@ -88,12 +88,11 @@ def pose_spec(args: argparse.Namespace):
 
     if args.oracle_noise is not None and not args.oracle:
         raise ConfigError("--oracle-noise needs --oracle")
-    if args.oracle and getattr(args, "depth_refine", False):
-        raise ConfigError("--depth-refine refines a pose network's poses; not with --oracle")
     if args.oracle:
         noise = args.oracle_noise or (0.01, 0.03)
         return PoseSourceSpec("oracle", oracle_std_translation=noise[0],
-                              oracle_std_rotation=noise[1], seed=args.seed)
+                              oracle_std_rotation=noise[1], seed=args.seed,
+                              depth_refine=getattr(args, "depth_refine", False))
     if args.weights_dir is not None and not args.weights_dir.is_dir():
         raise ConfigError(f"--weights-dir {args.weights_dir}: folder not found")
     return PoseSourceSpec("network", weights_dir=args.weights_dir, seed=args.seed,

@@ -50,7 +50,7 @@ class PoseSourceSpec:
 
     def __post_init__(self) -> None:
         if self.depth_refine and self.kind != "network":
-            raise ConfigError("depth refinement applies to a pose network, not the oracle")
+            raise ConfigError("--depth-refine refines a pose network's poses; not with --oracle")
         if self.kind not in ("network", "oracle"):
             raise ConfigError(f"pose source kind must be 'network' or 'oracle', got {self.kind!r}")
         for name in ("oracle_std_translation", "oracle_std_rotation"):

@@ -145,6 +145,8 @@ def test_bad_options(tiny_benchmark, capsys):
     assert "--oracle-noise needs --oracle" in capsys.readouterr().err
     assert main(["evaluate", "--benchmark", bench, "--oracle", "--oracle-noise", "-1", "0"]) == 1
     assert "must be finite and >= 0" in capsys.readouterr().err
+    assert main(["evaluate", "--benchmark", bench, "--oracle", "--depth-refine"]) == 1
+    assert "--depth-refine refines a pose network's poses" in capsys.readouterr().err
     assert main(["evaluate", "--benchmark", bench, "--oracle", "--jobs", "0"]) == 1
     assert "--jobs must be >= 1" in capsys.readouterr().err
     with pytest.raises(SystemExit):
