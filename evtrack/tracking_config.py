@@ -126,11 +126,14 @@ class GEConfig:
 
 def _tracker_flow_defaults() -> FlowConfig:
     # One flow window per velocity step: every step's flows are complete at its end.
+    # RoIs of 12 px at 640x480: the YCB objects at 0.5-1 m cover a few 32 px RoIs only, and
+    # the rotation about the object's own centre is seen through the differences between
+    # RoI flows across it. On the benchmark set (four YCB objects, 4 kHz renders, oracle
+    # poses, mask margin 32 px) the full method's RMSE on `faster` went 6.22 cm / 21.4 deg
+    # (32 px) -> 5.51 / 19.0 (24) -> 4.92 / 16.4 (16) -> 4.89 / 14.9 (12) -> 6.03 / 15.4 (8).
     # The flow's generic defaults otherwise: configs/flow_fast.yaml's span bound and tighter
-    # tolerance gave mixed results in the tracker (oracle poses, two box sequences: twist
-    # error 10% lower on `faster`, 20% higher on `regular`; rotation RMSE 1.2 deg worse on
-    # both), so the tracker keeps the defaults until the benchmark set says otherwise.
-    return FlowConfig(window_us=1000, roi_size=32)
+    # tolerance did not help in the tracker (same set, 12 px RoIs: 5.01 cm / 15.3 deg).
+    return FlowConfig(window_us=1000, roi_size=12)
 
 
 def _pose_ukf_defaults() -> PoseUKFConfig:
@@ -193,7 +196,11 @@ class TrackerConfig:
             are chunked. The outputs of a group are available at its end (a delay of up to
             ``flow_batch_steps`` steps in live use).
         mask_margin_px: events are kept when they lie within this distance (pixels) of the
-            object's predicted silhouette (the convex hull of the projected mesh).
+            object's predicted silhouette (the convex hull of the projected mesh). It must
+            cover the predicted pose's error, or the events of one side are lost and the
+            flow is biased: with oracle poses (1 cm, 0.03 rad noise) on the `faster`
+            benchmark set, 8 px gave a rotation RMSE twice that of 32 px (cracker box: 10.3
+            vs 5.4 deg); 48 px gave the same as 32. Scale it with the image width.
         burst_rate_hz: a velocity step whose events outside the (grown) silhouette exceed this
             rate per pixel of the image outside it (events per pixel per second) is an event
             burst (flicker, a sensor glitch): its events are not used and the velocity filter
@@ -257,7 +264,7 @@ class TrackerConfig:
     torch_threads: int = 2
     velocity_step_us: int = 1000
     flow_batch_steps: int = 5
-    mask_margin_px: float = 8.0
+    mask_margin_px: float = 32.0
     burst_rate_hz: float = 100.0
     max_events_per_step: int = 20_000
     lost_after_ms: float = 100.0

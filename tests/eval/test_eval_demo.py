@@ -12,6 +12,7 @@ from evtrack import Sequence
 from evtrack.cli import main
 from evtrack.demo import DemoOptions, demo_tracker_config, demo_weights
 from evtrack.errors import ConfigError
+from evtrack.tracking_config import TrackerConfig
 
 TINY = ["--size", "64x48", "--duration", "0.6", "--jobs", "1", "--quiet"]
 
@@ -75,3 +76,5 @@ def test_demo_options_are_checked(tmp_path, capsys):
         main(["demo", "--size", "big"])
     assert demo_tracker_config(320).flow.roi_size == 16
     assert demo_tracker_config(64).flow.roi_size == 8
+    # the mask margin scales with the width from the tracker's default (stated at 640 px)
+    assert demo_tracker_config(320).mask_margin_px == TrackerConfig().mask_margin_px / 2
