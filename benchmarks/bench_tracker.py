@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from evtrack import Sequence
+from evtrack.demo import demo_tracker_config
 from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
 from evtrack.tracker import Tracker
 from evtrack.tracking_config import TrackerConfig
@@ -117,7 +118,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, nargs="+", default=[2, 1])
     ap.add_argument("--methods", nargs="+", default=["full", "pose"])
     ap.add_argument("--roi-size", type=int, default=None,
-                    help="flow RoI size (default: 32 scaled to the image width / 640)")
+                    help="flow RoI size (default: the demo's, 32 px at 640 px, scaled)")
+    ap.add_argument("--batch-steps", type=int, default=TrackerConfig().flow_batch_steps,
+                    metavar="N", help="flow_batch_steps: velocity steps per flow call")
+    ap.add_argument("--mask-margin", type=float, default=None, metavar="PX",
+                    help="mask_margin_px (default: the tracker's, scaled to the width)")
     ap.add_argument("--weights", help="pose-network weights (default: the oracle)")
     ap.add_argument("--caps", type=int, nargs="+", default=[None], metavar="N",
                     help="max_events_per_step values to compare (0: no cap; default: the "
@@ -132,14 +137,20 @@ def main(argv: list[str] | None = None) -> int:
             w, h = (int(v) for v in args.size.lower().split("x"))
             seq = _simulate((w, h), args.duration, args.save_sequence or Path(tmp))
         width = seq.meta.event_camera.width
-        roi = args.roi_size or max(8, round(32 * width / 640))
-        config = {"flow": {"roi_size": roi}}
+        # the demo's pixel settings, scaled to the width (RoI 32 px and the tracker's default
+        # mask margin at 640 px), unless given
+        demo = demo_tracker_config(width)
+        roi = args.roi_size or demo.flow.roi_size
+        margin = args.mask_margin if args.mask_margin is not None else demo.mask_margin_px
+        config = {"flow": {"roi_size": roi}, "mask_margin_px": margin,
+                  "flow_batch_steps": args.batch_steps}
         rows = [_run(seq, m, th, config, args.weights, cap) for th in args.threads
                 for cap in args.caps for m in args.methods]
     cam = seq.meta.event_camera
-    print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, "
+    print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, mask margin "
+          f"{margin:g} px, "
           f"{rows[0]['events']} events over {rows[0]['seq_s']:.2f} s, pose source "
-          f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every 5 steps")
+          f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every {args.batch_steps} steps")
     head = (f"{'method':<10} {'thr':>3} {'cap':>6} {'thinned':>8} {'proc s':>7} {'rtf':>6} "
             f"{'ev/s':>9} {'flow':>6} "
             f"{'veloc':>6} {'pose':>6} {'frames':>6} {'grp p50':>8} {'grp p95':>8} "
@@ -152,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['ev_per_s']:>9.0f} {r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} "
               f"{r['frames']:>6.2f} {r['group_p50_ms']:>6.2f}ms {r['group_p95_ms']:>6.2f}ms "
               f"{r['step_us']:>7.0f}us  {r.get('error', '')}")
-    print("rtf = processing time / sequence time; grp = one step group (5 ms of data): the "
+    print("rtf = processing time / sequence time; grp = one step group (one flow call): the "
           "output latency in live use; filt/step = velocity KF + pose UKF per 1 ms step.")
     return 0
 
