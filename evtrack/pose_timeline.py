@@ -37,9 +37,12 @@ class Measurement:
 
     Attributes:
         t_us: the time it describes (µs).
-        kind: ``"pose"`` (``value`` = (t (1,3), q (1,4))) or ``"twist"`` (``value`` = (1,6)).
+        kind: ``"pose"`` (``value`` = (t (1,3), q (1,4))), ``"twist"`` (``value`` = (1,6)) or
+            ``"range"`` (``value`` = (direction (1,3), distance (1,)): the position's component
+            along a direction, see :meth:`~evtrack.filters.PoseUKF.update_range`).
         value: see ``kind``.
-        cov: (1,6,6) covariance, or ``None`` for the filter's default.
+        cov: (1,6,6) covariance, or ``None`` for the filter's default; for a range, its (1,)
+            variance (m²).
         seq: insertion order (ties at the same time are fused in this order).
     """
 
@@ -107,6 +110,8 @@ class PoseTimeline:
     def _fuse(self, m: Measurement) -> None:
         if m.kind == "pose":
             self.filter.update(m.value[0], m.value[1], m.cov)
+        elif m.kind == "range":
+            self.filter.update_range(m.value[0], m.value[1], m.cov)
         else:
             self.filter.update_twist(m.value[0], m.cov)
 

@@ -71,6 +71,7 @@ import torch
 from torch import Tensor
 
 from evtrack.camera import PinholeCamera
+from evtrack.depth_range import DepthRange
 from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth
 from evtrack.errors import ConfigError, EventsError
 from evtrack.events import Events, concatenate
@@ -129,6 +130,9 @@ class TrackerStats:
             rejections; lost: times the object was declared lost.
         twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
             measured on kept frame pairs when a late pose started the track.
+        depth_ranges: range measurements from depth frames given to the pose filter
+            (``depth_range``); depth_ranges_skipped: depth frames without one, by reason
+            (:class:`~evtrack.depth_range.RangeResult`).
         time_s: processing time per stage (flow, velocity, pose, frames, other).
     """
 
@@ -152,6 +156,8 @@ class TrackerStats:
     lost: int = 0
     twist_measurements: int = 0
     twists_replayed: int = 0
+    depth_ranges: int = 0
+    depth_ranges_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     time_s: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -163,6 +169,14 @@ class _Miss:
     """A pose-source call on the frame at ``t_us`` that found nothing."""
 
     t_us: int
+
+
+@dataclasses.dataclass
+class _DepthFrame:
+    """A sensor depth frame (event camera, metres) waiting for the range measurement."""
+
+    t_us: int
+    depth: np.ndarray
 
 
 class _Timer:
@@ -262,6 +276,17 @@ class Tracker:
             self.frame_kf = VelocityKF(self.rgb_camera, 1, cfg.frame_flow_kf, device=self.device)
             self.rgb_to_event_twist = twist_adjoint(self.T_event_rgb)
         self.depth = self._make_depth_source(sensing_camera, vertices)
+        self.depth_range: DepthRange | None = None
+        if cfg.depth_range and self.method != "velocity":
+            if self.mesh is None:
+                raise ConfigError("depth_range needs the object's mesh (an ObjectMesh or a "
+                                  "mesh file), not bare vertices")
+            self.depth_range = DepthRange(self.mesh, self.depth.camera, cfg.depth_range_scale,
+                                          cfg.depth_range_std_m)
+            # the depth maps are in the sensing camera; the filter's pose in the event camera
+            T = (torch.linalg.inv(self.T_event_rgb) if sensing_camera is self.rgb_camera
+                 and self.method == "frame-flow" else torch.eye(4, dtype=torch.float64))
+            self._T_depth_event = T.numpy()
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
         if self.method == "ge":
@@ -333,7 +358,7 @@ class Tracker:
         self._ev_buf: list[Events] = []
         self._ev_buf_index = 0  # index in the stream of the first buffered event
         self._last_event_t: int | None = None
-        self._pending: list[tuple[int, int, PoseMeasurement | _Miss | tuple]] = []
+        self._pending: list[tuple[int, int, PoseMeasurement | _Miss | _DepthFrame | tuple]] = []
         self._pending_seq = 0
         self._next_pose_slot: int | None = None
         self._ever_lost = False
@@ -485,6 +510,9 @@ class Tracker:
         if depth is not None and isinstance(self.depth, SensorDepth):
             depth_map = depth() if callable(depth) else depth
             self.depth.set_frame(t_us, depth_map)
+            if self.depth_range is not None:
+                self._schedule(t_us, _DepthFrame(t_us, self.depth.map))
+                self._apply_due(self._t)
         if rgb is None:
             return
         get_rgb = rgb if callable(rgb) else (lambda: rgb)
@@ -525,7 +553,8 @@ class Tracker:
         self._schedule(avail, measurement)
         self._apply_due(self._t)
 
-    def _schedule(self, available_us: int, item: PoseMeasurement | _Miss | tuple) -> None:
+    def _schedule(self, available_us: int,
+                  item: PoseMeasurement | _Miss | _DepthFrame | tuple) -> None:
         self._pending_seq += 1
         heapq.heappush(self._pending, (available_us, self._pending_seq, item))
 
@@ -727,6 +756,8 @@ class Tracker:
             _, _, item = heapq.heappop(self._pending)
             if isinstance(item, PoseMeasurement):
                 self._fuse_pose(item)
+            elif isinstance(item, _DepthFrame):
+                self._fuse_range(item)
             elif isinstance(item, _Miss):
                 self._on_miss(t_now)
             else:
@@ -758,6 +789,33 @@ class Tracker:
             self._out_of_view_us = 0
             if self.method == "frame-flow":
                 self._replay_frame_flow(m.t_us)
+
+    def _fuse_range(self, frame: _DepthFrame) -> None:
+        """Measure the object's range on a depth frame at the filter's pose of the frame's
+        time and fuse it there (see :mod:`evtrack.depth_range`)."""
+        if not self.initialized or self.depth_range is None:
+            return
+        with _Timer(self.stats.time_s, "depth_range"):
+            state = self.timeline.pose_at(frame.t_us)
+            if state is None:
+                return
+            T_ev = _quat_to_matrix(state[0].cpu().numpy(), state[1].cpu().numpy())
+            T_d = self._T_depth_event @ T_ev
+            res = self.depth_range.measure(frame.depth, T_d)
+            if not res.ok:
+                skipped = self.stats.depth_ranges_skipped
+                skipped[res.reason] = skipped.get(res.reason, 0) + 1
+                return
+            # uᵀ t_d = d with t_d = R t_ev + p  <=>  (Rᵀ u)ᵀ t_ev = d - uᵀ p
+            R, p = self._T_depth_event[:3, :3], self._T_depth_event[:3, 3]
+            u_ev = R.T @ res.direction
+            d_ev = res.distance - float(res.direction @ p)
+            kw = {"dtype": self.ukf.t.dtype, "device": self.device}
+            value = (torch.as_tensor(u_ev, **kw).reshape(1, 3),
+                     torch.tensor([d_ev], **kw))
+            if self.timeline.add(frame.t_us, "range", value,
+                                 torch.tensor([res.variance], **kw)):
+                self.stats.depth_ranges += 1
 
     def _fuse_twist(self, t_us: int, twist: Tensor, cov: Tensor) -> None:
         if not self.initialized:

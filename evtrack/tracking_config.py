@@ -231,6 +231,15 @@ class TrackerConfig:
         model_depth_interval_us: the ``model`` depth map is re-rendered at most this often.
         model_depth_scale: the ``model`` depth map is rendered at this fraction of the event
             camera's resolution.
+        depth_range: fuse the object's range along its viewing ray, measured on every sensor
+            depth frame against the mesh rendered at the predicted pose
+            (:mod:`evtrack.depth_range`), into the pose filter: the depth the event flow sees
+            worst. Off by default (the paper's method uses depth only for the flow's
+            interaction matrix); needs ``depth_source: sensor``, the object's mesh and headless
+            OpenGL. Not used by ``velocity``, which takes poses only to initialise.
+        depth_range_std_m: the floor of a range measurement's standard deviation (m).
+        depth_range_scale: the mesh is rendered at this fraction of the depth map's
+            resolution for the range.
         pose_rate_hz: the pose source runs on RGB frames at this rate (the paper: 5 Hz).
         pose_latency_ms: a pose computed from the frame at ``t`` becomes available to the
             filter at ``t + latency`` (simulated offline, as in the paper; the filter rolls back
@@ -276,6 +285,9 @@ class TrackerConfig:
     max_depth_age_ms: float = 100.0
     model_depth_interval_us: int = 5000
     model_depth_scale: float = 0.5
+    depth_range: bool = False
+    depth_range_std_m: float = 0.005
+    depth_range_scale: float = 0.5
     pose_rate_hz: float = 5.0
     pose_latency_ms: float = 200.0
     pose_min_confidence: float = 0.0
@@ -312,9 +324,16 @@ class TrackerConfig:
                                   f"got {value!r}")
         for name in ("pose_rate_hz", "history_ms"):
             _need_positive(self, name)
-        if not 0 < self.model_depth_scale <= 1:
-            raise ConfigError(f"tracker config field 'model_depth_scale' must be in (0, 1], "
-                              f"got {self.model_depth_scale}")
+        for name in ("model_depth_scale", "depth_range_scale"):
+            value = getattr(self, name)
+            if not 0 < value <= 1:
+                raise ConfigError(f"tracker config field {name!r} must be in (0, 1], "
+                                  f"got {value}")
+        _need_positive(self, "depth_range_std_m")
+        if self.depth_range and self.depth_source != "sensor":
+            raise ConfigError("tracker config field 'depth_range' needs depth_source 'sensor' "
+                              f"(got {self.depth_source!r}): the range is measured on the "
+                              "RGB-D depth frames")
         if not 0 <= self.min_visible_fraction <= 1:
             raise ConfigError(f"tracker config field 'min_visible_fraction' must be in [0, 1], "
                               f"got {self.min_visible_fraction}")

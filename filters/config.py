@@ -31,6 +31,8 @@ WEIGHTING_REFERENCES = ("previous", "predicted")
 
 # The 0.999 quantile of the χ² distribution with 6 degrees of freedom.
 CHI2_6DOF_999 = 22.457744484825326
+# The 0.999 quantile of the χ² distribution with 1 degree of freedom.
+CHI2_1DOF_999 = 10.827566170662733
 
 
 @dataclass
@@ -139,6 +141,10 @@ class PoseUKFConfig:
             0.999 quantile of χ² with 6 degrees of freedom); ``inf`` disables gating.
         reinit_after: after this many consecutive rejected poses the filter re-initialises on
             the next rejected one (it takes the pose and its covariance as the state).
+        range_gate_chi2: gate of :meth:`~evtrack.filters.PoseUKF.update_range` (a position
+            component along a direction, e.g. the object's range on a depth frame): rejected
+            above ``ν² / S`` (default: the 0.999 quantile of χ² with 1 degree of freedom).
+            Rejected ranges never re-initialise the filter.
         sigma_alpha, sigma_beta, sigma_kappa: van der Merwe's scaled sigma-point parameters. The
             defaults (1, 2, 0) put the 2n outer points at ``±√n σ`` with a zero-weight centre.
         mean_iterations: Gauss–Newton iterations of the weighted Karcher mean of the sigma
@@ -163,6 +169,7 @@ class PoseUKFConfig:
     init_std_rotation: float = 0.2
     gate_chi2: float = CHI2_6DOF_999
     reinit_after: int = 5
+    range_gate_chi2: float = CHI2_1DOF_999
     sigma_alpha: float = 1.0
     sigma_beta: float = 2.0
     sigma_kappa: float = 0.0
@@ -322,10 +329,11 @@ def _check_ukf_common(cfg: PoseUKFConfig) -> None:
         _check_positive(cfg, name)
     for name in ("q_translation", "q_rotation", "sigma_beta"):
         _check_positive(cfg, name, allow_zero=True)
-    if not cfg.gate_chi2 > 0:
-        raise ConfigError(
-            f"field 'gate_chi2' must be > 0 (inf disables gating), got {cfg.gate_chi2}"
-        )
+    for name in ("gate_chi2", "range_gate_chi2"):
+        if not getattr(cfg, name) > 0:
+            raise ConfigError(
+                f"field {name!r} must be > 0 (inf disables gating), got {getattr(cfg, name)}"
+            )
     for name in ("reinit_after", "mean_iterations"):
         v = getattr(cfg, name)
         if int(v) != v or v < 1:

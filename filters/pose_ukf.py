@@ -192,6 +192,66 @@ class _PoseFilter(CompilableSteps, nn.Module):
         self.reinitialised = self.reinitialised + reinit
         return used
 
+    def update_range(
+        self,
+        direction: Tensor,
+        distance: Tensor,
+        variance: Tensor | float,
+        valid: Tensor | None = None,
+    ) -> Tensor:
+        """Fuse a measurement of the position's component along a direction: ``z = uᵀ t``
+        (metres) with noise variance ``r``, e.g. the object's range along its viewing ray from
+        a depth frame. Returns (B,) bool, True where it was used.
+
+        The measurement is linear in the state (``H = [uᵀ, 0]``), so the Kalman update is
+        exact: ``S = H P Hᵀ + r``, ``K = P Hᵀ / S``, state ``⊞ K ν`` with ``ν = z − uᵀ t``
+        (the rotation and a twist in the state move through their covariance with ``t``),
+        covariance in Joseph form ``(I − K H) P (I − K H)ᵀ + r K Kᵀ``. Only initialised
+        tracks are updated; a range with ``ν² / S`` above ``config.range_gate_chi2`` is
+        rejected (not counted in ``rejected``, which counts poses, and never a reason to
+        re-initialise).
+
+        Args:
+            direction: (B,3) direction ``u`` (normalised here), camera frame.
+            distance: (B,) measured ``uᵀ t``, metres.
+            variance: (B,) or a float: ``r``, m².
+            valid: (B,) bool, False for tracks without a measurement (default all True).
+                Non-finite inputs or a non-positive variance count as missing.
+        """
+        B = self.batch_size
+        kw = {"dtype": self.t.dtype, "device": self.t.device}
+        u = _checked(direction, (B, 3), "direction", kw, copy=False)
+        z = _checked(distance, (B,), "distance", kw, copy=False)
+        r = torch.as_tensor(variance, **kw)
+        r = _checked(r.expand(B) if r.ndim == 0 else r, (B,), "variance", kw, copy=False)
+        if valid is None:
+            valid = torch.ones(B, dtype=torch.bool, device=kw["device"])
+        valid = _checked(valid, (B,), "valid", {"device": kw["device"]}, copy=False)
+        norm = torch.linalg.vector_norm(u, dim=-1)
+        ok = (valid & self.initialized & torch.isfinite(u).all(-1) & (norm > 0)
+              & torch.isfinite(z) & torch.isfinite(r) & (r > 0))
+        u = u / torch.where(norm > 0, norm, torch.ones_like(norm)).unsqueeze(-1)
+        t, q, extra, P = self._state()
+        n = P.shape[-1]
+        H = torch.zeros(B, n, **kw)
+        H[:, :3] = u
+        PH = (P @ H.unsqueeze(-1)).squeeze(-1)  # (B,n) = P Hᵀ
+        S = (H * PH).sum(-1) + r
+        nu = z - (u * t).sum(-1)
+        S_safe = torch.where(ok & (S > 0), S, torch.ones_like(S))
+        passed = ok & (S > 0) & (nu * nu <= self.config.range_gate_chi2 * S_safe)
+        K = PH / S_safe.unsqueeze(-1)
+        delta = torch.where(passed.unsqueeze(-1), K * nu.unsqueeze(-1), torch.zeros_like(K))
+        t_new, q_new = pose_boxplus(t, q, delta[:, :6])
+        extra_new = extra + delta[:, 6:]
+        IKH = torch.eye(n, **kw) - K.unsqueeze(-1) * H.unsqueeze(-2)
+        P_new = symmetrize(IKH @ P @ IKH.transpose(-1, -2)
+                           + r[:, None, None] * K.unsqueeze(-1) * K.unsqueeze(-2))
+        keep = passed.unsqueeze(-1)
+        self._set_state(t_new, torch.where(keep, q_new, q), torch.where(keep, extra_new, extra),
+                        torch.where(keep.unsqueeze(-1), P_new, P))
+        return passed
+
     def _update_inputs(
         self, t_meas: Tensor, q_meas: Tensor, cov_meas: Tensor | None, valid: Tensor | None
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:

@@ -54,12 +54,15 @@ class RunSpec:
         return TrackerConfig.from_dict(changes, f"run {self.name}", base=base)
 
 
-#: Ablations of the full method (the paper's Table III).
+#: Ablations of the full method (the paper's Table III), and one extension: the range of
+#: every depth frame fused into the pose filter (``depth_range``, not in the paper).
 ABLATIONS = (
     RunSpec("full-no-normal-flow", "full", "full w/o normal-flow constraint",
             {"velocity_kf": {"normal_flow": False}}),
     RunSpec("full-no-weighting", "full", "full w/o measurement weighting",
             {"velocity_kf": {"weighting": False}}),
+    RunSpec("full-depth-range", "full", "full + depth range (not in the paper)",
+            {"depth_range": True}),
 )
 
 

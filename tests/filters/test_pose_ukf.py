@@ -426,3 +426,91 @@ def test_object_centred_random_walk() -> None:
                  cov=torch.eye(12, dtype=F64)[None] * 1e-18)
     camera.predict(dt)
     assert camera.cov[0, 6:9, 9:12].abs().max() < 1e-12
+
+
+# ---------------------------------------------------------------------------- range updates
+def _random_spd(g: torch.Generator, B: int, n: int, scale: float) -> torch.Tensor:
+    A = torch.randn(B, n, n, generator=g, dtype=F64) * scale
+    return A @ A.transpose(-1, -2) + 1e-4 * torch.eye(n, dtype=F64)
+
+
+@pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
+def test_range_update_equals_the_information_form(cls: type) -> None:
+    """The range update against the information form of the same linear measurement, an
+    independent derivation: ``P⁺ = (P⁻¹ + Hᵀ H / r)⁻¹``, ``δ = P⁺ Hᵀ ν / r`` (tangent at the
+    prior mean); the rotation (and a twist in the state) move through the covariance only."""
+    g = torch.Generator().manual_seed(3)
+    B = 6
+    filt = cls(B, fast_path=False)
+    n = filt.n
+    t0, q0 = torch.randn(B, 3, generator=g, dtype=F64) + torch.tensor([0, 0, 1.0], dtype=F64),\
+        _unit_q(g, B)
+    P0 = _random_spd(g, B, n, 0.05)
+    filt.reset(t=t0, q=q0, cov=P0)
+    twist0 = filt.twist.clone() if cls is PoseTwistUKF else None
+    u = torch.nn.functional.normalize(torch.randn(B, 3, generator=g, dtype=F64), dim=-1)
+    nu = 0.02 * torch.randn(B, generator=g, dtype=F64)
+    z = (u * t0).sum(-1) + nu
+    r = torch.full((B,), 1e-4, dtype=F64)
+    used = filt.update_range(u * 3.0, z, r)  # the direction is normalised
+    assert used.all()
+    H = torch.zeros(B, 1, n, dtype=F64)
+    H[:, 0, :3] = u
+    info = torch.linalg.inv(P0) + H.transpose(-1, -2) @ H / r[:, None, None]
+    P_post = torch.linalg.inv(info)
+    delta = (P_post @ H.transpose(-1, -2)).squeeze(-1) * (nu / r)[:, None]
+    torch.testing.assert_close(filt.cov, P_post, rtol=1e-8, atol=1e-12)
+    torch.testing.assert_close(filt.t, t0 + delta[:, :3], rtol=0, atol=1e-12)
+    q_expected = torch.stack([torch.tensor(
+        (Rotation.from_rotvec(delta[b, 3:6].numpy()) * Rotation.from_quat(
+            q0[b, [1, 2, 3, 0]].numpy())).as_quat()[[3, 0, 1, 2]]) for b in range(B)])
+    assert _same_rotation(filt.q, q_expected) < 1e-12
+    if twist0 is not None:
+        torch.testing.assert_close(filt.twist, twist0 + delta[:, 6:], rtol=0, atol=1e-12)
+
+
+def test_range_update_moves_only_along_the_direction_when_uncorrelated() -> None:
+    filt = PoseUKF(1)
+    t0 = torch.tensor([[0.1, -0.05, 0.8]], dtype=F64)
+    filt.reset(t=t0, q=torch.tensor([[1.0, 0, 0, 0]], dtype=F64))
+    u = t0 / t0.norm()
+    used = filt.update_range(u, (u * t0).sum(-1) + 0.03, 1e-6)
+    assert bool(used[0])
+    moved = filt.t - t0
+    # a diagonal isotropic prior: the correction is along u, nearly the full 3 cm
+    assert float(torch.linalg.vector_norm(torch.linalg.cross(moved, u))) < 1e-12
+    assert abs(float((moved * u).sum()) - 0.03) < 1e-3
+    assert float((filt.q - torch.tensor([[1.0, 0, 0, 0]], dtype=F64)).abs().max()) < 1e-15
+    # the variance along u shrinks to about r; across u it is unchanged
+    Puu = float(u[0] @ filt.cov[0, :3, :3] @ u[0])
+    assert Puu < 1.01e-6
+    across = torch.tensor([0.0, 1.0, 0.0], dtype=F64)
+    across = across - (across @ u[0]) * u[0]
+    across = across / across.norm()
+    init = filt.config.init_std_translation ** 2
+    assert abs(float(across @ filt.cov[0, :3, :3] @ across) - init) < 1e-12
+
+
+def test_range_gate_and_missing_inputs() -> None:
+    """A range beyond the gate is rejected, never re-initialises the filter (even many in a
+    row) nor counts as a rejected pose; uninitialised tracks and non-finite inputs are
+    skipped."""
+    filt = PoseUKF(3)
+    filt.reset(t=torch.tensor([[0, 0, 1.0]] * 3, dtype=F64),
+               q=torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=F64))
+    filt.initialized[2] = False
+    u = torch.tensor([[0, 0, 1.0]] * 3, dtype=F64)
+    S = filt.config.init_std_translation ** 2 + 1e-4
+    limit = math.sqrt(filt.config.range_gate_chi2 * S)
+    before = filt.t.clone()
+    for _ in range(3 * filt.config.reinit_after):
+        used = filt.update_range(u, torch.tensor([1.0 + 1.01 * limit, 1.0, 1.5], dtype=F64),
+                                 torch.tensor([1e-4, float("nan"), 1e-4], dtype=F64))
+        assert not used.any()
+    assert torch.equal(filt.t, before)
+    assert filt.rejected.tolist() == [0, 0, 0]
+    assert filt.reinitialised.tolist() == [0, 0, 0] and filt.rejected_run.tolist() == [0, 0, 0]
+    assert bool(filt.update_range(u, torch.tensor([1.0 + 0.99 * limit, 1.0, 1.0],
+                                                   dtype=F64), 1e-4)[0])
+    with pytest.raises(ValueError, match="direction"):
+        filt.update_range(torch.zeros(2, 3, dtype=F64), torch.ones(3, dtype=F64), 1e-4)

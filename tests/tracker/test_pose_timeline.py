@@ -63,6 +63,51 @@ def test_late_poses_equal_on_time_poses() -> None:
     assert int(filt.rejected[0]) == int(ref.rejected[0])
 
 
+def test_late_ranges_equal_on_time_ranges() -> None:
+    """A range measurement (kind ``"range"``) that arrives late is fused at its own time, as a
+    plain filter would have fused it then, between the poses."""
+    n = 40
+    twists = _twists(n)
+    u = torch.tensor([[0.1, -0.2, 1.0]], dtype=torch.float64)
+    u = u / u.norm()
+    ranges = {5200: 0.004, 21000: -0.006}  # µs -> offset of the measured distance (m)
+    var = torch.tensor([4e-6], dtype=torch.float64)
+
+    def measured(f: PoseUKF, offset: float) -> torch.Tensor:
+        return (u * f.t).sum(-1) + offset
+
+    ref = PoseUKF(1, dtype=torch.float64)
+    _start(ref)
+    t_cur = 0
+    values = {}
+    for k in range(n):
+        t_end = (k + 1) * STEP
+        for tm in sorted(ranges):
+            if t_cur < tm <= t_end:
+                ref.predict(twists[k], (tm - t_cur) * 1e-6)
+                values[tm] = measured(ref, ranges[tm])
+                assert bool(ref.update_range(u, values[tm], var)[0])
+                t_cur = tm
+        ref.predict(twists[k], (t_end - t_cur) * 1e-6)
+        t_cur = t_end
+    filt = PoseUKF(1, dtype=torch.float64)
+    _start(filt)
+    line = PoseTimeline(filt, horizon_us=30_000)
+    for k in range(n):
+        line.step((k + 1) * STEP, twists[k])
+        for tm in ranges:
+            if k * STEP < tm + 9_000 <= (k + 1) * STEP:
+                assert line.add(tm, "range", (u, values[tm]), var)
+    torch.testing.assert_close(filt.t, ref.t, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.q, ref.q, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.cov, ref.cov, rtol=1e-9, atol=1e-15)
+    plain = PoseUKF(1, dtype=torch.float64)
+    _start(plain)
+    for k in range(n):
+        plain.predict(twists[k], STEP * 1e-6)
+    assert float((filt.t - plain.t).abs().max()) > 1e-3  # the ranges did something
+
+
 def test_twist_measurements_on_the_constant_velocity_filter() -> None:
     ref, filt = PoseTwistUKF(1), PoseTwistUKF(1)
     for f in (ref, filt):
