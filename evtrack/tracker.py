@@ -53,6 +53,12 @@ Depth fallback: a RoI without a valid depth (no depth frame yet, a frame older t
 ``max_depth_age_ms``, a pushed frame without depth and no earlier one, or only missing or
 out-of-range pixels in its patch) takes the predicted depth of the object's origin; each such RoI
 is counted in :attr:`TrackerStats.depth_fallbacks`.
+
+Depth range (``depth_range``, off by default; not in the paper): every sensor depth frame also
+measures the object's range along its viewing ray against the mesh rendered at the filter's
+pose of the frame's time (:mod:`evtrack.depth_range`), fused at that time as a 1-D measurement
+(:meth:`~evtrack.filters.PoseUKF.update_range`); frames without one are counted by reason in
+:attr:`TrackerStats.depth_ranges_skipped`.
 """
 
 from __future__ import annotations

@@ -129,3 +129,24 @@ def test_depth_range_config_is_checked(fast_sequence) -> None:
     # the velocity baseline takes poses only to initialise: no range there
     velocity, _ = make_tracker(fast_sequence, method="velocity", depth_range=True)
     assert velocity.depth_range is None
+
+
+@pytest.mark.parametrize("method", ["pose", "frame-flow", "ge"])
+def test_every_pose_filter_method_measures_ranges(fast_sequence, method) -> None:
+    """The baselines with a pose filter measure ranges too (frame-flow measures depth in the
+    RGB camera and carries the range into the event camera's frame). Every depth frame after
+    the first pose is fused or refused with a reason: a prediction far off across the ray
+    (``pose`` and ``ge`` lag this fast box by centimetres) is refused, not fused."""
+    seq = fast_sequence
+    tracker, _ = make_tracker(seq, method=method, depth_range=True)
+    traj = tracker.track(seq)
+    st = tracker.stats
+    known = {"no pose", "too few pixels", "too few agreeing", "offset too large"}
+    assert set(st.depth_ranges_skipped) <= known
+    before_first_pose = int(np.ceil(tracker.config.pose_latency_ms * 1e3 / np.diff(
+        seq.depth_times_us.numpy()).mean())) + 1
+    frames = len(seq.depth_times_us)
+    assert st.depth_ranges + sum(st.depth_ranges_skipped.values()) >= frames - before_first_pose
+    if method != "ge":
+        assert st.depth_ranges >= 5
+    assert np.isfinite(traj.poses.numpy()[traj.status.numpy() > 0]).all()
