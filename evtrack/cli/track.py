@@ -39,6 +39,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--depth-refine", action="store_true",
                    help="refine each network pose on the sequence's depth frames (ICP with the "
                         "object's mesh)")
+    p.add_argument("--depth-range", action="store_true",
+                   help="also fuse the object's range measured on every depth frame (the mesh "
+                        "at the predicted pose against the sensor depth; depth_range in the "
+                        "config; not in the paper)")
     p.add_argument("--device", default=None, help="torch device (overrides the config's)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads while tracking (default: the config's torch_threads)")
@@ -86,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
     seq = Sequence.load(args.sequence)
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     changes = {k: v for k, v in (("method", args.method), ("device", args.device),
-                                 ("torch_threads", args.threads)) if v}
+                                 ("torch_threads", args.threads),
+                                 ("depth_range", args.depth_range)) if v}
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
     traj = tracker.track(seq, progress=not args.quiet)
@@ -94,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
     st = tracker.stats
     print(f"{args.out}: {len(traj)} samples ({cfg.method}), {int(traj.tracked.sum())} tracking; "
           f"{st.events} events, {st.poses} poses ({st.poses_rejected} rejected), "
-          f"{st.lost} losses")
+          f"{st.lost} losses" + (f", {st.depth_ranges} depth ranges fused" if cfg.depth_range
+                                 else ""))
     if seq.ground_truth is not None:
         print(f"error against ground truth: {tracking_errors(traj, seq.ground_truth)}")
     return 0

@@ -171,5 +171,8 @@ def test_track_command(fast_sequence, tmp_path, capsys) -> None:
     assert "error against ground truth" in text
     traj = Trajectory.load(out)
     assert traj.method == "pose" and len(traj) > 500
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--oracle", "--quiet",
+                 "--depth-range"]) == 0
+    assert "depth ranges fused" in capsys.readouterr().out
     assert main(["track", str(fast_sequence.root), "--out", str(out)]) == 1  # no pose source
     assert "--weights PATH" in capsys.readouterr().err
