@@ -116,6 +116,8 @@ class FlowConfig:
             Eq. 3 solution F lies within ``line_gate * |F|`` of it.
         refine_iters: IRLS iterations of the refinement.
         chunk_size: events handed to the batched search at once (bounds the sorting work).
+            An update of several such pieces on the compiled backend searches the next piece
+            in a worker thread while it registers the current one.
         block_size: events whose lookups are evaluated as one tensor operation; peak tensor
             sizes are ``block_size * (number of displacements) * (history + pass_repeats)``.
             ``None``: 16384 on CPU, 262144 on CUDA.

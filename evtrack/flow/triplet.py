@@ -8,6 +8,7 @@ window (:mod:`evtrack.flow.registration`).
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -177,10 +178,9 @@ class TripletFlow(nn.Module):
         self._check(events)
         parts = [FlowResult.empty(self.device, self._emitted, self.return_event_flow)]
         size = self.config.chunk_size
-        starts = range(0, len(events), size)
-        for start in starts:
-            last = start == starts[-1] and until_us is not None
-            piece = self._search_piece(events[start:start + size])
+        pieces = [events[start:start + size] for start in range(0, len(events), size)]
+        for i, piece in enumerate(self._searched(pieces)):
+            last = i == len(pieces) - 1 and until_us is not None
             parts.append(self._register_piece(*piece, finalise=not last))
         if until_us is not None and self._search is not None:
             self._last_t = max(self._last_t if self._last_t is not None else until_us,
@@ -228,6 +228,24 @@ class TripletFlow(nn.Module):
         roi = torch.div(y, s, rounding_mode="floor") * cols + torch.div(x, s,
                                                                        rounding_mode="floor")
         return window * (cols * rows) + roi
+
+    def _searched(self, pieces: list[Events]):
+        """The searched pieces, in order. With the compiled search and several pieces, the
+        search of piece ``k + 1`` runs in a worker thread (the kernel releases the GIL) while
+        the caller registers piece ``k``: the search is sequential by nature and the
+        registration does not touch its history, so the two overlap without changing a bit
+        of the result."""
+        if len(pieces) < 2 or not isinstance(self._search, CompiledSearch):
+            for piece in pieces:
+                yield self._search_piece(piece)
+            return
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="evtrack-flow") as pool:
+            ahead = pool.submit(self._search_piece, pieces[0])
+            for k in range(len(pieces)):
+                done = ahead.result()
+                if k + 1 < len(pieces):
+                    ahead = pool.submit(self._search_piece, pieces[k + 1])
+                yield done
 
     def _search_piece(self, ev: Events) -> tuple[Tensor, Tensor, Tensor, Candidates, int]:
         """The candidates of the next events (advances the search's history)."""

@@ -184,6 +184,43 @@ def test_chunk_size_does_not_change_the_result(texture):
     torch.testing.assert_close(a.support, b.support)
 
 
+def test_search_ahead_in_a_thread_gives_the_same_bits(texture, monkeypatch):
+    """With the compiled search and several pieces per update, the next piece is searched in a
+    worker thread while this one is registered; every output equals the one-at-a-time run."""
+    from evtrack.flow import compiled
+
+    if not compiled.available():
+        pytest.skip("numba is not installed: no compiled search")
+    ev, _ = texture
+    ev = ev[:12_000]
+    cfg = {"roi_size": 32, "window_us": 2_000, "chunk_size": 1_000, "backend": "compiled",
+           "return_event_flow": True}
+    threads = []
+    search_piece = TripletFlow._search_piece
+
+    def recorded(self, piece):
+        import threading
+
+        threads.append(threading.current_thread().name)
+        return search_piece(self, piece)
+
+    monkeypatch.setattr(TripletFlow, "_search_piece", recorded)
+    ahead = TripletFlow(**cfg)
+    a = FlowResult.cat([ahead.update(ev[:7_000]), ahead.update(ev[7_000:], until_us=int(
+        ev.t[-1]) + 1), ahead.flush()])
+    assert sum(name.startswith("evtrack-flow") for name in threads) == 12
+    monkeypatch.setattr(TripletFlow, "_searched", lambda self, pieces: (
+        self._search_piece(p) for p in pieces))
+    plain = TripletFlow(**cfg)
+    b = FlowResult.cat([plain.update(ev[:7_000]), plain.update(ev[7_000:], until_us=int(
+        ev.t[-1]) + 1), plain.flush()])
+    assert len(a) >= 5
+    for name in ("flow", "full_flow", "cost", "support", "normal", "roi", "window",
+                 "event_flow"):
+        assert torch.equal(torch.nan_to_num(getattr(a, name).float(), 1e30),
+                           torch.nan_to_num(getattr(b, name).float(), 1e30)), name
+
+
 def test_empty_and_single_event_inputs():
     flow = TripletFlow(sensor_size=SIZE)
     assert len(flow(Events.empty(SIZE))) == 0
