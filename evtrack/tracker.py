@@ -289,9 +289,10 @@ class Tracker:
                                   "mesh file), not bare vertices")
             self.depth_range = DepthRange(self.mesh, self.depth.camera, cfg.depth_range_scale,
                                           cfg.depth_range_std_m)
-            # the depth maps are in the sensing camera; the filter's pose in the event camera
-            T = (torch.linalg.inv(self.T_event_rgb) if sensing_camera is self.rgb_camera
-                 and self.method == "frame-flow" else torch.eye(4, dtype=torch.float64))
+            # the depth maps are in the sensing camera (frame-flow's is the RGB camera), the
+            # filter's pose in the event camera
+            T = (torch.linalg.inv(self.T_event_rgb) if self.method == "frame-flow"
+                 else torch.eye(4, dtype=torch.float64))
             self._T_depth_event = T.numpy()
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
