@@ -41,12 +41,15 @@ import sys
 import time
 from pathlib import Path
 
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+import evtrack  # noqa: F401  # isort: skip
 import torch
 
 from evtrack.events import Events
 from evtrack.flow import CandidateSearch, FlowConfig, TripletFlow
 from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.scenes import translating_texture
+from evtrack.openmp_wait import wait_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -117,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         from evtrack.sequence import Sequence
 
         scenes.append((f"sequence {folder}", Sequence.load(folder).events))
-    print(f"torch {torch.__version__}, CPU threads {thread_counts}")
+    print(f"torch {torch.__version__}, CPU threads {thread_counts}, "
+          f"OMP_WAIT_POLICY {wait_policy()}")
     configs = [("defaults", FlowConfig())]
     configs += [(str(path), FlowConfig.from_yaml(path)) for path in args.config]
     for name, ev in scenes:

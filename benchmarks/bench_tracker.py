@@ -32,11 +32,14 @@ import tempfile
 import time
 from pathlib import Path
 
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+import evtrack  # noqa: F401  # isort: skip
 import numpy as np
 import torch
 
 from evtrack import Sequence
 from evtrack.demo import demo_tracker_config
+from evtrack.openmp_wait import wait_policy
 from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
 from evtrack.tracker import Tracker
 from evtrack.tracking_config import TrackerConfig
@@ -150,7 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, mask margin "
           f"{margin:g} px, "
           f"{rows[0]['events']} events over {rows[0]['seq_s']:.2f} s, pose source "
-          f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every {args.batch_steps} steps")
+          f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every {args.batch_steps} steps, "
+          f"OMP_WAIT_POLICY {wait_policy()}")
     head = (f"{'method':<10} {'thr':>3} {'cap':>6} {'thinned':>8} {'proc s':>7} {'rtf':>6} "
             f"{'ev/s':>9} {'flow':>6} "
             f"{'veloc':>6} {'pose':>6} {'frames':>6} {'grp p50':>8} {'grp p95':>8} "

@@ -10,6 +10,8 @@ Public API (see DESIGN.md)::
 
 from __future__ import annotations
 
+# first, before torch loads: sets OMP_WAIT_POLICY=PASSIVE unless set (see the module)
+import evtrack.openmp_wait  # noqa: F401  # isort: skip
 from evtrack import flow, geometry, io
 from evtrack.camera import PinholeCamera
 from evtrack.errors import (
