@@ -212,15 +212,34 @@ def _load_mesh(mesh: Any):
     return None, vertices
 
 
-def _subset(res: FlowResult, rows: Tensor) -> FlowResult:
-    """The RoI rows ``rows`` (bool) of a flow result."""
-    rows = rows.to(res.t.device)
-    kw = {f.name: getattr(res, f.name) for f in dataclasses.fields(res)}
-    for name in ("xy", "t", "flow", "support", "cost", "normal", "normal_dir", "full_flow",
-                 "n_events", "roi", "window"):
-        kw[name] = kw[name][rows]
-    kw["event_flow"] = None
-    return FlowResult(**kw)
+class _StepFlows:
+    """The RoI flows of one step group, split by velocity step.
+
+    The rows are put in time order once (the flow reports its windows in time order; the sort
+    is stable and costs nothing then), so each step's rows are one contiguous slice: views,
+    not the per-step masks over every field of the result.
+
+    Args:
+        res: the group's flow result.
+        t0: start of the group (µs). step: the velocity step (µs). n_steps: steps in the group.
+        dtype, device: of the velocity filter's inputs.
+    """
+
+    def __init__(self, res: FlowResult, t0: int, step: int, n_steps: int, dtype: torch.dtype,
+                 device: torch.device) -> None:
+        t = res.t.cpu().numpy()
+        order = np.argsort(t, kind="stable")
+        self.uv = res.xy.detach().cpu().numpy()[order].astype(np.float64)
+        order_t = torch.from_numpy(order).to(res.flow.device)
+        self.flow = res.flow[order_t].to(dtype=dtype, device=device)
+        self.normal = res.normal[order_t].to(device)
+        edges = t0 + step * np.arange(n_steps + 1, dtype=np.int64)
+        self.bounds = np.searchsorted(t[order], edges, side="left")
+
+    def step(self, k: int) -> tuple[np.ndarray, Tensor, Tensor]:
+        """Step ``k``'s RoI centres (N, 2) float64 px, flows (N, 2) px/s and normal flags (N,)."""
+        lo, hi = int(self.bounds[k]), int(self.bounds[k + 1])
+        return self.uv[lo:hi], self.flow[lo:hi], self.normal[lo:hi]
 
 
 def _quat_to_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -623,17 +642,17 @@ class Tracker:
                 ev, index = ev[:0], index[:0]
             if cfg.max_events_per_step and len(ev) > cfg.max_events_per_step:
                 ev = self._thin(ev, index, t0)
-        res: FlowResult | None = None
+        res: _StepFlows | None = None
         if self.method in ("full", "velocity"):
             with _Timer(st.time_s, "flow"):
                 # group ends are whole steps, and steps whole flow windows (the config
                 # checks it): every window of the group is over, one registration reports all
-                res = self.flow.update(ev, until_us=t_end)
-            res_t = res.t.cpu()
+                res = _StepFlows(self.flow.update(ev, until_us=t_end), t0, step,
+                                 (t_end - t0) // step, self.vkf.twist.dtype, self.device)
         ev_cut = torch.searchsorted(ev.t, t0 + step * torch.arange(
             1, (t_end - t0) // step + 1, dtype=torch.int64)).tolist() if len(ev) else None
         for k in range((t_end - t0) // step):
-            a, b = t0 + k * step, t0 + (k + 1) * step
+            b = t0 + (k + 1) * step
             if k:
                 self._frames_due(b)
             usable = pose is None or self.initialized  # lost inside the group: predict only
@@ -642,8 +661,7 @@ class Tracker:
             if res is not None:
                 with _Timer(st.time_s, "velocity"):
                     if usable:
-                        rows = (res_t >= a) & (res_t < b)
-                        twist = self._velocity_step(dt, _subset(res, rows), poly, pose)
+                        twist = self._velocity_step(dt, *res.step(k), poly, pose)
                     else:
                         twist = self.vkf.predict(dt)
             elif self.method == "ge":
@@ -713,27 +731,26 @@ class Tracker:
     def _fallback_depth(self, pose: np.ndarray | None) -> float:
         return float(pose[2, 3]) if pose is not None else float("nan")
 
-    def _velocity_step(self, dt: float, res: FlowResult, poly: SilhouettePolygon | None,
-                       pose: np.ndarray | None) -> Tensor:
-        """VelocityKF predict + update from the step's RoI flows; returns the twist (1, 6)."""
+    def _velocity_step(self, dt: float, uv: np.ndarray, flow: Tensor, normal: Tensor,
+                       poly: SilhouettePolygon | None, pose: np.ndarray | None) -> Tensor:
+        """VelocityKF predict + update from the step's RoI flows (see :class:`_StepFlows`);
+        returns the twist (1, 6)."""
         if self.config.velocity_kf.object_centred:
             self.vkf.set_pivot(None if pose is None or not np.isfinite(pose).all()
                                else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
-        if len(res) == 0 or (poly is None and pose is not None):
+        if len(uv) == 0 or (poly is None and pose is not None):
             return self.vkf.predict(dt)
         cfg = self.config
-        uv = res.xy.detach().cpu().numpy().astype(np.float64)
         if pose is None:  # before the first pose: plain patch medians, no fallback
             z = self._unranged_depth(uv)
         else:
             z = self._roi_depth(uv, poly, pose)
         kw = {"dtype": self.vkf.twist.dtype, "device": self.device}
-        normal = res.normal.reshape(1, -1).to(self.device) if cfg.use_flow_normal_flags else None
-        self.stats.roi_flows += len(res)
+        self.stats.roi_flows += len(uv)
         self.stats.velocity_updates += 1
         return self.vkf(dt, torch.as_tensor(uv, **kw).unsqueeze(0),
-                        torch.as_tensor(z, **kw).unsqueeze(0),
-                        res.flow.to(**kw).unsqueeze(0), normal)
+                        torch.as_tensor(z, **kw).unsqueeze(0), flow.unsqueeze(0),
+                        normal.unsqueeze(0) if cfg.use_flow_normal_flags else None)
 
     def _unranged_depth(self, uv: np.ndarray) -> np.ndarray:
         if (self.depth.t_us is not None
