@@ -123,9 +123,9 @@ class Silhouette:
         self._image = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5],
                                 [-0.5, h - 0.5]], np.float32)
 
-    def polygon(self, pose: np.ndarray | torch.Tensor) -> SilhouettePolygon | None:
-        """The silhouette at an object-to-camera pose (4, 4); ``None`` when the object is not in
-        front of the camera (a hull vertex closer than :data:`MIN_DEPTH_M`)."""
+    def _project(self, pose: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray] | None:
+        """Hull vertices at ``pose``: pixels (V, 2) and depths (V,) metres, or ``None`` when a
+        vertex is closer than :data:`MIN_DEPTH_M` (or not finite)."""
         T = np.asarray(pose, np.float64)
         P = self.points @ T[:3, :3].T + T[:3, 3]
         z = P[:, 2]
@@ -136,6 +136,29 @@ class Silhouette:
                            self.camera.fy * P[:, 1] / z + self.camera.cy], 1)
         else:
             uv = self.camera.project(torch.from_numpy(P)).numpy()
+        return uv, z
+
+    def visible_fraction(self, pose: np.ndarray | torch.Tensor) -> float:
+        """``polygon(pose).visible_fraction`` (0 without a polygon), in [0, 1]: 1 at once when
+        every hull vertex projects inside the image (then so does the hull), without building
+        the polygon; the tracker asks at every step."""
+        projected = self._project(pose)
+        if projected is None:
+            return 0.0
+        uv = projected[0]
+        w, h = self.camera.width, self.camera.height
+        if ((uv >= -0.5).all() and (uv[:, 0] < w - 0.5).all() and (uv[:, 1] < h - 0.5).all()):
+            return 1.0
+        poly = self.polygon(pose)
+        return 0.0 if poly is None else poly.visible_fraction
+
+    def polygon(self, pose: np.ndarray | torch.Tensor) -> SilhouettePolygon | None:
+        """The silhouette at an object-to-camera pose (4, 4); ``None`` when the object is not in
+        front of the camera (a hull vertex closer than :data:`MIN_DEPTH_M`)."""
+        projected = self._project(pose)
+        if projected is None:
+            return None
+        uv, z = projected
         hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
         area = abs(cv2.contourArea(hull))
         if area > 0:

@@ -933,8 +933,7 @@ class Tracker:
     def _check_view(self, t1: int) -> None:
         if not self.initialized:
             return
-        poly = self.silhouette.polygon(self._current_pose())
-        visible = 0.0 if poly is None else poly.visible_fraction
+        visible = self.silhouette.visible_fraction(self._current_pose())
         if visible >= self.config.min_visible_fraction:
             self._out_of_view_us = 0
             return

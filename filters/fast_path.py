@@ -39,6 +39,7 @@ __all__ = [
     "as_array",
     "as_bool_array",
     "PoseUpdate",
+    "pivot_noise",
     "pose_predict",
     "pose_update",
     "velocity_predict",
@@ -107,6 +108,30 @@ def velocity_predict(
     """
     decay = math.exp(dt * log_rate)
     return twist * decay, cov * (decay * decay) + dt * q_matrix
+
+
+def pivot_noise(q_density: np.ndarray, pivot: np.ndarray) -> np.ndarray:
+    """``A diag(q) Aᵀ`` with ``A = [[I, [p]×], [0, I]]`` (:func:`~evtrack.filters.lie.pivot_map`)
+    in closed form: ``[[Qv + C Qw Cᵀ, C Qw], [Qw Cᵀ, Qw]]`` with ``C = [p]×``, exactly
+    symmetric.
+
+    Args:
+        q_density: (6,) diagonal ``[qv, qw]``. pivot: (3,) metres.
+
+    Returns:
+        (6, 6) float64.
+    """
+    px, py, pz = (float(v) for v in pivot)
+    cross = np.array([[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]])
+    scaled = cross * q_density[3:]  # C Qw (columns scaled)
+    out = np.empty((6, 6))
+    out[:3, :3] = scaled @ cross.T
+    out[:3, :3] = 0.5 * (out[:3, :3] + out[:3, :3].T)
+    out[:3, :3] += np.diag(q_density[:3])
+    out[:3, 3:] = scaled
+    out[3:, :3] = scaled.T
+    out[3:, 3:] = np.diag(q_density[3:])
+    return out
 
 
 def velocity_update(

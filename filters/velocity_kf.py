@@ -180,6 +180,10 @@ class VelocityKF(CompilableSteps, nn.Module):
         about itself no longer has to be explained by a velocity of the camera-origin point.
         ``None`` restores the diagonal noise of the config. One pivot for all tracks.
         """
+        if pivot is not None and self._fast((pivot,)):  # the tracker's call at every step
+            self._buffers["q_matrix"] = torch.from_numpy(fp.pivot_noise(
+                self._buffers["q_density"].numpy(), fp.as_array(pivot).reshape(3)))
+            return
         Q = torch.diag(self.q_density)
         if pivot is not None:
             A = pivot_map(torch.as_tensor(pivot, dtype=Q.dtype, device=Q.device).reshape(3))

@@ -60,6 +60,23 @@ def test_silhouette_covers_the_rendered_mask(box) -> None:
     assert outside.visible_fraction == 0.0
 
 
+def test_visible_fraction_equals_the_polygons() -> None:
+    cube = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
+    sil = Silhouette(cube, CAM)
+    rng = np.random.default_rng(3)
+    partly = 0
+    for _ in range(200):
+        T = _pose(rng.normal(0, 1, 3), [rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3),
+                                        rng.uniform(0.2, 0.8)])
+        poly = sil.polygon(T)
+        expected = 0.0 if poly is None else poly.visible_fraction
+        partly += 0.0 < expected < 1.0
+        assert sil.visible_fraction(T) == pytest.approx(expected, abs=1e-6)
+    assert partly > 10  # the slow path was exercised, not only the all-inside shortcut
+    assert sil.visible_fraction(_pose([0, 0, 0], [0, 0, -1.0])) == 0.0  # behind the camera
+    assert sil.visible_fraction(_pose([0, 0, 0], [np.nan, 0, 1.0])) == 0.0
+
+
 def test_roi_depth_median_range_and_missing() -> None:
     depth = np.full((20, 30), 2.0, np.float32)
     depth[5:15, 5:15] = 0.5
