@@ -119,15 +119,22 @@ class Silhouette:
         self.camera = camera
         self.points = hull_vertices(vertices)
         self._points_t = torch.from_numpy(self.points)
+        lo, hi = self.points.min(0), self.points.max(0)
+        # the 8 corners of the hull's bounding box (object frame): in front of the camera and
+        # projecting inside the image, they put every hull point there (the box is convex)
+        self._box = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                              for z in (lo[2], hi[2])])
         w, h = camera.width, camera.height
         self._image = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5],
                                 [-0.5, h - 0.5]], np.float32)
 
-    def _project(self, pose: np.ndarray | torch.Tensor) -> tuple[np.ndarray, np.ndarray] | None:
-        """Hull vertices at ``pose``: pixels (V, 2) and depths (V,) metres, or ``None`` when a
-        vertex is closer than :data:`MIN_DEPTH_M` (or not finite)."""
+    def _project(self, pose: np.ndarray | torch.Tensor, points: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Hull vertices (or ``points`` (V, 3), object frame) at ``pose``: pixels (V, 2) and
+        depths (V,) metres, or ``None`` when a point is closer than :data:`MIN_DEPTH_M` (or not
+        finite)."""
         T = np.asarray(pose, np.float64)
-        P = self.points @ T[:3, :3].T + T[:3, 3]
+        P = (self.points if points is None else points) @ T[:3, :3].T + T[:3, 3]
         z = P[:, 2]
         if not np.isfinite(P).all() or z.min() < MIN_DEPTH_M:
             return None
@@ -140,15 +147,16 @@ class Silhouette:
 
     def visible_fraction(self, pose: np.ndarray | torch.Tensor) -> float:
         """``polygon(pose).visible_fraction`` (0 without a polygon), in [0, 1]: 1 at once when
-        every hull vertex projects inside the image (then so does the hull), without building
-        the polygon; the tracker asks at every step."""
-        projected = self._project(pose)
-        if projected is None:
-            return 0.0
-        uv = projected[0]
-        w, h = self.camera.width, self.camera.height
-        if ((uv >= -0.5).all() and (uv[:, 0] < w - 0.5).all() and (uv[:, 1] < h - 0.5).all()):
-            return 1.0
+        the corners of the hull's bounding box lie in front of the camera and project inside
+        the image (then so does the whole hull), without projecting the hull or building the
+        polygon; the tracker asks at every step."""
+        corners = self._project(pose, self._box) if self.camera.dist is None else None
+        if corners is not None:
+            uv = corners[0]
+            w, h = self.camera.width, self.camera.height
+            if ((uv >= -0.5).all() and (uv[:, 0] < w - 0.5).all()
+                    and (uv[:, 1] < h - 0.5).all()):
+                return 1.0
         poly = self.polygon(pose)
         return 0.0 if poly is None else poly.visible_fraction
 

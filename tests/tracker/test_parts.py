@@ -60,19 +60,25 @@ def test_silhouette_covers_the_rendered_mask(box) -> None:
     assert outside.visible_fraction == 0.0
 
 
-def test_visible_fraction_equals_the_polygons() -> None:
-    cube = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
-    sil = Silhouette(cube, CAM)
+@pytest.mark.parametrize("shape", ["cube", "blob"])
+def test_visible_fraction_equals_the_polygons(shape) -> None:
     rng = np.random.default_rng(3)
-    partly = 0
-    for _ in range(200):
+    if shape == "cube":  # the hull is its own bounding box
+        points = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05)
+                           for z in (-.05, .05)])
+    else:  # a hull well inside its bounding box: the box corners leave the image first
+        points = rng.normal(0, 0.03, (200, 3)) * [1.0, 2.0, 0.5]
+    sil = Silhouette(points, CAM)
+    partly = whole = 0
+    for _ in range(300):
         T = _pose(rng.normal(0, 1, 3), [rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3),
                                         rng.uniform(0.2, 0.8)])
         poly = sil.polygon(T)
         expected = 0.0 if poly is None else poly.visible_fraction
         partly += 0.0 < expected < 1.0
+        whole += expected == 1.0
         assert sil.visible_fraction(T) == pytest.approx(expected, abs=1e-6)
-    assert partly > 10  # the slow path was exercised, not only the all-inside shortcut
+    assert partly > 10 and whole > 10  # both the shortcut and the polygon were exercised
     assert sil.visible_fraction(_pose([0, 0, 0], [0, 0, -1.0])) == 0.0  # behind the camera
     assert sil.visible_fraction(_pose([0, 0, 0], [np.nan, 0, 1.0])) == 0.0
 
