@@ -68,6 +68,7 @@ import heapq
 import time
 from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -210,6 +211,42 @@ def _load_mesh(mesh: Any):
         raise ConfigError(f"mesh must be an ObjectMesh, a mesh file or (V, 3) vertices, got "
                           f"an array of shape {vertices.shape}")
     return None, vertices
+
+
+class _Prefetched:
+    """``read(i)`` for frames read in increasing order: each call also starts reading frame
+    ``i + 1`` in a worker thread (OpenCV's decoders release the GIL), so that the next call
+    usually finds it ready. A read's exception is raised by the call that asks for that frame.
+
+    Args:
+        read: ``read(i) -> frame``, safe to call from another thread.
+        count: frames there are (``0 .. count - 1``).
+    """
+
+    def __init__(self, read, count: int) -> None:
+        self._read = read
+        self._count = count
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="evtrack-frames")
+        self._ahead: tuple[int, Future] | None = None
+
+    def __call__(self, index: int):
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead[0] == index:
+            frame = ahead[1].result()
+        else:
+            if ahead is not None:
+                ahead[1].cancel()
+            frame = self._read(index)
+        if index + 1 < self._count:
+            self._ahead = (index + 1, self._pool.submit(self._read, index + 1))
+        return frame
+
+    def close(self) -> None:
+        """Stop the worker (a read in flight finishes; its frame is dropped)."""
+        if self._ahead is not None:
+            self._ahead[1].cancel()
+            self._ahead = None
+        self._pool.shutdown(wait=True)
 
 
 class _StepFlows:
@@ -1069,14 +1106,23 @@ class Tracker:
                     carry = chunk[k:]
                     return
 
-        for t in frame_times:
-            push_until(t)
-            i_rgb, i_d = rgb_index.get(t), depth_index.get(t)
-            rgb = (lambda i=i_rgb: sequence.rgb(i)) if i_rgb is not None else None
-            depth = (lambda i=i_d: sequence.depth(i)) if i_d is not None else None
-            self.push_frame(t, rgb, depth)
-            if bar is not None:
-                bar.update(1)
+        # the sensor depth is read at every depth frame: decode the next one in a worker thread
+        # while this one is used (same frames, read sooner)
+        read_depth = (_Prefetched(sequence.depth, len(depth_t))
+                      if isinstance(self.depth, SensorDepth) and len(depth_t) > 1
+                      else sequence.depth)
+        try:
+            for t in frame_times:
+                push_until(t)
+                i_rgb, i_d = rgb_index.get(t), depth_index.get(t)
+                rgb = (lambda i=i_rgb: sequence.rgb(i)) if i_rgb is not None else None
+                depth = (lambda i=i_d: read_depth(i)) if i_d is not None else None
+                self.push_frame(t, rgb, depth)
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if isinstance(read_depth, _Prefetched):
+                read_depth.close()
         push_until(None)
         if self._last_event_t is not None:
             self.advance(self._last_event_t + 1)
