@@ -272,6 +272,8 @@ class _StepFlows:
         self.normal = res.normal[order_t].to(device)
         edges = t0 + step * np.arange(n_steps + 1, dtype=np.int64)
         self.bounds = np.searchsorted(t[order], edges, side="left")
+        #: (depth map, first row, depths from that row on): see Tracker._step_depth
+        self.depth_cache: tuple[np.ndarray | None, int, np.ndarray] | None = None
 
     def step(self, k: int) -> tuple[np.ndarray, Tensor, Tensor]:
         """Step ``k``'s RoI centres (N, 2) float64 px, flows (N, 2) px/s and normal flags (N,)."""
@@ -698,7 +700,7 @@ class Tracker:
             if res is not None:
                 with _Timer(st.time_s, "velocity"):
                     if usable:
-                        twist = self._velocity_step(dt, *res.step(k), poly, pose)
+                        twist = self._velocity_step(dt, res, k, poly, pose)
                     else:
                         twist = self.vkf.predict(dt)
             elif self.method == "ge":
@@ -768,10 +770,11 @@ class Tracker:
     def _fallback_depth(self, pose: np.ndarray | None) -> float:
         return float(pose[2, 3]) if pose is not None else float("nan")
 
-    def _velocity_step(self, dt: float, uv: np.ndarray, flow: Tensor, normal: Tensor,
+    def _velocity_step(self, dt: float, flows: _StepFlows, k: int,
                        poly: SilhouettePolygon | None, pose: np.ndarray | None) -> Tensor:
-        """VelocityKF predict + update from the step's RoI flows (see :class:`_StepFlows`);
-        returns the twist (1, 6)."""
+        """VelocityKF predict + update from the RoI flows of step ``k`` of the group; returns
+        the twist (1, 6)."""
+        uv, flow, normal = flows.step(k)
         if self.config.velocity_kf.object_centred:
             self.vkf.set_pivot(None if pose is None or not np.isfinite(pose).all()
                                else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
@@ -780,6 +783,8 @@ class Tracker:
         cfg = self.config
         if pose is None:  # before the first pose: plain patch medians, no fallback
             z = self._unranged_depth(uv)
+        elif isinstance(self.depth, SensorDepth):
+            z = self._step_depth(flows, k, poly, pose)
         else:
             z = self._roi_depth(uv, poly, pose)
         kw = {"dtype": self.vkf.twist.dtype, "device": self.device}
@@ -790,19 +795,43 @@ class Tracker:
                         normal.unsqueeze(0) if cfg.use_flow_normal_flags else None)
 
     def _unranged_depth(self, uv: np.ndarray) -> np.ndarray:
-        if (self.depth.t_us is not None
-                and self._t - self.depth.t_us > self.config.max_depth_age_ms * 1e3):
-            self.depth.map = None
+        self._expire_sensor_depth(self._t)
         return self.depth.lookup(uv, None)
+
+    def _step_depth(self, flows: _StepFlows, k: int, poly: SilhouettePolygon,
+                    pose: np.ndarray) -> np.ndarray:
+        """:meth:`_roi_depth` of step ``k``'s RoIs (sensor depth), with one lookup for the
+        rows of every remaining step of the group while the depth map stays the same (the
+        group's silhouette and pose are fixed; a new or expired map starts a new lookup), so
+        the same depths as step by step at a fraction of the per-call cost."""
+        self._expire_sensor_depth(self._t)
+        lo, hi = int(flows.bounds[k]), int(flows.bounds[k + 1])
+        cache = flows.depth_cache
+        if cache is None or cache[0] is not self.depth.map:
+            z_lo, z_hi = poly.z_range
+            cache = (self.depth.map, lo, self.depth.lookup(
+                flows.uv[lo:], (z_lo - _DEPTH_TOLERANCE_M, z_hi + _DEPTH_TOLERANCE_M)))
+            flows.depth_cache = cache
+        z = cache[2][lo - cache[1]:hi - cache[1]].copy()
+        missing = ~np.isfinite(z)
+        if missing.any():
+            z[missing] = self._fallback_depth(pose)
+            self.stats.depth_fallbacks += int(missing.sum())
+        return z
+
+    def _expire_sensor_depth(self, t_now: int) -> None:
+        """Drop a sensor depth frame older than ``max_depth_age_ms`` (lookups then fall back)."""
+        if (self.depth.t_us is not None
+                and t_now - self.depth.t_us > self.config.max_depth_age_ms * 1e3):
+            self.depth.map = None
 
     def _roi_depth(self, uv: np.ndarray, poly: SilhouettePolygon, pose: np.ndarray,
                    t_now: int | None = None, patch: bool = True) -> np.ndarray:
-        cfg = self.config
         t_now = self._t if t_now is None else t_now
         if isinstance(self.depth, ModelDepth):
             self.depth.update(t_now, pose)
-        elif self.depth.t_us is not None and t_now - self.depth.t_us > cfg.max_depth_age_ms * 1e3:
-            self.depth.map = None  # too old: fall back
+        else:
+            self._expire_sensor_depth(t_now)  # too old: fall back
         z_lo, z_hi = poly.z_range
         z = self.depth.lookup(uv, (z_lo - _DEPTH_TOLERANCE_M, z_hi + _DEPTH_TOLERANCE_M), patch)
         missing = ~np.isfinite(z)

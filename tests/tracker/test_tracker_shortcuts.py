@@ -1,12 +1,16 @@
-"""The tracker's one-frame-ahead reader (offline depth frames)."""
+"""Tracker shortcuts that must not change results: the one-frame-ahead reader of offline
+depth frames and the grouped depth lookup of a step group's RoIs."""
 
 from __future__ import annotations
 
 import threading
 
+import numpy as np
 import pytest
+import torch
+from tracker_helpers import make_tracker, stream
 
-from evtrack.tracker import _Prefetched
+from evtrack.tracker import Tracker, _Prefetched
 
 
 def test_gives_every_frame_and_reads_the_next_one_in_a_worker():
@@ -58,3 +62,32 @@ def test_an_error_reaches_the_call_that_asks_for_that_frame():
             reader(2)
     finally:
         reader.close()
+
+
+def test_group_depth_lookup_equals_step_by_step(fast_sequence, monkeypatch):
+    """The sensor depth of a step group's RoIs is looked up once per depth map
+    (Tracker._step_depth); with frames dropped (depth maps that expire and arrive inside a
+    group) it must give what the per-step lookup gives: the same trajectory, bit for bit, and
+    the same fallbacks."""
+    seq = fast_sequence
+    times = seq.rgb_times_us.numpy()
+    dropped = ((times >= 150_000) & (times < 400_000)) | (
+        np.random.default_rng(1).random(len(times)) < 0.5)
+
+    def run():
+        tracker, _ = make_tracker(seq, method="full")
+        return stream(tracker, seq, keep_frame=lambda i: not dropped[i]), tracker.stats
+
+    grouped, st_grouped = run()
+    calls = []
+
+    def per_step(self, flows, k, poly, pose):
+        calls.append(k)
+        return self._roi_depth(flows.step(k)[0], poly, pose)
+
+    monkeypatch.setattr(Tracker, "_step_depth", per_step)
+    stepped, st_stepped = run()
+    assert calls  # the patched lookup was used
+    assert st_grouped.depth_fallbacks == st_stepped.depth_fallbacks > 0
+    assert st_grouped.roi_flows == st_stepped.roi_flows
+    assert torch.equal(grouped.poses.nan_to_num(7.0), stepped.poses.nan_to_num(7.0))
