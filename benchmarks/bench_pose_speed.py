@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+import evtrack  # noqa: F401  # isort: skip
 import numpy as np
 import torch
 
@@ -35,6 +37,7 @@ from evtrack.models import (
     decode_poses,
     export_onnx,
 )
+from evtrack.openmp_wait import wait_policy
 
 SIZES = ((480, 640), (240, 320))
 TARGET_MS = 40.0
@@ -107,7 +110,8 @@ def main() -> None:
     cuda = torch.cuda.is_available()
     ort_cuda = "CUDAExecutionProvider" in ort.get_available_providers()
     print(f"torch {torch.__version__}, onnxruntime {ort.__version__}, CPU threads "
-          f"{args.threads}, repeats {args.repeats}, CUDA: {cuda} (onnxruntime CUDA: {ort_cuda})")
+          f"{args.threads}, repeats {args.repeats}, CUDA: {cuda} (onnxruntime CUDA: {ort_cuda}), "
+          f"OMP_WAIT_POLICY {wait_policy()}")
     print()
     header = (f"{'model':<16} {'params':>8} {'GFLOPs':>7} {'input':>8} {'device':>6} "
               f"{'torch eager ms':>20} {'onnxruntime ms':>20} {'speed-up':>8}  target")
