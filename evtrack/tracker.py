@@ -812,7 +812,11 @@ class Tracker:
             cache = (self.depth.map, lo, self.depth.lookup(
                 flows.uv[lo:], (z_lo - _DEPTH_TOLERANCE_M, z_hi + _DEPTH_TOLERANCE_M)))
             flows.depth_cache = cache
-        z = cache[2][lo - cache[1]:hi - cache[1]].copy()
+        return self._with_fallback(cache[2][lo - cache[1]:hi - cache[1]].copy(), pose)
+
+    def _with_fallback(self, z: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """``z`` (N,) metres with its missing depths (NaN) replaced by the fallback (the
+        predicted depth of the object's origin), counted in the stats; changes ``z``."""
         missing = ~np.isfinite(z)
         if missing.any():
             z[missing] = self._fallback_depth(pose)
@@ -834,11 +838,7 @@ class Tracker:
             self._expire_sensor_depth(t_now)  # too old: fall back
         z_lo, z_hi = poly.z_range
         z = self.depth.lookup(uv, (z_lo - _DEPTH_TOLERANCE_M, z_hi + _DEPTH_TOLERANCE_M), patch)
-        missing = ~np.isfinite(z)
-        if missing.any():
-            z[missing] = self._fallback_depth(pose)
-            self.stats.depth_fallbacks += int(missing.sum())
-        return z
+        return self._with_fallback(z, pose)
 
     # ------------------------------------------------------------------ measurements
     def _apply_due(self, t_now: int) -> None:
