@@ -29,23 +29,30 @@ def _start(filt):
                q=torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64))
 
 
+def _on_time_reference(twists: torch.Tensor, times, fuse) -> PoseUKF:
+    """A plain filter stepped through ``twists`` (one per STEP µs) that calls
+    ``fuse(filter, t_us)`` at each measurement time of ``times`` when that time comes."""
+    ref = PoseUKF(1, dtype=torch.float64)
+    _start(ref)
+    t_cur = 0
+    for k in range(len(twists)):
+        t_end = (k + 1) * STEP
+        for tm in sorted(times):
+            if t_cur < tm <= t_end:
+                ref.predict(twists[k], (tm - t_cur) * 1e-6)
+                fuse(ref, tm)
+                t_cur = tm
+        ref.predict(twists[k], (t_end - t_cur) * 1e-6)
+        t_cur = t_end
+    return ref
+
+
 def test_late_poses_equal_on_time_poses() -> None:
     n = 60
     twists = _twists(n)
     times = {2300: 0, 17000: 1, 17000 + 1: 2, 40500: 3}  # µs -> measurement id
     # reference: a plain filter, measurements fused when their time comes
-    ref = PoseUKF(1, dtype=torch.float64)
-    _start(ref)
-    t_cur = 0
-    for k in range(n):
-        t_end = (k + 1) * STEP
-        for tm in sorted(times):
-            if t_cur < tm <= t_end:
-                ref.predict(twists[k], (tm - t_cur) * 1e-6)
-                ref.update(*_meas(times[tm]))
-                t_cur = tm
-        ref.predict(twists[k], (t_end - t_cur) * 1e-6)
-        t_cur = t_end
+    ref = _on_time_reference(twists, times, lambda f, tm: f.update(*_meas(times[tm])))
     # timeline: every measurement arrives 12 ms late, two of them in reverse order
     filt = PoseUKF(1, dtype=torch.float64)
     _start(filt)
@@ -76,20 +83,13 @@ def test_late_ranges_equal_on_time_ranges() -> None:
     def measured(f: PoseUKF, offset: float) -> torch.Tensor:
         return (u * f.t).sum(-1) + offset
 
-    ref = PoseUKF(1, dtype=torch.float64)
-    _start(ref)
-    t_cur = 0
     values = {}
-    for k in range(n):
-        t_end = (k + 1) * STEP
-        for tm in sorted(ranges):
-            if t_cur < tm <= t_end:
-                ref.predict(twists[k], (tm - t_cur) * 1e-6)
-                values[tm] = measured(ref, ranges[tm])
-                assert bool(ref.update_range(u, values[tm], var)[0])
-                t_cur = tm
-        ref.predict(twists[k], (t_end - t_cur) * 1e-6)
-        t_cur = t_end
+
+    def fuse(f: PoseUKF, tm: int) -> None:
+        values[tm] = measured(f, ranges[tm])
+        assert bool(f.update_range(u, values[tm], var)[0])
+
+    ref = _on_time_reference(twists, ranges, fuse)
     filt = PoseUKF(1, dtype=torch.float64)
     _start(filt)
     line = PoseTimeline(filt, horizon_us=30_000)
