@@ -23,7 +23,8 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 
-__all__ = ["Silhouette", "SilhouettePolygon", "hull_vertices", "points_in_polygon"]
+__all__ = ["Silhouette", "SilhouettePolygon", "hull_vertices", "pixels_in_polygon",
+           "points_in_polygon"]
 
 MIN_DEPTH_M = 1e-3
 """Hull vertices closer than this to the camera plane make the projection meaningless: the
@@ -69,6 +70,42 @@ class SilhouettePolygon:
         """(N, 2) pixels -> (N,) bool: within ``margin`` px of the polygon."""
         return points_in_polygon(self.vertices, xy, margin)
 
+    def contains_pixels(self, x: np.ndarray, y: np.ndarray, margin: float,
+                        size: tuple[int, int]) -> np.ndarray:
+        """:meth:`contains` for integer pixels of an image of ``size`` (W, H), by row spans
+        (:func:`pixels_in_polygon`): the same answer, in O(N) instead of O(N x edges)."""
+        return pixels_in_polygon(self.vertices, x, y, margin, size)
+
+
+def _half_planes(poly: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit outward normals (K, 2) and offsets (K,) of a convex polygon's edges (P >= 3):
+    a point ``p`` is inside when ``n_k . p - o_k <= 0`` for every edge."""
+    edges = np.roll(poly, -1, axis=0) - poly
+    nxt = np.roll(poly, -1, axis=0)
+    area2 = float(np.sum(poly[:, 0] * nxt[:, 1] - nxt[:, 0] * poly[:, 1]))
+    normals = np.stack([edges[:, 1], -edges[:, 0]], 1) * (1.0 if area2 > 0 else -1.0)
+    length = np.linalg.norm(normals, axis=1)
+    keep = length > 0
+    normals = normals[keep] / length[keep, None]
+    offsets = normals[:, 0] * poly[keep, 0] + normals[:, 1] * poly[keep, 1]
+    return normals, offsets
+
+
+def _edge_distances(normals: np.ndarray, offsets: np.ndarray, px: np.ndarray,
+                    py: np.ndarray) -> np.ndarray:
+    """(M, K) signed distances of points outside the edges' lines,
+    ``(px * nx_k + py * ny_k) - o_k`` in float64, element by element: the one definition both
+    polygon tests use, so that they agree to the last bit (a BLAS product could round
+    differently, and it would start BLAS threads)."""
+    d = px[:, None] * normals[None, :, 0] + py[:, None] * normals[None, :, 1]
+    return d - offsets[None, :]
+
+
+def _outside_distance(normals: np.ndarray, offsets: np.ndarray, px: np.ndarray,
+                      py: np.ndarray) -> np.ndarray:
+    """(M,) the largest of :func:`_edge_distances`."""
+    return _edge_distances(normals, offsets, px, py).max(axis=1)
+
 
 def points_in_polygon(polygon: np.ndarray, xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
     """Points within ``margin`` of a convex polygon (half-plane test).
@@ -86,16 +123,77 @@ def points_in_polygon(polygon: np.ndarray, xy: np.ndarray, margin: float = 0.0) 
     if len(poly) < 3:  # a point or a segment: distance to its vertices' bounding box
         lo, hi = poly.min(0) - margin, poly.max(0) + margin
         return ((pts >= lo) & (pts <= hi)).all(1)
-    edges = np.roll(poly, -1, axis=0) - poly
-    nxt = np.roll(poly, -1, axis=0)
-    area2 = float(np.sum(poly[:, 0] * nxt[:, 1] - nxt[:, 0] * poly[:, 1]))
-    normals = np.stack([edges[:, 1], -edges[:, 0]], 1) * (1.0 if area2 > 0 else -1.0)
-    length = np.linalg.norm(normals, axis=1)
-    keep = length > 0
-    normals = normals[keep] / length[keep, None]
-    offsets = np.einsum("kd,kd->k", normals, poly[keep])
-    dist = pts @ normals.T - offsets  # (N, K) signed distance outside each edge
-    return dist.max(axis=1) <= margin
+    normals, offsets = _half_planes(poly)
+    if not len(pts):
+        return np.zeros(0, bool)
+    return _outside_distance(normals, offsets, pts[:, 0], pts[:, 1]) <= margin
+
+
+_ROUNDING = 16 * np.finfo(np.float64).eps
+"""A bound on the relative rounding of an edge's distance and of its span's end (a few
+operations, each off by half an ulp)."""
+
+
+def pixels_in_polygon(polygon: np.ndarray, x: np.ndarray, y: np.ndarray, margin: float,
+                      size: tuple[int, int]) -> np.ndarray:
+    """:func:`points_in_polygon` for integer pixels, in O(H x edges + N).
+
+    For each image row the polygon grown by ``margin`` covers one span of columns (it is
+    convex, and each edge's test is monotone in x, rounding included). The spans come from
+    the edges' lines, to within a pixel; a pixel more than 2 columns inside its row's span is
+    in, more than 2 outside is out, and the few in between are decided by the exact test of
+    :func:`points_in_polygon`. The answer is therefore that of :func:`points_in_polygon` on the
+    same pixels, bit for bit.
+
+    Args:
+        polygon: (P, 2) convex polygon, either orientation.
+        x, y: (N,) integer pixel coordinates inside the image.
+        margin: pixels.
+        size: image (W, H).
+
+    Returns:
+        (N,) bool.
+    """
+    poly = np.asarray(polygon, np.float64).reshape(-1, 2)
+    x = np.asarray(x).reshape(-1)
+    y = np.asarray(y).reshape(-1)
+    if len(poly) < 3 or not len(x):
+        return points_in_polygon(poly, np.stack([x, y], 1), margin)
+    w, h = int(size[0]), int(size[1])
+    normals, offsets = _half_planes(poly)
+    nx, ny = normals[:, 0], normals[:, 1]
+    rows = np.arange(h, dtype=np.float64)
+    # per row and edge: n_x * col <= margin + o - n_y * row
+    rhs = (margin + offsets)[None, :] - rows[:, None] * ny[None, :]  # (H, K)
+    # an edge gives each row's span end to within a pixel unless |n_x| is tiny against the
+    # magnitudes it is computed from; such "flat" edges are tested at the row's two ends
+    scale = abs(margin) + np.abs(offsets) + w + h
+    steep = np.abs(nx) > 2.0 * _ROUNDING * scale
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = rhs[:, steep] / nx[steep]
+    right = nx[steep] > 0
+    hi = np.floor(bound[:, right]).min(axis=1, initial=w - 1.0)
+    lo = np.ceil(bound[:, ~right]).max(axis=1, initial=0.0)
+    # flat edges: the exact test at both ends of the row (monotone in x in between)
+    flat = ~steep
+    empty = np.zeros(h, bool)
+    unsure = np.zeros(h, bool)
+    if flat.any():
+        fn, fo = normals[flat], offsets[flat]
+        ends = [_edge_distances(fn, fo, np.full(h, c, np.float64), rows) <= margin
+                for c in (0.0, w - 1.0)]
+        empty = (~ends[0] & ~ends[1]).any(axis=1)
+        unsure = (ends[0] != ends[1]).any(axis=1) & ~empty
+    xf = x.astype(np.float64)
+    lo_e, hi_e = lo[y], hi[y]
+    sure_row = ~unsure[y]
+    inside = sure_row & ~empty[y] & (xf >= lo_e + 2) & (xf <= hi_e - 2)
+    outside = sure_row & (empty[y] | (xf < lo_e - 2) | (xf > hi_e + 2))
+    check = ~(inside | outside)
+    if check.any():
+        inside[check] = _outside_distance(normals, offsets, xf[check],
+                                          y[check].astype(np.float64)) <= margin
+    return inside
 
 
 class Silhouette:

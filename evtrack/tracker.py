@@ -77,6 +77,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evtrack.blas_threads import BlasThreads
 from evtrack.camera import PinholeCamera
 from evtrack.depth_range import DepthRange
 from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth
@@ -353,6 +354,7 @@ class Tracker:
                  else torch.eye(4, dtype=torch.float64))
             self._T_depth_event = T.numpy()
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
+        self._blas = BlasThreads(cfg.blas_threads)
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
         if self.method == "ge":
             from evtrack.ge_model import GEVelocity
@@ -521,7 +523,8 @@ class Tracker:
         if self._t is None:
             self._start_clock(t_us)
         self._horizon = max(self._horizon, t_us)
-        self._advance(t_us, whole_groups=True)
+        with self._blas:
+            self._advance(t_us, whole_groups=True)
 
     def flush(self) -> None:
         """Close every step ending by the latest time known (the last event pushed or the last
@@ -529,8 +532,9 @@ class Tracker:
         to then. Call it at the end of a stream."""
         if self._t is None:
             return
-        self._advance(self._horizon, whole_groups=False)
-        self._frames_due(self._horizon + 1)
+        with self._blas:
+            self._advance(self._horizon, whole_groups=False)
+            self._frames_due(self._horizon + 1)
 
     def push_frame(self, t_us: int, rgb: FrameInput = None, depth: FrameInput = None) -> None:
         """Add the RGB-D frame taken at ``t_us`` (after the events before ``t_us``).
@@ -555,9 +559,10 @@ class Tracker:
             self.stats.frames_without_depth += 1
         self._frame_seq += 1
         heapq.heappush(self._frames, (t_us, self._frame_seq, rgb, depth))
-        if t_us < self._t:
-            self._frames_due(self._t)
-        self.advance(t_us)
+        with self._blas:
+            if t_us < self._t:
+                self._frames_due(self._t)
+            self.advance(t_us)
 
     def _frames_due(self, t_before: int) -> None:
         """Process the queued frames taken before ``t_before``."""
@@ -616,7 +621,8 @@ class Tracker:
         avail = max(measurement.t_us, self._t if available_us is None else int(available_us))
         self.stats.poses += 1
         self._schedule(avail, measurement)
-        self._apply_due(self._t)
+        with self._blas:
+            self._apply_due(self._t)
 
     def _schedule(self, available_us: int,
                   item: PoseMeasurement | _Miss | _DepthFrame | tuple) -> None:
@@ -671,8 +677,8 @@ class Tracker:
         if events_based:
             index = np.arange(first_index, first_index + len(ev), dtype=np.int64)
             if poly is not None and len(ev):
-                xy = np.stack([ev.x.numpy(), ev.y.numpy()], 1)
-                keep = poly.contains(xy, cfg.mask_margin_px)
+                keep = poly.contains_pixels(ev.x.numpy(), ev.y.numpy(), cfg.mask_margin_px,
+                                            self.camera.size)
                 st.events_on_object += int(keep.sum())
                 if cfg.burst_rate_hz > 0:
                     keep &= ~self._in_burst(ev.t.numpy(), keep, poly, t0, t_end)
@@ -1099,7 +1105,8 @@ class Tracker:
         if self.config.torch_threads > 0:
             torch.set_num_threads(threads_per_job(self.config.torch_threads))
         try:
-            return self._track(sequence, progress)
+            with self._blas:
+                return self._track(sequence, progress)
         finally:
             torch.set_num_threads(threads)
 

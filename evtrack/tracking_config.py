@@ -186,6 +186,11 @@ class TrackerConfig:
             busy cores made a run 20x slower than 1), so ``evtrack evaluate --jobs N`` gives
             each job its share of the cores. Streaming callers set ``torch.set_num_threads``
             themselves.
+        blas_threads: numpy's BLAS threads while the tracker works (``track`` and the
+            streaming calls), restored after each call; 0 leaves the library's setting. One by
+            default: the tracker's numpy products are small, and OpenBLAS's idle workers spin
+            after each larger one and take a core from the flow (cracker box ``faster``: 38.7
+            s -> 30.3 s of processing; see :mod:`evtrack.blas_threads`).
         velocity_step_us: the velocity filter runs once per step (µs); the tracker outputs a
             pose and a twist at the end of every step (1 kHz by default). Steps are aligned on
             absolute time (multiples of the step).
@@ -271,6 +276,7 @@ class TrackerConfig:
     method: str = "full"
     device: str = "cpu"
     torch_threads: int = 2
+    blas_threads: int = 1
     velocity_step_us: int = 1000
     flow_batch_steps: int = 5
     mask_margin_px: float = 32.0
@@ -310,10 +316,10 @@ class TrackerConfig:
         if self.depth_source not in DEPTH_SOURCES:
             raise ConfigError(f"tracker config field 'depth_source' must be one of "
                               f"{DEPTH_SOURCES}, got {self.depth_source!r}")
-        for name in ("torch_threads", "velocity_step_us", "flow_batch_steps", "depth_patch_px",
-                     "depth_stride_px", "model_depth_interval_us", "lost_after_misses",
-                     "max_events_per_step"):
-            _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads",
+        for name in ("torch_threads", "blas_threads", "velocity_step_us", "flow_batch_steps",
+                     "depth_patch_px", "depth_stride_px", "model_depth_interval_us",
+                     "lost_after_misses", "max_events_per_step"):
+            _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads", "blas_threads",
                                                 "lost_after_misses", "max_events_per_step")
                       else 1)
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",

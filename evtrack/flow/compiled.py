@@ -12,6 +12,9 @@ compiled event-by-event loop is the faster form of the *same* rule:
   across calls). It keeps ``history`` entries per cell, newest first, like the sequential
   reference of the tests, and tests the speed bounds as the integer ``t_k - t_i`` bounds of
   :func:`~evtrack.flow.config.dt_bounds_us`.
+* large batches are searched in horizontal strips of the sensor in parallel (one per
+  thread, each with private copies of the ``2 * radius`` rows around it; see
+  :class:`CompiledSearch`), with the same candidates in the same order;
 * :mod:`evtrack.flow.registration_compiled` is the compiled form of the registration; it
   uses ``_rounded_distance`` here (the exact rounded distance of
   :func:`~evtrack.flow.registration.rounded_distance`, for one float32 value).
@@ -56,9 +59,30 @@ def _njit(**kwargs):
 
 
 @_njit()
+def _pixel_index(yy, xx, lo, hi, r2, width, halo_pix):
+    """Index into ``last`` of pixel ``(xx, yy)``: the shared rows ``[lo, hi)`` of the strip's
+    own part of the sensor, or the strip's private copy of the ``r2`` rows above / below."""
+    if yy >= lo and yy < hi:
+        return yy * width + xx
+    row = yy - lo + r2 if yy < lo else r2 + yy - hi
+    return halo_pix + row * width + xx
+
+
+@_njit()
+def _cell_index(plane, yy, xx, lo, hi, r2, width, pixels, halo_cell):
+    """Index into ``hist`` / ``hist_s`` of the (pixel, polarity) cell (``plane`` 0: positive,
+    1: negative), shared or private as :func:`_pixel_index`."""
+    if yy >= lo and yy < hi:
+        return plane * pixels + yy * width + xx
+    row = yy - lo + r2 if yy < lo else r2 + yy - hi
+    return halo_cell + (plane * 2 * r2 + row) * width + xx
+
+
+@_njit()
 def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
                    num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
-                   o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_out):
+                   o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_out,
+                   lo, hi, r2, halo_pix, halo_cell):
     """Process events ``start..`` until done or until the output might overflow.
 
     ``last[pixel] = (t, p)`` of the pixel's latest event; ``hist[cell] = (n, t_0..t_{K-1})``:
@@ -66,6 +90,12 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
     lookup); ``hist_s[cell]``: their stream indices (read only for a candidate). Returns
     ``(next event index, rows written)``; the state is updated for every processed event
     only, so a call can resume where the previous one stopped.
+
+    Strips: only events of rows ``[lo, hi)`` are searched. The events of the ``r2`` rows
+    above and below (``r2 = 2 * radius``: the rows a search can read) are stored into the
+    strip's private copy of those rows (at ``halo_pix`` in ``last``, ``halo_cell`` in
+    ``hist`` and ``hist_s``), so that a search sees exactly the state the sequential loop
+    would; other events are skipped. ``lo = 0, hi = height``: the whole sensor, sequentially.
     """
     n = x.shape[0]
     n_off = off_x.shape[0]
@@ -76,60 +106,66 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
     while k < n:
         if n_out + worst > capacity:
             return k, n_out
-        xk, yk, tk, pk = x[k], y[k], t[k], p[k]
+        yk = y[k]
+        own = yk >= lo and yk < hi
+        if not own and (yk < lo - r2 or yk >= hi + r2):
+            k += 1
+            continue  # neither searched nor read by this strip
+        xk, tk, pk = x[k], t[k], p[k]
         seq = seq0 + k
-        pix = yk * width + xk
+        pix = _pixel_index(yk, xk, lo, hi, r2, width, halo_pix)
         prev_t, prev_p = last[pix, 0], last[pix, 1]
         last[pix, 0] = tk
         last[pix, 1] = pk
         k += 1
         if refractory > 0 and prev_t != NEVER and prev_p == pk and tk - prev_t <= refractory:
             continue  # inside a burst: neither searched nor stored
-        plane = 0 if pk > 0 else pixels
-        for o in range(n_off):
-            dx, dy = off_x[o], off_y[o]
-            xi, yi = xk - 2 * dx, yk - 2 * dy
-            if xi < 0 or xi >= width or yi < 0 or yi >= height:
-                continue
-            cj = plane + (yk - dy) * width + (xk - dx)
-            nj = hist[cj, 0]
-            if nj == 0:
-                continue
-            ci = plane + yi * width + xi
-            ni = hist[ci, 0]
-            if ni == 0:
-                continue
-            lo, hi, top_j = dt_lo[o], dt_hi[o], hi_j[o]
-            for aj in range(nj):
-                tj = hist[cj, 1 + aj]
-                dkj = tk - tj
-                if dkj < 1:
+        plane = 0 if pk > 0 else 1
+        if own:
+            for o in range(n_off):
+                dx, dy = off_x[o], off_y[o]
+                xi, yi = xk - 2 * dx, yk - 2 * dy
+                if xi < 0 or xi >= width or yi < 0 or yi >= height:
                     continue
-                if dkj >= top_j:
-                    break  # older e_j are older still: no t_k - t_i can complete them
-                for ai in range(ni):
-                    ti = hist[ci, 1 + ai]
-                    dki = tk - ti
-                    if dki > hi:
-                        break  # older e_i are older still
-                    dji = tj - ti
-                    if dji < 1 or dki < lo:
+                cj = _cell_index(plane, yk - dy, xk - dx, lo, hi, r2, width, pixels, halo_cell)
+                nj = hist[cj, 0]
+                if nj == 0:
+                    continue
+                ci = _cell_index(plane, yi, xi, lo, hi, r2, width, pixels, halo_cell)
+                ni = hist[ci, 0]
+                if ni == 0:
+                    continue
+                lo_dt, hi_dt, top_j = dt_lo[o], dt_hi[o], hi_j[o]
+                for aj in range(nj):
+                    tj = hist[cj, 1 + aj]
+                    dkj = tk - tj
+                    if dkj < 1:
                         continue
-                    if abs(dkj - dji) * 1000 > tol_abs + permille * dki:
-                        continue
-                    o_event[n_out] = seq
-                    o_off[n_out] = o
-                    o_aj[n_out] = aj
-                    o_ai[n_out] = ai
-                    o_sj[n_out] = hist_s[cj, aj]
-                    o_si[n_out] = hist_s[ci, ai]
-                    o_dt[n_out] = dki
-                    dt32 = np.float32(dki)
-                    o_flow[n_out, 0] = num_x[o] / dt32
-                    o_flow[n_out, 1] = num_y[o] / dt32
-                    n_out += 1
+                    if dkj >= top_j:
+                        break  # older e_j are older still: no t_k - t_i can complete them
+                    for ai in range(ni):
+                        ti = hist[ci, 1 + ai]
+                        dki = tk - ti
+                        if dki > hi_dt:
+                            break  # older e_i are older still
+                        dji = tj - ti
+                        if dji < 1 or dki < lo_dt:
+                            continue
+                        if abs(dkj - dji) * 1000 > tol_abs + permille * dki:
+                            continue
+                        o_event[n_out] = seq
+                        o_off[n_out] = o
+                        o_aj[n_out] = aj
+                        o_ai[n_out] = ai
+                        o_sj[n_out] = hist_s[cj, aj]
+                        o_si[n_out] = hist_s[ci, ai]
+                        o_dt[n_out] = dki
+                        dt32 = np.float32(dki)
+                        o_flow[n_out, 0] = num_x[o] / dt32
+                        o_flow[n_out, 1] = num_y[o] / dt32
+                        n_out += 1
         # store e_k: newest first, the oldest of a full cell drops out
-        c = plane + pix
+        c = _cell_index(plane, yk, xk, lo, hi, r2, width, pixels, halo_cell)
         m = hist[c, 0]
         if m < history:
             hist[c, 0] = m + 1
@@ -143,6 +179,85 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
     return k, n_out
 
 
+@_njit(parallel=True)
+def _copy_halos(lo_s, hi_s, r2, width, height, last, hist, hist_s, halo_pix0, halo_cell0):
+    """Copy, for every strip, the ``r2`` rows above and below it from the shared state into
+    its private rows (run before any strip searches: the copies are the state at the start
+    of the batch)."""
+    pixels = width * height
+    strip_pix = 2 * r2 * width
+    for s in _prange(lo_s.shape[0]):
+        for row in range(2 * r2):
+            yy = lo_s[s] - r2 + row if row < r2 else hi_s[s] + row - r2
+            if yy < 0 or yy >= height:
+                continue  # never read: no event lies there and searches stay inside
+            for xx in range(width):
+                src = yy * width + xx
+                dst = halo_pix0 + s * strip_pix + row * width + xx
+                last[dst, 0] = last[src, 0]
+                last[dst, 1] = last[src, 1]
+                for plane in range(2):
+                    cs = plane * pixels + src
+                    cd = halo_cell0 + s * 2 * strip_pix + (plane * 2 * r2 + row) * width + xx
+                    for a in range(hist.shape[1]):
+                        hist[cd, a] = hist[cs, a]
+                    for a in range(hist_s.shape[1]):
+                        hist_s[cd, a] = hist_s[cs, a]
+
+
+@_njit(parallel=True)
+def _search_strips(x, y, t, p, starts, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+                   num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
+                   o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_outs, cap,
+                   lo_s, hi_s, r2, halo_pix0, halo_cell0):
+    """:func:`_search_kernel` on every strip in parallel; strip ``s`` writes its rows at
+    ``[s * cap, (s + 1) * cap)`` of the outputs and resumes from ``starts[s]``."""
+    strip_pix = 2 * r2 * width
+    for s in _prange(lo_s.shape[0]):
+        if starts[s] >= x.shape[0]:
+            continue
+        a, b = s * cap, (s + 1) * cap
+        k, m = _search_kernel(
+            x, y, t, p, starts[s], seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+            num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
+            o_event[a:b], o_off[a:b], o_aj[a:b], o_ai[a:b], o_sj[a:b], o_si[a:b], o_dt[a:b],
+            o_flow[a:b], n_outs[s], lo_s[s], hi_s[s], r2, halo_pix0 + s * strip_pix,
+            halo_cell0 + s * 2 * strip_pix)
+        starts[s] = k
+        n_outs[s] = m
+
+
+@_njit(parallel=True)
+def _merge_strips(n, seq0, seg_start, seg_len, i_event, i_off, i_aj, i_ai, i_sj, i_si, i_dt,
+                  i_flow, o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow):
+    """Interleave the strips' rows (each in stream order, events disjoint) into stream order:
+    an event's rows go where the sequential loop would have written them."""
+    first_row = np.zeros(n + 1, np.int64)
+    for s in _prange(seg_start.shape[0]):  # an event belongs to one strip: no write races
+        for j in range(seg_start[s], seg_start[s] + seg_len[s]):
+            first_row[i_event[j] - seq0 + 1] += 1
+    for e in range(n):
+        first_row[e + 1] += first_row[e]
+    for s in _prange(seg_start.shape[0]):
+        prev = -1
+        pos = 0
+        for j in range(seg_start[s], seg_start[s] + seg_len[s]):
+            e = i_event[j] - seq0
+            if e != prev:
+                prev = e
+                pos = first_row[e]
+            o_event[pos] = i_event[j]
+            o_off[pos] = i_off[j]
+            o_aj[pos] = i_aj[j]
+            o_ai[pos] = i_ai[j]
+            o_sj[pos] = i_sj[j]
+            o_si[pos] = i_si[j]
+            o_dt[pos] = i_dt[j]
+            o_flow[pos, 0] = i_flow[j, 0]
+            o_flow[pos, 1] = i_flow[j, 1]
+            pos += 1
+
+
 class CompiledSearch:
     """The candidate search as one compiled event loop (CPU only; see the module docstring).
 
@@ -150,21 +265,46 @@ class CompiledSearch:
     ``search(x, y, t, p) -> Candidates`` on consecutive batches of one stream, ``reset()``,
     ``next_seq``.
 
+    **Strips in parallel.** The rule is sequential in time but local in space: an event reads
+    the cells of rows at most ``2 * radius`` away. A batch of at least
+    ``parallel_min_events`` events is therefore split into horizontal strips of the sensor
+    (as many as ``torch.get_num_threads()``, with equal numbers of the batch's events), each
+    searched by one thread in stream order. A strip searches and stores its own events in the
+    shared state, and also stores the events of the ``2 * radius`` rows above and below it
+    into a private copy of those rows taken at the start of the batch: every search sees the
+    state the sequential loop would, so the candidates are the same bit for bit. The strips'
+    rows are then interleaved back into stream order.
+
     Args:
         config: the flow parameters (sensor size must be set).
         device: must be CPU.
+        strips: force this many strips for every batch (``None``: as described above).
     """
 
-    def __init__(self, config: FlowConfig, device: str | torch.device = "cpu") -> None:
+    parallel_min_events: int = 4096
+    """Smaller batches are searched in one strip (the private rows' copy would cost more
+    than the parallel search saves)."""
+    rows_per_event: int = 4
+    """Output rows first allocated per event (plus one event's worst case); a loop that
+    might overflow stops and goes on in an output twice as large."""
+    min_rows: int = 1024
+    """Smallest output allocation, rows."""
+
+    def __init__(self, config: FlowConfig, device: str | torch.device = "cpu",
+                 strips: int | None = None) -> None:
         if numba is None:
             raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
         if config.sensor_size is None:
             raise ValueError("CompiledSearch needs config.sensor_size")
+        if strips is not None and int(strips) < 1:
+            raise ValueError(f"CompiledSearch: strips must be >= 1, got {strips}")
         self.device = torch.device(device)
         if self.device.type != "cpu":
             raise ValueError(f"the compiled flow backend runs on CPU, not {self.device}")
         self.config = config
+        self.strips = None if strips is None else int(strips)
         self.width, self.height = config.sensor_size
+        self._r2 = 2 * config.radius  # the rows a search reads on either side of its event
         offsets = search_offsets(config.radius)
         bounds = dt_bounds_us(offsets, config.min_speed, config.max_speed, config.max_span_us)
         self._off_x = np.ascontiguousarray(offsets[:, 0], dtype=np.int64)
@@ -183,13 +323,50 @@ class CompiledSearch:
 
     def reset(self) -> None:
         """Forget every event seen."""
-        pixels = self.width * self.height
-        k = self.config.history
-        self.last = np.zeros((pixels, 2), dtype=np.int64)  # (t, p) of each pixel's latest
-        self.last[:, 0] = NEVER_US
-        self.hist = np.zeros((2 * pixels, 1 + k), dtype=np.int64)  # (n, times)
-        self.hist_s = np.zeros((2 * pixels, k), dtype=np.int64)  # stream indices
+        self._allocate(0)
         self.next_seq = 0
+
+    def _allocate(self, strips: int) -> None:
+        """Fresh state with private rows for ``strips`` strips after the shared ones."""
+        pixels = self.width * self.height
+        extra = strips * 2 * self._r2 * self.width  # pixels of private rows
+        k = self.config.history
+        self.last = np.zeros((pixels + extra, 2), dtype=np.int64)  # (t, p) of the latest
+        self.last[:, 0] = NEVER_US
+        self.hist = np.zeros((2 * (pixels + extra), 1 + k), dtype=np.int64)  # (n, times)
+        self.hist_s = np.zeros((2 * (pixels + extra), k), dtype=np.int64)  # stream indices
+        self._room = strips
+
+    def _make_room(self, strips: int) -> None:
+        """Grow the private rows to ``strips`` strips, keeping the shared state."""
+        if strips <= self._room:
+            return
+        pixels = self.width * self.height
+        last, hist, hist_s = self.last, self.hist, self.hist_s
+        self._allocate(strips)
+        self.last[:pixels] = last[:pixels]
+        self.hist[:2 * pixels] = hist[:2 * pixels]
+        self.hist_s[:2 * pixels] = hist_s[:2 * pixels]
+
+    def _strip_rows(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """First and end row of each strip (consecutive rows with about equal event counts)
+        and the number of the batch's events in each."""
+        n = y.shape[0]
+        count = self.strips if self.strips is not None else (
+            1 if n < self.parallel_min_events else
+            min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+        count = max(1, min(count, self.height))
+        if count == 1:
+            return (np.zeros(1, np.int64), np.full(1, self.height, np.int64),
+                    np.full(1, n, np.int64))
+        cum = np.cumsum(np.bincount(y, minlength=self.height))
+        target = np.arange(1, count) * (n / count)
+        row = np.searchsorted(cum, target)  # first row whose cumulative count reaches it
+        below = np.where(row > 0, cum[np.maximum(row - 1, 0)], 0)
+        cuts = np.where(target - below < cum[row] - target, row, row + 1)  # nearer cut
+        ends = np.unique(np.clip(np.append(cuts, self.height), 1, self.height)).astype(np.int64)
+        own = np.diff(np.concatenate([[0], cum[ends - 1]]))
+        return np.concatenate([[0], ends[:-1]]).astype(np.int64), ends, own.astype(np.int64)
 
     def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Candidates:
         """Search the candidates of the next events of the stream and add them to the history.
@@ -207,23 +384,97 @@ class CompiledSearch:
             return Candidates.empty(self.device)
         arrays = [np.ascontiguousarray(a.detach().cpu().numpy(), dtype=np.int64)
                   for a in (x, y, t, p)]
+        lo_s, hi_s, own = self._strip_rows(arrays[1])
+        if lo_s.shape[0] == 1:
+            parts = self._search_whole(arrays, n)
+        else:
+            parts = self._search_in_strips(arrays, n, lo_s, hi_s, own)
+        self.next_seq += n
+        return Candidates.cat(parts)
+
+    def _capacity(self, n: int) -> int:
+        return max(self.rows_per_event * n + self._worst, self.min_rows)
+
+    def _params(self) -> tuple:
         cfg = self.config
-        capacity = max(4 * n + self._worst, 1024)
+        return (self.width, self.height, self._off_x, self._off_y, self._lo, self._hi,
+                self._hi_j, self._num_x, self._num_y, cfg.history, cfg.refractory_us,
+                cfg.tolerance_us * 1000, cfg.tolerance_permille, self.last, self.hist,
+                self.hist_s)
+
+    def _search_whole(self, arrays: list[np.ndarray], n: int) -> list[Candidates]:
+        """One sequential loop over the batch (whole sensor)."""
+        capacity = self._capacity(n)
         parts = []
         start = 0
         while start < n:
             out = [np.empty(capacity, np.int64) for _ in range(7)]
             flow = np.empty((capacity, 2), np.float32)
-            start, rows = _search_kernel(
-                *arrays, start, self.next_seq, self.width, self.height, self._off_x,
-                self._off_y, self._lo, self._hi, self._hi_j, self._num_x, self._num_y,
-                cfg.history, cfg.refractory_us, cfg.tolerance_us * 1000,
-                cfg.tolerance_permille, self.last, self.hist, self.hist_s, *out, flow, 0)
+            start, rows = _search_kernel(*arrays, start, self.next_seq, *self._params(), *out,
+                                         flow, 0, 0, self.height, self._r2, 0, 0)
             parts.append(Candidates(*(torch.from_numpy(a[:rows]) for a in out),
                                     flow=torch.from_numpy(flow[:rows])))
             capacity *= 2
-        self.next_seq += n
-        return Candidates.cat(parts)
+        return parts
+
+    def _search_in_strips(self, arrays: list[np.ndarray], n: int, lo_s: np.ndarray,
+                          hi_s: np.ndarray, own: np.ndarray) -> list[Candidates]:
+        """The strips in parallel (see the class docstring), merged into stream order."""
+        count = lo_s.shape[0]
+        self._make_room(count)
+        pixels = self.width * self.height
+        threads = torch.get_num_threads()
+        # numba's OpenMP layer resets the process's OpenMP thread count (torch's) when it
+        # starts: put it back (as the compiled registration does)
+        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+        try:
+            _copy_halos(lo_s, hi_s, self._r2, self.width, self.height, self.last, self.hist,
+                        self.hist_s, pixels, 2 * pixels)
+            capacity = self._capacity(int(own.max()))
+            starts = np.zeros(count, np.int64)
+            rounds = []  # (outputs, rows written per strip) of each pass
+            while True:
+                out = [np.empty(count * capacity, np.int64) for _ in range(7)]
+                flow = np.empty((count * capacity, 2), np.float32)
+                n_outs = np.zeros(count, np.int64)
+                _search_strips(*arrays, starts, self.next_seq, *self._params(), *out, flow,
+                               n_outs, capacity, lo_s, hi_s, self._r2, pixels, 2 * pixels)
+                rounds.append((out, flow, n_outs, capacity))
+                if bool((starts >= n).all()):
+                    break
+                capacity *= 2  # a strip's output was nearly full: it goes on in a larger one
+            seg_start, seg_len, src, src_flow = _strip_segments(rounds, count)
+            total = int(seg_len.sum())
+            dst = [np.empty(total, np.int64) for _ in range(7)]
+            dst_flow = np.empty((total, 2), np.float32)
+            _merge_strips(n, self.next_seq, seg_start, seg_len, *src, src_flow, *dst, dst_flow)
+        finally:
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
+        return [Candidates(*(torch.from_numpy(a) for a in dst), flow=torch.from_numpy(dst_flow))]
+
+
+def _strip_segments(rounds: list, count: int
+                    ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray], np.ndarray]:
+    """Each strip's rows as one segment of flat arrays, its passes in order.
+
+    With one pass the output buffers are used as they are (strip ``s`` at ``s * capacity``);
+    after an overflow the passes' rows are gathered strip by strip."""
+    if len(rounds) == 1:
+        out, flow, n_outs, capacity = rounds[0]
+        return np.arange(count, dtype=np.int64) * capacity, n_outs, out, flow
+    pieces = [[] for _ in range(8)]
+    seg_len = np.zeros(count, np.int64)
+    for s in range(count):
+        for out, flow, n_outs, capacity in rounds:
+            a, b = s * capacity, s * capacity + int(n_outs[s])
+            for f in range(7):
+                pieces[f].append(out[f][a:b])
+            pieces[7].append(flow[a:b])
+            seg_len[s] += b - a
+    seg_start = np.concatenate([[0], np.cumsum(seg_len)[:-1]]).astype(np.int64)
+    src = [np.concatenate(pieces[f]) for f in range(7)]
+    return seg_start, seg_len, src, np.concatenate(pieces[7])
 
 
 @_njit()

@@ -34,8 +34,11 @@ def _reference_rows(x, y, t, p, cfg):
     return rows
 
 
-def _search_in_chunks(cfg, x, y, t, p, cuts):
-    search = compiled.CompiledSearch(cfg)
+def _search_in_chunks(cfg, x, y, t, p, cuts, strips=None, tight=False):
+    search = compiled.CompiledSearch(cfg, strips=strips)
+    if tight:  # outputs of one event's worst case: the loops stop and resume many times
+        search.rows_per_event = 0
+        search.min_rows = 0
     parts = []
     bounds = [0, *sorted(set(cuts)), len(t)]
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
@@ -53,9 +56,10 @@ def _search_in_chunks(cfg, x, y, t, p, cuts):
 @given(seed=st.integers(0, 10_000), n=st.integers(0, 300), radius=st.integers(1, 3),
        history=st.integers(1, 3), refractory=st.sampled_from([0, 40, 400]),
        max_gap=st.sampled_from([0, 3, 60]), span=st.sampled_from([0, 300, 2000]),
-       cuts=st.lists(st.integers(0, 300), max_size=4))
+       cuts=st.lists(st.integers(0, 300), max_size=4), strips=st.sampled_from([1, 2, 3, 7]),
+       tight=st.booleans())
 def test_random_streams_equal_the_reference(seed, n, radius, history, refractory, max_gap,
-                                            span, cuts):
+                                            span, cuts, strips, tight):
     rng = np.random.default_rng(seed)
     size = (9, 7)
     t = torch.as_tensor(np.cumsum(rng.integers(0, max_gap + 1, n)))
@@ -65,7 +69,7 @@ def test_random_streams_equal_the_reference(seed, n, radius, history, refractory
     cfg = FlowConfig(sensor_size=size, radius=radius, history=history, refractory_us=refractory,
                      tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6,
                      max_span_us=span)
-    rows, flow = _search_in_chunks(cfg, x, y, t, p, [c for c in cuts if c <= n])
+    rows, flow = _search_in_chunks(cfg, x, y, t, p, [c for c in cuts if c <= n], strips, tight)
     ref = _reference_rows(x, y, t, p, cfg)
     assert rows == [r[:7] for r in ref]
     if ref:
@@ -85,6 +89,73 @@ def test_textured_scene_equals_the_reference_and_the_torch_search():
 
     tensor_search = CandidateSearch(cfg.replace(backend="torch"))(ev.x, ev.y, ev.t, ev.p)
     assert torch.equal(tensor_search.flow, flow)  # same float32 flows, bit for bit
+
+
+@pytest.mark.parametrize("strips", [2, 5])
+@pytest.mark.parametrize("tight", [False, True])
+def test_strips_equal_the_reference_on_a_textured_scene(strips, tight):
+    """Horizontal strips searched in parallel, each with private copies of the rows around it,
+    merged back into stream order: the candidates of the sequential loop, bit for bit (also
+    when the outputs overflow and the strips resume in larger ones)."""
+    ev, _ = translating_texture((40, 30), velocity=(900.0, -400.0), duration_us=12_000, seed=3)
+    ev = ev[:3000]
+    cfg = FlowConfig(sensor_size=(40, 30), history=3)
+    cuts = [1, 700, 701, 2000]
+    rows, flow = _search_in_chunks(cfg, ev.x, ev.y, ev.t, ev.p, cuts, strips, tight)
+    ref = _reference_rows(ev.x, ev.y, ev.t, ev.p, cfg)
+    assert len(ref) > 100 and rows == [r[:7] for r in ref]
+    _, whole = _search_in_chunks(cfg, ev.x, ev.y, ev.t, ev.p, cuts, 1)
+    assert torch.equal(flow, whole)
+
+
+def test_strips_are_chosen_by_thread_count_and_balanced():
+    ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
+    cfg = FlowConfig(sensor_size=(64, 48))
+    search = compiled.CompiledSearch(cfg)
+    y = ev.y.numpy().astype(np.int64)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(3)
+        search.parallel_min_events = len(y) + 1
+        lo, hi, own = search._strip_rows(y)
+        assert (lo.tolist(), hi.tolist(), own.tolist()) == ([0], [48], [len(y)])  # small: one
+        search.parallel_min_events = 1
+        lo, hi, own = search._strip_rows(y)
+    finally:
+        torch.set_num_threads(threads)
+    expected = min(3, compiled.numba.config.NUMBA_NUM_THREADS)  # numba's pool caps it
+    assert len(lo) == expected and lo[0] == 0 and hi[-1] == 48 and (lo[1:] == hi[:-1]).all()
+    assert own.sum() == len(y) and own.tolist() == [int(((y >= a) & (y < b)).sum())
+                                                    for a, b in zip(lo, hi, strict=True)]
+    assert own.min() > 0.75 * len(y) / expected  # about equal shares
+    # more strips asked than rows: at most one per row, still a partition
+    lo, hi, own = compiled.CompiledSearch(cfg.replace(sensor_size=(64, 2)), strips=5)._strip_rows(
+        np.array([0, 1, 1, 1], np.int64))
+    assert lo.tolist() == [0, 1] and hi.tolist() == [1, 2] and own.tolist() == [1, 3]
+    with pytest.raises(ValueError, match="strips"):
+        compiled.CompiledSearch(cfg, strips=0)
+
+
+def test_automatic_strips_give_the_flow_of_one_strip():
+    """``TripletFlow`` on the compiled backend splits large batches into strips on its own:
+    the same flow as the sequential search."""
+    ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
+    cfg = FlowConfig(sensor_size=(64, 48), roi_size=16, window_us=2_000, backend="compiled")
+    out = []
+    for min_events in (1, 10**9):
+        flow = TripletFlow(cfg)
+        flow._search.parallel_min_events = min_events
+        threads = torch.get_num_threads()
+        torch.set_num_threads(2)
+        try:
+            out.append(flow(ev))
+        finally:
+            torch.set_num_threads(threads)
+    a, b = out
+    assert len(a) > 20
+    for name in ("flow", "full_flow", "cost", "support", "roi", "window"):
+        assert torch.equal(torch.nan_to_num(getattr(a, name).float(), 1e30),
+                           torch.nan_to_num(getattr(b, name).float(), 1e30)), name
 
 
 def test_both_backends_give_the_same_flow_bit_for_bit():

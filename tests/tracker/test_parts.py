@@ -13,7 +13,7 @@ from evtrack.depth_sources import SensorDepth, patch_offsets, roi_depth
 from evtrack.frame_flow import DenseFlow, twist_adjoint
 from evtrack.geometry import integrate_twist
 from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
-from evtrack.silhouette import Silhouette, points_in_polygon
+from evtrack.silhouette import Silhouette, pixels_in_polygon, points_in_polygon
 
 CAM = PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120)
 
@@ -36,6 +36,49 @@ def test_points_in_polygon_against_opencv() -> None:
         assert ours[dist >= -margin + 1e-6].all()
         if margin == 0:
             np.testing.assert_array_equal(ours[np.abs(dist) > 1e-6], dist[np.abs(dist) > 1e-6] > 0)
+
+
+def _random_polygon(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
+    kind = rng.random()
+    if kind < 0.25:  # axis-aligned: horizontal edges (no span from them) and vertical ones
+        x0, x1 = np.sort(rng.integers(-20, w + 20, 2) + rng.choice([0.0, 0.5], 2))
+        y0, y1 = np.sort(rng.integers(-20, h + 20, 2) + rng.choice([0.0, 0.5], 2))
+        return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], float)
+    if kind < 0.35:  # an edge crossing a row mid-image at slope ~1e-16: which pixels of
+        # that row are in is decided by rounding, and dividing by n_x gives no span end
+        row, mid, e = float(h // 2), w / 2, 1e-9 * rng.random()
+        return np.array([[mid - 1e7, row - e], [mid + 1e7, row + e], [mid, h + 5.0]])
+    pts = rng.normal([w / 2, h / 2], [w / 3 * rng.random() + 1, h / 3 * rng.random() + 1],
+                     (int(rng.integers(3, 30)), 2))
+    if rng.random() < 0.3:  # vertices on pixels: spans end exactly on them
+        pts = np.round(pts)
+    return cv2.convexHull(pts.astype(np.float32))[:, 0].astype(np.float64)
+
+
+def test_pixels_in_polygon_equals_the_point_test_bit_for_bit() -> None:
+    """The row-span test answers exactly as the half-plane test on every pixel of the image
+    (vertices on pixels, margins that put span ends on pixels, flat and huge polygons)."""
+    rng = np.random.default_rng(5)
+    checked = 0
+    for _ in range(600):
+        w, h = int(rng.integers(1, 90)), int(rng.integers(1, 90))
+        poly = _random_polygon(rng, w, h)
+        if len(poly) < 3:
+            continue
+        poly = poly[::-1] if rng.random() < 0.5 else poly
+        margin = float(rng.choice([0.0, 1.0, 2.5, 32.0, 10 * rng.random()]))
+        yy, xx = np.mgrid[0:h, 0:w]
+        x, y = xx.ravel(), yy.ravel()
+        expected = points_in_polygon(poly, np.stack([x, y], 1), margin)
+        got = pixels_in_polygon(poly, x, y, margin, (w, h))
+        np.testing.assert_array_equal(got, expected)
+        checked += int(expected.sum()) * int((~expected).sum()) > 0
+    assert checked > 300  # most cases have pixels on both sides
+    # degenerate inputs: no pixels, a segment
+    assert pixels_in_polygon(poly, np.zeros(0, int), np.zeros(0, int), 1.0, (4, 4)).shape == (0,)
+    seg = np.array([[1.0, 1.0], [3.0, 1.0]])
+    np.testing.assert_array_equal(pixels_in_polygon(seg, np.array([2, 2]), np.array([1, 3]), 0.5,
+                                                    (4, 4)), [True, False])
 
 
 def test_silhouette_covers_the_rendered_mask(box) -> None:
