@@ -47,6 +47,46 @@ class _Pending:
     ev_gkey: Tensor  # (E,) group key of each pending event (per-event mode only)
 
 
+_DENSE_SLACK = 8
+"""Group keys spanning at most this many times their count (plus 64k) are indexed through a
+dense table instead of sorting / binary search: a batch's keys cover a few windows' RoIs."""
+
+
+def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
+    """``(lo, span)`` of int64 ``values`` when a dense table over them is small, else None."""
+    if values.numel() == 0:
+        return None
+    lo, hi = int(values.min()), int(values.max())
+    span = hi - lo + 1
+    return (lo, span) if span <= _DENSE_SLACK * count + 65_536 else None
+
+
+def _unique_inverse(values: Tensor) -> tuple[Tensor, Tensor]:
+    """``torch.unique(values, return_inverse=True)`` (sorted keys), by a presence table when
+    the values span a small range (the same result, without sorting)."""
+    dense = _dense_range(values, values.numel())
+    if dense is None:
+        return torch.unique(values, return_inverse=True)
+    lo, span = dense
+    offset = values - lo
+    present = torch.zeros(span, dtype=torch.bool, device=values.device)
+    present[offset] = True
+    rank = torch.cumsum(present.to(torch.int64), 0) - 1
+    return torch.nonzero(present).reshape(-1) + lo, rank[offset]
+
+
+def _positions(keys: Tensor, values: Tensor) -> Tensor:
+    """``torch.searchsorted(keys, values)`` for ``values`` that all occur in the sorted,
+    distinct ``keys``: their positions, by a dense table when the keys span a small range."""
+    dense = _dense_range(keys, keys.numel() + values.numel())
+    if dense is None or values.numel() < 64:
+        return torch.searchsorted(keys, values)
+    lo, span = dense
+    table = torch.full((span,), -1, dtype=torch.int64, device=keys.device)
+    table[keys - lo] = torch.arange(keys.numel(), device=keys.device)
+    return table[values - lo]
+
+
 class TripletFlow(nn.Module):
     """Event optical flow: triplet candidates registered per RoI and time window.
 
@@ -282,7 +322,7 @@ class TripletFlow(nn.Module):
         ones_sup = torch.ones_like(c_g[first_of_event])
         n_ev = torch.cat([p.g_events, ones_ev, torch.zeros_like(ones_sup)])
         n_sup = torch.cat([p.g_support, torch.zeros_like(ones_ev), ones_sup])
-        keys, inv = torch.unique(g_all, return_inverse=True)
+        keys, inv = _unique_inverse(g_all)
         g_events = torch.zeros_like(keys).index_add_(0, inv, n_ev)
         g_support = torch.zeros_like(keys).index_add_(0, inv, n_sup)
         self._pending = _Pending(
@@ -308,7 +348,7 @@ class TripletFlow(nn.Module):
         n_c = int((p.gkey < open_key).sum())
         keys = p.g_keys[:n_g]
         n_done_events = int((p.ev_gkey < open_key).sum()) if self.return_event_flow else 0
-        c_local = torch.searchsorted(keys, p.gkey[:n_c])
+        c_local = _positions(keys, p.gkey[:n_c])
         reg = register_groups(c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c],
                               keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
                               cfg.aperture_ratio, cfg.pair_budget, cfg.refine, cfg.line_gate,
@@ -332,7 +372,7 @@ class TripletFlow(nn.Module):
             first[1:] = s[1:] != s[:-1]
             run = torch.cumsum(first.to(torch.int64), 0) - 1
             open_keys = p.g_keys[n_g:]  # sorted, and every open candidate's key is one
-            run_keep = select_smallest(torch.searchsorted(open_keys, g[first]), hash32(s[first]),
+            run_keep = select_smallest(_positions(open_keys, g[first]), hash32(s[first]),
                                        cfg.max_events_per_roi, n_groups=open_keys.numel())
             keep = run_keep[run]
             sel = slice(n_c, None) if bool(keep.all()) else n_c + torch.nonzero(keep).reshape(-1)

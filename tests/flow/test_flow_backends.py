@@ -305,3 +305,17 @@ def test_backend_choice_and_errors():
     assert flow.device.type == "cpu" and flow.config.device == "cpu"  # left as it was
     fresh = TripletFlow(FlowConfig(sensor_size=(32, 24))).to("meta")  # no events yet: fine
     assert fresh.config.device == "meta"
+
+
+@pytest.mark.parametrize("spread", [50, 10**12])  # dense table / sort and binary search
+def test_group_key_helpers_equal_torch(spread):
+    from evtrack.flow.triplet import _positions, _unique_inverse
+
+    rng = np.random.default_rng(spread % 97)
+    for n in (0, 1, 7, 5000):
+        values = torch.as_tensor(rng.integers(3, 3 + spread, n), dtype=torch.int64)
+        keys, inv = _unique_inverse(values)
+        ref_keys, ref_inv = torch.unique(values, return_inverse=True)
+        assert torch.equal(keys, ref_keys) and torch.equal(inv, ref_inv)
+        picked = values[torch.as_tensor(rng.integers(0, max(n, 1), 3 * n if n else 0))]
+        assert torch.equal(_positions(keys, picked), torch.searchsorted(keys, picked))
