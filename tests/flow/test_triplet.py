@@ -328,3 +328,13 @@ def test_flow_on_the_test_device(device, texture):
     assert res.flow.device.type == device.type
     full = ~res.normal
     assert float(_rel_error(res.flow[full].cpu(), gt[0]).median()) < 0.1
+
+
+def test_roi_centres_are_cached_but_never_shared():
+    flow = TripletFlow(sensor_size=(40, 30), roi_size=16)
+    first = flow.roi_centres()
+    assert first.shape == (3 * 2, 2) and first[-1].tolist() == [(32 + 39) / 2, (16 + 29) / 2]
+    first += 1000.0  # the caller's copy: the flow's own centres are unchanged
+    assert torch.equal(flow.roi_centres(), first - 1000.0)
+    flow.config = flow.config.replace(roi_size=8)  # a changed grid is computed again
+    assert flow.roi_centres().shape == (5 * 4, 2)
