@@ -28,11 +28,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from tracker_runs import header, print_medians, run_child, time_tracking
 
 VARIANTS = ("reference", "blas", "strips", "mask")
 
@@ -40,14 +39,9 @@ VARIANTS = ("reference", "blas", "strips", "mask")
 def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
     # first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
     import evtrack  # noqa: F401  # isort: skip
-    import torch
 
-    from evtrack import Sequence
     from evtrack.flow.compiled import CompiledSearch
-    from evtrack.pose_sources import OraclePoseSource
     from evtrack.silhouette import SilhouettePolygon
-    from evtrack.tracker import Tracker
-    from evtrack.tracking_config import TrackerConfig
 
     level = VARIANTS.index(variant)
     if level < VARIANTS.index("strips"):
@@ -56,44 +50,22 @@ def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
         def point_test(self, x, y, margin, size):
             import numpy as np
 
+            from evtrack.silhouette import _half_planes
+
+            # the reference: one (N, 2) @ (2, edges) BLAS product, as the tracker had it
+            normals, offsets = _half_planes(np.asarray(self.vertices, np.float64))
             xy = np.stack([x, y], 1).astype(np.float64)
-            # the reference: one (N, 2) @ (2, edges) product, as the tracker had it
-            poly = np.asarray(self.vertices, np.float64)
-            edges = np.roll(poly, -1, axis=0) - poly
-            nxt = np.roll(poly, -1, axis=0)
-            area2 = float(np.sum(poly[:, 0] * nxt[:, 1] - nxt[:, 0] * poly[:, 1]))
-            normals = np.stack([edges[:, 1], -edges[:, 0]], 1) * (1.0 if area2 > 0 else -1.0)
-            length = np.linalg.norm(normals, axis=1)
-            keep = length > 0
-            normals = normals[keep] / length[keep, None]
-            offsets = np.einsum("kd,kd->k", normals, poly[keep])
             return (xy @ normals.T - offsets).max(axis=1) <= margin
 
         SilhouettePolygon.contains_pixels = point_test
-    torch.set_num_threads(threads)
-    seq = Sequence.load(sequence)
-    cfg = TrackerConfig.from_dict({"method": method, "torch_threads": threads,
-                                   "blas_threads": 0 if level < 1 else 1})
-    result = {}
-    for _ in range(2):  # the first run loads the compiled kernels
-        source = OraclePoseSource.from_sequence(seq, std_translation=0.01, std_rotation=0.03)
-        tracker = Tracker.for_sequence(seq, cfg, source)
-        t0 = time.perf_counter()
-        traj = tracker.track(seq)
-        wall = time.perf_counter() - t0
-        span = (int(traj.t_us[-1]) - int(traj.t_us[0])) * 1e-6
-        result = {"proc_s": wall, "rtf": wall / span,
-                  "flow_s": tracker.stats.time_s.get("flow", 0.0)}
-    return result
+    return time_tracking(sequence, {"method": method, "blas_threads": 0 if level < 1 else 1},
+                         threads)
 
 
 def _spawn(sequence: Path, variant: str, method: str, threads: int) -> dict:
     cmd = [sys.executable, __file__, "--child", "--sequence", str(sequence), "--variants",
            variant, "--method", method, "--threads", str(threads)]
-    out = subprocess.run(cmd, capture_output=True, text=True)
-    if out.returncode != 0:
-        raise RuntimeError(f"child run on {sequence} ({variant}) failed:\n{out.stderr[-2000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_child(cmd, f"{sequence}, {variant}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -112,19 +84,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"evtrack.Tracker ({args.method}, {args.threads} threads, oracle poses), cumulative "
           f"CPU changes; median of {args.repeats} interleaved runs, each a fresh process")
-    head = f"{'sequence':<32} {'variant':<10} {'proc s':>7} {'rtf':>6} {'flow s':>7}  runs (s)"
-    print(head)
-    print("-" * len(head))
+    header("variant")
     for seq in args.sequence:
         runs: dict[str, list[dict]] = {v: [] for v in args.variants}
         for _ in range(args.repeats):
             for variant in args.variants:
                 runs[variant].append(_spawn(seq, variant, args.method, args.threads))
-        for variant, rs in runs.items():
-            med = {k: statistics.median(r[k] for r in rs) for k in ("proc_s", "rtf", "flow_s")}
-            print(f"{seq.name[:32]:<32} {variant:<10} {med['proc_s']:>7.2f} {med['rtf']:>6.2f} "
-                  f"{med['flow_s']:>7.2f}  " + " ".join(f"{r['proc_s']:.2f}" for r in rs),
-                  flush=True)
+        print_medians(seq, runs)
     return 0
 
 

@@ -21,11 +21,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from tracker_runs import header, print_medians, run_child, time_tracking
 
 POLICIES = ("default", "PASSIVE", "ACTIVE")
 
@@ -34,27 +33,9 @@ def _child(sequence: Path, method: str, threads: int) -> dict:
     """Track ``sequence`` in this process (its wait policy is the parent's choice)."""
     # torch first: the runtime reads the parent's setting; evtrack, loaded after it, leaves the
     # variable as it is (unset for "default")
-    import torch
+    import torch  # noqa: F401
 
-    from evtrack import Sequence
-    from evtrack.pose_sources import OraclePoseSource
-    from evtrack.tracker import Tracker
-    from evtrack.tracking_config import TrackerConfig
-
-    torch.set_num_threads(threads)
-    seq = Sequence.load(sequence)
-    cfg = TrackerConfig.from_dict({"method": method, "torch_threads": threads})
-    result = {}
-    for _ in range(2):  # the first run loads the compiled kernels
-        source = OraclePoseSource.from_sequence(seq, std_translation=0.01, std_rotation=0.03)
-        tracker = Tracker.for_sequence(seq, cfg, source)
-        t0 = time.perf_counter()
-        traj = tracker.track(seq)
-        wall = time.perf_counter() - t0
-        span = (int(traj.t_us[-1]) - int(traj.t_us[0])) * 1e-6
-        result = {"proc_s": wall, "rtf": wall / span,
-                  "flow_s": tracker.stats.time_s.get("flow", 0.0)}
-    return result
+    return time_tracking(sequence, {"method": method}, threads)
 
 
 def _spawn(sequence: Path, policy: str, method: str, threads: int) -> dict:
@@ -63,10 +44,7 @@ def _spawn(sequence: Path, policy: str, method: str, threads: int) -> dict:
         env["OMP_WAIT_POLICY"] = policy
     cmd = [sys.executable, __file__, "--child", "--sequence", str(sequence), "--policies", policy,
            "--method", method, "--threads", str(threads)]
-    out = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    if out.returncode != 0:
-        raise RuntimeError(f"child run on {sequence} ({policy}) failed:\n{out.stderr[-2000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_child(cmd, f"{sequence}, {policy}", env)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -84,18 +62,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(f"evtrack.Tracker ({args.method}, {args.threads} threads, oracle poses) under OpenMP "
           f"wait policies; median of {args.repeats} interleaved runs, each a fresh process")
-    head = f"{'sequence':<32} {'policy':<8} {'proc s':>7} {'rtf':>6} {'flow s':>7}  runs (s)"
-    print(head)
-    print("-" * len(head))
+    header("policy")
     for seq in args.sequence:
         runs: dict[str, list[dict]] = {p: [] for p in args.policies}
         for _ in range(args.repeats):
             for policy in args.policies:
                 runs[policy].append(_spawn(seq, policy, args.method, args.threads))
-        for policy, rs in runs.items():
-            med = {k: statistics.median(r[k] for r in rs) for k in ("proc_s", "rtf", "flow_s")}
-            print(f"{seq.name[:32]:<32} {policy:<8} {med['proc_s']:>7.2f} {med['rtf']:>6.2f} "
-                  f"{med['flow_s']:>7.2f}  " + " ".join(f"{r['proc_s']:.2f}" for r in rs))
+        print_medians(seq, runs)
     return 0
 
 

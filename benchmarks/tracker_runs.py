@@ -1,0 +1,67 @@
+"""Helpers of the tracker benchmarks that compare settings in fresh child processes
+(``bench_wait_policy.py``, ``bench_tracker_cpu.py``). Nothing is imported at module level:
+a child decides what loads first (torch before evtrack, or the reverse)."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import time
+from pathlib import Path
+
+FIELDS = ("proc_s", "rtf", "flow_s")
+
+
+def time_tracking(sequence: Path, config: dict, threads: int) -> dict:
+    """Track ``sequence`` twice in this process and time the second run (the first loads the
+    compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in ``bench_tracker.py``.
+
+    Returns:
+        ``{"proc_s": s, "rtf": processing / sequence time, "flow_s": the flow stage's s}``.
+    """
+    import torch
+
+    from evtrack import Sequence
+    from evtrack.pose_sources import OraclePoseSource
+    from evtrack.tracker import Tracker
+    from evtrack.tracking_config import TrackerConfig
+
+    torch.set_num_threads(threads)
+    seq = Sequence.load(sequence)
+    cfg = TrackerConfig.from_dict({**config, "torch_threads": threads})
+    result = {}
+    for _ in range(2):
+        source = OraclePoseSource.from_sequence(seq, std_translation=0.01, std_rotation=0.03)
+        tracker = Tracker.for_sequence(seq, cfg, source)
+        t0 = time.perf_counter()
+        traj = tracker.track(seq)
+        wall = time.perf_counter() - t0
+        span = (int(traj.t_us[-1]) - int(traj.t_us[0])) * 1e-6
+        result = {"proc_s": wall, "rtf": wall / span,
+                  "flow_s": tracker.stats.time_s.get("flow", 0.0)}
+    return result
+
+
+def run_child(cmd: list[str], what: str, env: dict | None = None) -> dict:
+    """Run a child benchmark process; its last stdout line is the JSON result."""
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"child run ({what}) failed:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def header(label: str) -> None:
+    """The table's header; ``label`` names the compared setting."""
+    line = f"{'sequence':<32} {label:<10} {'proc s':>7} {'rtf':>6} {'flow s':>7}  runs (s)"
+    print(line)
+    print("-" * len(line))
+
+
+def print_medians(sequence: Path, runs: dict[str, list[dict]]) -> None:
+    """One row per setting: the medians of its runs and each run's processing time."""
+    for name, rs in runs.items():
+        med = {k: statistics.median(r[k] for r in rs) for k in FIELDS}
+        print(f"{sequence.name[:32]:<32} {name:<10} {med['proc_s']:>7.2f} {med['rtf']:>6.2f} "
+              f"{med['flow_s']:>7.2f}  " + " ".join(f"{r['proc_s']:.2f}" for r in rs),
+              flush=True)
