@@ -13,6 +13,12 @@ second strip's thread had no free core before).
 :class:`BlasThreads` sets the limit with threadpoolctl (whatever the import order, for
 OpenBLAS, MKL and BLIS alike) and puts the libraries' own settings back on exit. It is
 re-entrant per thread: nested uses (``Tracker.track`` calling ``push_events``) cost nothing.
+
+Trackers working at the same time in several threads of one process: the libraries' limits
+are process-wide for some builds and per thread for others, and each use restores what it
+found when it started, so overlapping uses can lift each other's limit early or leave the
+limit in place after the last one ends. Set ``blas_threads: 0`` for such trackers and limit
+BLAS once around them yourself (``threadpoolctl.threadpool_limits(1, "blas")``).
 """
 
 from __future__ import annotations
