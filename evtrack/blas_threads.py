@@ -1,14 +1,16 @@
 """numpy's BLAS threads while the tracker runs: one, so that idle BLAS workers do not spin.
 
 numpy's wheels bring OpenBLAS, which starts its worker threads when numpy is imported. After
-a BLAS call large enough to be split across them (a product with a few thousand rows: the
-mesh's vertices, a depth patch), the workers busy-wait for the next call for a while before
-they sleep. The tracker makes such calls every few milliseconds, so one worker spun almost
-all the time (82 % of samples running, on a 2 s ``faster`` sequence) and took a core from the
-flow's kernels and the filters. Measured on the cracker box ``faster`` sequence (2 cores, 2
-torch threads, full method): 38.7 s of processing with OpenBLAS's own threads, 30.3 s with
-one BLAS thread; with the flow's strips searched in parallel 35.3 s against 22.3 s (the
-second strip's thread had no free core before).
+a BLAS call large enough to be split across them, the workers busy-wait for the next call for
+a while before they sleep. The tracker's event mask used to be such a call (an (N, 2) by
+(2, edges) product on every flow call): one worker was running in 82 % of the samples of a
+2 s ``faster`` run and took a core from the flow's kernels and the filters. The mask no
+longer uses BLAS (:func:`evtrack.silhouette.pixels_in_polygon`); the limit stays so that no
+other product can start the spinning again. ``benchmarks/bench_tracker_cpu.py`` on the
+cracker box ``faster`` sequence (2 cores, medians of 2 interleaved runs): 34.4 s with
+OpenBLAS's own threads, 33.6 s with one BLAS thread, 28.8 s when the flow's search strips
+came on top (single runs with BLAS spinning showed the strips gaining nothing: their second
+thread had no free core).
 
 :class:`BlasThreads` sets the limit with threadpoolctl (whatever the import order, for
 OpenBLAS, MKL and BLIS alike) and puts the libraries' own settings back on exit. It is

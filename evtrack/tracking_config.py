@@ -189,9 +189,9 @@ class TrackerConfig:
         blas_threads: numpy's BLAS threads while the tracker works (``track`` and the
             streaming calls), restored after each call; 0 leaves the library's setting. One by
             default: the tracker's numpy products are small, and OpenBLAS's idle workers spin
-            after each larger one and take a core from the flow (cracker box ``faster``: 38.7
-            s -> 30.3 s of processing; see :mod:`evtrack.blas_threads`, also for trackers
-            running in several threads at once: give them 0 and limit BLAS around them).
+            after each larger one and take a core from the flow (see
+            :mod:`evtrack.blas_threads`, also for trackers running in several threads at once:
+            give them 0 and limit BLAS around them).
         velocity_step_us: the velocity filter runs once per step (µs); the tracker outputs a
             pose and a twist at the end of every step (1 kHz by default). Steps are aligned on
             absolute time (multiples of the step).
