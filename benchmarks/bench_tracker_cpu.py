@@ -31,7 +31,7 @@ import json
 import sys
 from pathlib import Path
 
-from tracker_runs import header, print_medians, run_child, time_tracking
+from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
 VARIANTS = ("reference", "blas", "strips", "mask")
 
@@ -70,27 +70,17 @@ def _spawn(sequence: Path, variant: str, method: str, threads: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sequence", type=Path, nargs="+", required=True,
-                    help="sequence folders (e.g. from evtrack simulate-benchmark)")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
                     help="which cumulative variants to run (default: all)")
-    ap.add_argument("--repeats", type=int, default=2, help="runs per sequence and variant")
-    ap.add_argument("--method", default="full", help="tracker method")
-    ap.add_argument("--threads", type=int, default=2, help="torch (and kernel) threads")
-    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    add_run_arguments(ap, "variant")
     args = ap.parse_args(argv)
     if args.child:
         print(json.dumps(_child(args.sequence[0], args.variants[0], args.method, args.threads)))
         return 0
     print(f"evtrack.Tracker ({args.method}, {args.threads} threads, oracle poses), cumulative "
           f"CPU changes; median of {args.repeats} interleaved runs, each a fresh process")
-    header("variant")
-    for seq in args.sequence:
-        runs: dict[str, list[dict]] = {v: [] for v in args.variants}
-        for _ in range(args.repeats):
-            for variant in args.variants:
-                runs[variant].append(_spawn(seq, variant, args.method, args.threads))
-        print_medians(seq, runs)
+    compare(args.sequence, args.variants, "variant", args.repeats,
+            lambda seq, name: _spawn(seq, name, args.method, args.threads))
     return 0
 
 

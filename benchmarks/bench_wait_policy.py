@@ -24,7 +24,7 @@ import os
 import sys
 from pathlib import Path
 
-from tracker_runs import header, print_medians, run_child, time_tracking
+from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
 POLICIES = ("default", "PASSIVE", "ACTIVE")
 
@@ -49,26 +49,16 @@ def _spawn(sequence: Path, policy: str, method: str, threads: int) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sequence", type=Path, nargs="+", required=True,
-                    help="sequence folders with ground truth (evtrack simulate-benchmark)")
     ap.add_argument("--policies", nargs="+", default=["default", "PASSIVE"], choices=POLICIES)
-    ap.add_argument("--repeats", type=int, default=2, help="runs per sequence and policy")
-    ap.add_argument("--method", default="full", help="tracker method")
-    ap.add_argument("--threads", type=int, default=2, help="torch (and kernel) threads")
-    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    add_run_arguments(ap, "policy")
     args = ap.parse_args(argv)
     if args.child:
         print(json.dumps(_child(args.sequence[0], args.method, args.threads)))
         return 0
     print(f"evtrack.Tracker ({args.method}, {args.threads} threads, oracle poses) under OpenMP "
           f"wait policies; median of {args.repeats} interleaved runs, each a fresh process")
-    header("policy")
-    for seq in args.sequence:
-        runs: dict[str, list[dict]] = {p: [] for p in args.policies}
-        for _ in range(args.repeats):
-            for policy in args.policies:
-                runs[policy].append(_spawn(seq, policy, args.method, args.threads))
-        print_medians(seq, runs)
+    compare(args.sequence, args.policies, "policy", args.repeats,
+            lambda seq, name: _spawn(seq, name, args.method, args.threads))
     return 0
 
 

@@ -4,10 +4,12 @@ a child decides what loads first (torch before evtrack, or the reverse)."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import statistics
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 FIELDS = ("proc_s", "rtf", "flow_s")
@@ -65,3 +67,26 @@ def print_medians(sequence: Path, runs: dict[str, list[dict]]) -> None:
         print(f"{sequence.name[:32]:<32} {name:<10} {med['proc_s']:>7.2f} {med['rtf']:>6.2f} "
               f"{med['flow_s']:>7.2f}  " + " ".join(f"{r['proc_s']:.2f}" for r in rs),
               flush=True)
+
+
+def add_run_arguments(ap: argparse.ArgumentParser, what: str) -> None:
+    """The arguments both benchmarks take (``what``: the name of the compared setting)."""
+    ap.add_argument("--sequence", type=Path, nargs="+", required=True,
+                    help="sequence folders (e.g. from evtrack simulate-benchmark)")
+    ap.add_argument("--repeats", type=int, default=2, help=f"runs per sequence and {what}")
+    ap.add_argument("--method", default="full", help="tracker method")
+    ap.add_argument("--threads", type=int, default=2, help="torch (and kernel) threads")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+
+
+def compare(sequences: list[Path], settings: list[str], label: str, repeats: int,
+            spawn: Callable[[Path, str], dict]) -> None:
+    """Per sequence, ``repeats`` rounds of one fresh run per setting (interleaved, so that the
+    machine's load drifts over all alike), then the table of medians."""
+    header(label)
+    for seq in sequences:
+        runs: dict[str, list[dict]] = {name: [] for name in settings}
+        for _ in range(repeats):
+            for name in settings:
+                runs[name].append(spawn(seq, name))
+        print_medians(seq, runs)
