@@ -29,6 +29,8 @@ beside this file, or ``NUMBA_CACHE_DIR``), so later processes start in a fractio
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -50,6 +52,20 @@ _prange = numba.prange if numba is not None else range
 def available() -> bool:
     """Whether numba is installed (the compiled kernels can run)."""
     return numba is not None
+
+
+@contextmanager
+def torch_thread_count():
+    """Run numba's parallel kernels inside on as many threads as torch may use, and leave
+    torch's count as it was: numba's OpenMP layer resets the process's OpenMP thread count
+    (torch's) when it starts."""
+    threads = torch.get_num_threads()
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
 
 
 def _njit(**kwargs):
@@ -423,11 +439,7 @@ class CompiledSearch:
         count = lo_s.shape[0]
         self._make_room(count)
         pixels = self.width * self.height
-        threads = torch.get_num_threads()
-        # numba's OpenMP layer resets the process's OpenMP thread count (torch's) when it
-        # starts: put it back (as the compiled registration does)
-        numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-        try:
+        with torch_thread_count():
             _copy_halos(lo_s, hi_s, self._r2, self.width, self.height, self.last, self.hist,
                         self.hist_s, pixels, 2 * pixels)
             capacity = self._capacity(int(own.max()))
@@ -448,9 +460,6 @@ class CompiledSearch:
             dst = [np.empty(total, np.int64) for _ in range(7)]
             dst_flow = np.empty((total, 2), np.float32)
             _merge_strips(n, self.next_seq, seg_start, seg_len, *src, src_flow, *dst, dst_flow)
-        finally:
-            if torch.get_num_threads() != threads:
-                torch.set_num_threads(threads)
         return [Candidates(*(torch.from_numpy(a) for a in dst), flow=torch.from_numpy(dst_flow))]
 
 

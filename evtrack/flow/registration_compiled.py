@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.flow.compiled import _njit, _prange, _rounded_distance, numba
+from evtrack.flow.compiled import _njit, _prange, _rounded_distance, numba, torch_thread_count
 
 __all__ = ["register_groups_compiled"]
 
@@ -323,11 +323,7 @@ def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: 
     """
     if numba is None:
         raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
-    # the parallel kernels use as many threads as torch is allowed; numba's OpenMP layer
-    # resets the process's OpenMP thread count (torch's) when it starts: put it back
-    threads = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-    try:
+    with torch_thread_count():
         as64 = [np.ascontiguousarray(v.detach().cpu().numpy(), dtype=np.int64)
                 for v in (group, seq, ordinal)]
         f = np.ascontiguousarray(flow.detach().cpu().numpy(), dtype=np.float32)
@@ -337,9 +333,6 @@ def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: 
         out = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                             ev_per_group, float(cost_scale), float(q_max), float(parallel_eps),
                             float(line_gate), float(irls_delta), int(refine_iters))
-    finally:
-        if torch.get_num_threads() != threads:
-            torch.set_num_threads(threads)
     names = ("full", "has", "best_cost", "inliers", "lines", "fit_flow", "ratio", "major",
              "normal_speed")
     res = {k: torch.from_numpy(v) for k, v in zip(names, out, strict=True)}
