@@ -1,7 +1,7 @@
 """The tracker's CPU-side speed-ups, each against the code without it, side by side.
 
     python benchmarks/bench_tracker_cpu.py --sequence DIR [DIR ...] [--repeats 2]
-                                           [--variants reference blas strips mask]
+                                           [--variants reference blas strips mask groups]
 
 Variants, cumulative (each adds one change to the one before):
 
@@ -12,11 +12,15 @@ Variants, cumulative (each adds one change to the one before):
   idle workers no longer spin after the mask's product;
 * ``strips``: the search split into horizontal strips of the sensor, one per thread
   (:class:`evtrack.flow.compiled.CompiledSearch`);
-* ``mask``: the event mask by row spans (:func:`evtrack.silhouette.pixels_in_polygon`), the
-  tracker's default: all three changes.
+* ``mask``: the event mask by row spans (:func:`evtrack.silhouette.pixels_in_polygon`);
+* ``groups``: one flow call per 10 velocity steps instead of 5 (``flow_batch_steps``), the
+  tracker's default: all four changes.
 
-Every variant gives the same trajectory up to float rounding (the strips bit for bit; the
-BLAS thread count and the mask's arithmetic can move an event on the mask's edge). Each run
+The first four give the same trajectory up to float rounding (the strips bit for bit; the
+BLAS thread count and the mask's arithmetic can move an event on the mask's edge); ``groups``
+masks 10 steps of events with the silhouette predicted at their first step, and the flow's
+RoI windows see the same events otherwise (its errors on the benchmark sets: see
+``TrackerConfig.flow_batch_steps``). Each run
 is a fresh child process, the variants interleaved run by run so that the machine's load
 drifts over all alike; each child tracks the sequence twice and times the second run (the
 first loads the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
@@ -33,7 +37,7 @@ from pathlib import Path
 
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
-VARIANTS = ("reference", "blas", "strips", "mask")
+VARIANTS = ("reference", "blas", "strips", "mask", "groups")
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
@@ -58,8 +62,9 @@ def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
             return (xy @ normals.T - offsets).max(axis=1) <= margin
 
         SilhouettePolygon.contains_pixels = point_test
-    return time_tracking(sequence, {"method": method, "blas_threads": 0 if level < 1 else 1},
-                         threads)
+    config = {"method": method, "blas_threads": 0 if level < 1 else 1,
+              "flow_batch_steps": 10 if level >= VARIANTS.index("groups") else 5}
+    return time_tracking(sequence, config, threads)
 
 
 def _spawn(sequence: Path, variant: str, method: str, threads: int) -> dict:

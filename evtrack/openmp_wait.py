@@ -2,7 +2,7 @@
 
 torch and the flow's compiled kernels (numba's ``omp`` layer) share one GNU OpenMP runtime.
 Its worker threads spin for a while after every parallel region before they sleep. The
-tracker runs a few short parallel kernels every 5 ms and tiny serial steps in between, so on a
+tracker runs a few short parallel kernels every 5-10 ms and tiny serial steps in between, so on a
 machine with as many busy threads as cores the spinning workers take the cores from the main
 thread, and a parallel region waits a whole scheduler slice (4-70 ms) for a worker that was
 descheduled. ``OMP_WAIT_POLICY=PASSIVE`` makes idle workers sleep at once. Measured with

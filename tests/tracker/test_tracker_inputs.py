@@ -60,7 +60,7 @@ def test_events_outside_the_sensor_or_of_another_sensor() -> None:
 
 
 def test_waiting_until_the_first_pose_then_tracking() -> None:
-    tracker = _tracker(pose_latency_ms=0.0)
+    tracker = _tracker(pose_latency_ms=0.0, flow_batch_steps=5)  # advance() closes 5 ms groups
     tracker.reset(t_us=0)
     tracker.advance(5_000)
     assert tracker.status == STATUS_WAITING
