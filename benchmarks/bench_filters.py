@@ -12,8 +12,11 @@ The main table puts the paths side by side for each case and batch size:
 * ``torch call``: the stateful call users run (``kf.update(...)``; ``ukf(twist, dt, t, q)``)
   with ``fast_path=False``;
 * ``fast call``: the same stateful call with the single-track fast path
-  (:mod:`evtrack.filters.fast_path`, NumPy), what a tracker runs at B = 1; it applies to B = 1
+  (:mod:`evtrack.filters.fast_path`; its velocity update compiled with numba,
+  :mod:`evtrack.filters.fast_compiled`), what a tracker runs at B = 1; it applies to B = 1
   only (at B > 1 the call is the torch call);
+* ``fast NumPy``: the fast call with the velocity update in NumPy (``fast_path.COMPILED``
+  off), the form before the compiled kernel;
 * ``compiled step``: the pure step after ``compile_steps()`` (torch.compile, inductor),
   checked against eager first;
 * ``filterpy``: filterpy's KalmanFilter / UnscentedKalmanFilter on the same models; it has no
@@ -24,7 +27,8 @@ at B = 1024. Each cell is the median over ``--repeats`` runs of the mean call ti
 this process's CPU time (what a dedicated core would see; wall time in a second table). On a
 shared machine absolute times drift with the load, so the table also gives each path's time
 relative to filterpy's, measured in the same run. The fast call is checked against the torch
-call (1e-12) before it is timed. Further rows: other filters and onnxruntime.
+call (1e-12) before it is timed. A third VelocityKF row has the 16 RoIs of a tracker's step
+(no target, no filterpy). Further rows: other filters and onnxruntime.
 """
 
 from __future__ import annotations
@@ -70,11 +74,13 @@ from evtrack.filters import (  # noqa: E402
     PoseUKF,
     PoseUKFConfig,
     VelocityKF,
+    fast_path,
     interaction_matrix,
 )
 from evtrack.filters.onnx_export import export_step, step_inputs  # noqa: E402
 
 ROIS = 400
+TRACKER_ROIS = 16  # RoI flows per velocity step of the tracker on a `faster` YCB sequence
 CAM = PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480)
 
 
@@ -109,38 +115,45 @@ class Timing(NamedTuple):
 
 
 # ---------------------------------------------------------------------------- VelocityKF
-def _velocity_inputs(B: int, seed: int = 0) -> tuple[torch.Tensor, ...]:
+def _velocity_inputs(B: int, seed: int = 0, rois: int = ROIS) -> tuple[torch.Tensor, ...]:
     g = torch.Generator().manual_seed(seed)
-    uv = torch.rand(B, ROIS, 2, generator=g, dtype=torch.float64) * torch.tensor([640.0, 480.0])
-    depth = 0.4 + 0.8 * torch.rand(B, ROIS, generator=g, dtype=torch.float64)
+    uv = torch.rand(B, rois, 2, generator=g, dtype=torch.float64) * torch.tensor([640.0, 480.0])
+    depth = 0.4 + 0.8 * torch.rand(B, rois, generator=g, dtype=torch.float64)
     twist = torch.randn(B, 6, generator=g, dtype=torch.float64)
     flow = (interaction_matrix(uv, depth, CAM) @ twist[:, None, :, None]).squeeze(-1)
-    flow = flow + 5 * torch.randn(B, ROIS, 2, generator=g, dtype=torch.float64)
-    normal = torch.rand(B, ROIS, generator=g) < 0.5
-    mask = torch.ones(B, ROIS, dtype=torch.bool)
+    flow = flow + 5 * torch.randn(B, rois, 2, generator=g, dtype=torch.float64)
+    normal = torch.rand(B, rois, generator=g) < 0.5
+    mask = torch.ones(B, rois, dtype=torch.bool)
     return twist, uv, depth, flow, normal, mask
 
 
-def bench_velocity(B: int, repeats: int, compiled: bool = False) -> Timing:
+def bench_velocity(B: int, repeats: int, compiled: bool = False, rois: int = ROIS) -> Timing:
     kf = VelocityKF(CAM, B)
-    twist, uv, depth, flow, normal, mask = _velocity_inputs(B)
+    twist, uv, depth, flow, normal, mask = _velocity_inputs(B, rois=rois)
     args = (twist, kf.cov.clone(), twist, uv, depth, flow, normal, mask)
     fn = _compiled(kf, "update_state", args) if compiled else kf.update_state
     return _time(lambda: fn(*args), repeats)
 
 
-def bench_velocity_call(B: int, repeats: int, fast: bool) -> Timing:
-    """The stateful ``kf.update`` (fast path on or off), after checking both give the same."""
-    twist, uv, depth, flow, normal, _ = _velocity_inputs(B)
+def bench_velocity_call(B: int, repeats: int, fast: bool, rois: int = ROIS,
+                        numpy_update: bool = False) -> Timing:
+    """The stateful ``kf.update`` (fast path on or off), after checking both give the same;
+    ``numpy_update``: the fast path's update in NumPy instead of its compiled kernel."""
+    twist, uv, depth, flow, normal, _ = _velocity_inputs(B, rois=rois)
     kf = VelocityKF(CAM, B, fast_path=fast)
-    if fast:
-        ref = VelocityKF(CAM, B, fast_path=False)
-        for f in (kf, ref):
-            f.reset(twist=twist)
-            f.update(uv, depth, flow, normal)
-        _same(kf.twist, ref.twist, "VelocityKF twist")
-        _same(kf.cov, ref.cov, "VelocityKF cov")
-    return _time(lambda: kf.update(uv, depth, flow, normal), repeats)
+    compiled_before = fast_path.COMPILED
+    fast_path.COMPILED = not numpy_update
+    try:
+        if fast:
+            ref = VelocityKF(CAM, B, fast_path=False)
+            for f in (kf, ref):
+                f.reset(twist=twist)
+                f.update(uv, depth, flow, normal)
+            _same(kf.twist, ref.twist, "VelocityKF twist")
+            _same(kf.cov, ref.cov, "VelocityKF cov")
+        return _time(lambda: kf.update(uv, depth, flow, normal), repeats)
+    finally:
+        fast_path.COMPILED = compiled_before
 
 
 def bench_pose_call(B: int, repeats: int, fast: bool) -> Timing:
@@ -283,7 +296,7 @@ def bench_onnx(filt: VelocityKF | PoseUKF, B: int, repeats: int, folder: Path) -
 
 
 # ---------------------------------------------------------------------------- table
-PATHS = ("torch step", "torch call", "fast call", "compiled step", "filterpy")
+PATHS = ("torch step", "torch call", "fast call", "fast NumPy", "compiled step", "filterpy")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -312,18 +325,24 @@ def main(argv: list[str] | None = None) -> int:
     # (case, B, {path: Timing}, target µs, judged path, per "step" or "track")
     Row = tuple[str, int, dict[str, Timing], float | None, str, str]
     rows: list[Row] = []
-    for B in (1, big):
+    for B, rois in ((1, ROIS), (big, ROIS), (1, TRACKER_ROIS)):
         cells = {
-            "torch step": bench_velocity(B, rep),
-            "torch call": bench_velocity_call(B, rep, fast=False),
-            "filterpy": fp_kf * B,
+            "torch step": bench_velocity(B, rep, rois=rois),
+            "torch call": bench_velocity_call(B, rep, fast=False, rois=rois),
         }
+        if rois == ROIS:
+            cells["filterpy"] = fp_kf * B
         if B == 1:
-            cells["fast call"] = bench_velocity_call(B, rep, fast=True)
+            cells["fast call"] = bench_velocity_call(B, rep, fast=True, rois=rois)
+            cells["fast NumPy"] = bench_velocity_call(B, rep, fast=True, rois=rois,
+                                                      numpy_update=True)
         if compile_ and B == 1:  # (at B = 1024 the eager step is arithmetic-bound already)
-            cells["compiled step"] = bench_velocity(B, rep, compiled=True)
+            cells["compiled step"] = bench_velocity(B, rep, compiled=True, rois=rois)
         judged = ("fast call", 150.0, "step") if B == 1 else ("torch call", None, "")
-        rows.append(("VelocityKF update, 400 RoIs", B, cells, judged[1], judged[0], judged[2]))
+        if rois != ROIS:
+            judged = ("fast call", None, "")
+        rows.append((f"VelocityKF update, {rois} RoIs", B, cells, judged[1], judged[0],
+                     judged[2]))
     for B in (1, big):
         cells = {
             "torch step": bench_pose(B, rep),
@@ -400,6 +419,8 @@ def _ratios(rows: list) -> None:
     """Each path's CPU time over filterpy's in the same run (load-independent-ish)."""
     print("\nrelative to filterpy in this run (cpu time / filterpy's; < 1 is faster)")
     for case, B, cells, *_ in rows:
+        if "filterpy" not in cells:
+            continue
         ref = cells["filterpy"].cpu
         parts = [f"{p} {cells[p].cpu / ref:.3f}" for p in PATHS[:-1] if p in cells]
         print(f"  {case:<28} {B:>5}  " + ", ".join(parts))

@@ -689,6 +689,9 @@ class Tracker:
                 ev = self._thin(ev, index, t0)
         res: _StepFlows | None = None
         if self.method in ("full", "velocity"):
+            if cfg.velocity_kf.object_centred:  # the group's pose: one pivot for its steps
+                self.vkf.set_pivot(None if pose is None or not np.isfinite(pose).all()
+                                   else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
             with _Timer(st.time_s, "flow"):
                 # group ends are whole steps, and steps whole flow windows (the config
                 # checks it): every window of the group is over, one registration reports all
@@ -781,9 +784,6 @@ class Tracker:
         """VelocityKF predict + update from the RoI flows of step ``k`` of the group; returns
         the twist (1, 6)."""
         uv, flow, normal = flows.step(k)
-        if self.config.velocity_kf.object_centred:
-            self.vkf.set_pivot(None if pose is None or not np.isfinite(pose).all()
-                               else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
         if len(uv) == 0 or (poly is None and pose is not None):
             return self.vkf.predict(dt)
         cfg = self.config

@@ -68,6 +68,15 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
 
 
 # ---------------------------------------------------------------------------- VelocityKF
+@pytest.fixture(params=["compiled", "numpy"])
+def update_form(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Runs a test with the velocity update compiled (numba) and in NumPy."""
+    if request.param == "compiled" and not fp._compiled.available():
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(fp, "COMPILED", request.param == "compiled")
+    return request.param
+
+
 def _flows(g: torch.Generator, N: int, kind: str) -> tuple[torch.Tensor, ...]:
     """RoIs seeing a rigid motion plus noise and outliers; ``kind`` picks the normal flags and
     sprinkles bad RoIs (missing/zero/negative/inf depth, NaN flow, inf pixel, zero flows)."""
@@ -115,7 +124,7 @@ VELOCITY_CASES = [
     ("cfg", "kind", "strict"), [c[1:] for c in VELOCITY_CASES], ids=[c[0] for c in VELOCITY_CASES]
 )
 def test_velocity_steps_equal_torch(
-    cfg: VelocityKFConfig, kind: str, strict: bool, calls: dict
+    cfg: VelocityKFConfig, kind: str, strict: bool, calls: dict, update_form: str
 ) -> None:
     g = torch.Generator().manual_seed(0)
     fast, ref = VelocityKF(CAM, 1, cfg), VelocityKF(CAM, 1, cfg, fast_path=False)
@@ -145,7 +154,7 @@ def test_velocity_steps_equal_torch(
     assert int(fast.skipped_depth[0]) > 0 or "+bad" not in kind
 
 
-def test_velocity_inputs_of_other_dtypes_and_no_valid_rois(calls: dict) -> None:
+def test_velocity_inputs_of_other_dtypes_and_no_valid_rois(calls: dict, update_form: str) -> None:
     g = torch.Generator().manual_seed(1)
     uv, depth, flow, normal = _flows(g, 40, "mixed")
     fast, ref = VelocityKF(CAM, 1), VelocityKF(CAM, 1, fast_path=False)
@@ -157,7 +166,7 @@ def test_velocity_inputs_of_other_dtypes_and_no_valid_rois(calls: dict) -> None:
     assert calls["velocity_update"] == 2
 
 
-def test_velocity_distorted_camera() -> None:
+def test_velocity_distorted_camera(update_form: str) -> None:
     cam = PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480, dist=[-0.2, 0.05, 1e-3, -1e-3])
     g = torch.Generator().manual_seed(2)
     uv, depth, flow, normal = _flows(g, 50, "mixed")
@@ -167,7 +176,9 @@ def test_velocity_distorted_camera() -> None:
     _close_gaussian(fast, ref, "distorted camera")
 
 
-def test_velocity_covariance_not_positive_definite_falls_back_to_torch(calls: dict) -> None:
+def test_velocity_covariance_not_positive_definite_falls_back_to_torch(
+    calls: dict, update_form: str
+) -> None:
     g = torch.Generator().manual_seed(3)
     uv, depth, flow, normal = _flows(g, 30, "mixed")
     bad = -torch.eye(6, dtype=F64)[None]
