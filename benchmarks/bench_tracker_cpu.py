@@ -1,7 +1,7 @@
 """The tracker's CPU-side speed-ups, each against the code without it, side by side.
 
     python benchmarks/bench_tracker_cpu.py --sequence DIR [DIR ...] [--repeats 2]
-                                           [--variants reference blas strips mask groups]
+                                           [--variants reference blas strips mask groups kf]
 
 Variants, cumulative (each adds one change to the one before):
 
@@ -13,17 +13,22 @@ Variants, cumulative (each adds one change to the one before):
 * ``strips``: the search split into horizontal strips of the sensor, one per thread
   (:class:`evtrack.flow.compiled.CompiledSearch`);
 * ``mask``: the event mask by row spans (:func:`evtrack.silhouette.pixels_in_polygon`);
-* ``groups``: one flow call per 10 velocity steps instead of 5 (``flow_batch_steps``), the
-  tracker's default: all four changes.
+* ``groups``: one flow call per 10 velocity steps instead of 5 (``flow_batch_steps``);
+* ``kf``: the velocity filter's update compiled with numba
+  (:mod:`evtrack.filters.fast_compiled`) instead of NumPy, the tracker's default: all five
+  changes.
 
-The first four give the same trajectory up to float rounding (the strips bit for bit; the
-BLAS thread count and the mask's arithmetic can move an event on the mask's edge); ``groups``
-masks 10 steps of events with the silhouette predicted at their first step, and the flow's
-RoI windows see the same events otherwise (its errors on the benchmark sets: see
-``TrackerConfig.flow_batch_steps``). Each run
-is a fresh child process, the variants interleaved run by run so that the machine's load
-drifts over all alike; each child tracks the sequence twice and times the second run (the
-first loads the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
+The variants before ``kf`` run the NumPy update (``fast_path.COMPILED`` off). Not a variant:
+the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
+step group) was made cheaper at the same time as ``kf`` and is in every variant.
+
+All but ``groups`` give the same trajectory as the variant before up to float rounding (the
+strips bit for bit; the BLAS thread count and the mask's arithmetic can move an event on the
+mask's edge); ``groups`` masks 10 steps of events with the silhouette predicted at their first
+step (its errors on the benchmark sets: see ``TrackerConfig.flow_batch_steps``). Each run is a
+fresh child process, the variants interleaved run by run so that the machine's load drifts
+over all alike; each child tracks the sequence twice and times the second run (the first
+loads the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
 ``benchmarks/bench_tracker.py``. Printed per sequence and variant: the median processing time,
 the real-time factor (processing / sequence time) and the flow stage's time.
 """
@@ -37,7 +42,7 @@ from pathlib import Path
 
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
-VARIANTS = ("reference", "blas", "strips", "mask", "groups")
+VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf")
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
@@ -48,6 +53,10 @@ def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
     from evtrack.silhouette import SilhouettePolygon
 
     level = VARIANTS.index(variant)
+    if level < VARIANTS.index("kf"):
+        from evtrack.filters import fast_path
+
+        fast_path.COMPILED = False
     if level < VARIANTS.index("strips"):
         CompiledSearch.parallel_min_events = 1 << 62
     if level < VARIANTS.index("mask"):

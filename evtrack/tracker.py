@@ -65,6 +65,7 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -282,15 +283,18 @@ class _StepFlows:
         return self.uv[lo:hi], self.flow[lo:hi], self.normal[lo:hi]
 
 
-def _quat_to_matrix(t: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(3,), (4,) wxyz -> (4, 4) float64 (numpy; the per-step path avoids torch overheads)."""
-    w, x, y, z = q / np.linalg.norm(q)
-    T = np.eye(4)
-    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                 [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                 [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
-    T[:3, 3] = t
-    return T
+def _quat_to_matrix(t, q) -> np.ndarray:
+    """(3,), (4,) wxyz (arrays or sequences of numbers) -> (4, 4) float64. Python floats and
+    one array: the tracker asks at every step, where NumPy's per-operation cost on scalars
+    (~1 µs each) would be most of the time."""
+    w, x, y, z = (float(v) for v in q)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    tx, ty, tz = (float(v) for v in t)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), tx],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), ty],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), tz],
+                     [0.0, 0.0, 0.0, 1.0]])
 
 
 class Tracker:
@@ -470,17 +474,14 @@ class Tracker:
         return self._t
 
     def _current_pose(self) -> np.ndarray:
-        t, q = self.ukf.t[0].detach().cpu().numpy(), self.ukf.q[0].detach().cpu().numpy()
-        return _quat_to_matrix(t, q)
+        return _quat_to_matrix(self.ukf.t.tolist()[0], self.ukf.q.tolist()[0])
 
     def _current_twist(self) -> np.ndarray:
         if self.method == "pose":
             return np.zeros(6)
-        if self.method == "frame-flow":
-            return self.ukf.twist[0].detach().cpu().numpy().astype(np.float64)
-        if self.method == "ge":
-            return self.ge.twist[0].detach().cpu().numpy().astype(np.float64)
-        return self.vkf.twist[0].detach().cpu().numpy().astype(np.float64)
+        source = (self.ukf if self.method == "frame-flow"
+                  else self.ge if self.method == "ge" else self.vkf)
+        return np.array(source.twist.tolist()[0], np.float64)
 
     # ------------------------------------------------------------------ inputs
     def push_events(self, events: Events) -> None:
@@ -1028,8 +1029,7 @@ class Tracker:
     def _record(self, t1: int) -> None:
         status = self.status
         if status == STATUS_TRACKING:
-            tq = np.concatenate([self.ukf.t[0].detach().cpu().numpy(),
-                                 self.ukf.q[0].detach().cpu().numpy()])
+            tq = np.array(self.ukf.t.tolist()[0] + self.ukf.q.tolist()[0])
             self._held = None
         elif status == STATUS_LOST and self._held is not None:
             t, q = matrix_to_tq(torch.from_numpy(self._held))
