@@ -55,7 +55,7 @@ so its triplets and RoI flows are those of the unthinned stream, and its pixels'
 stay whole from one group to the next. Thinning single events instead leaves every trail with
 gaps, and the triplet search matches the survivors to unrelated older events: on the cracker
 box (`faster`, 8.6 M events/s) a budget of 4000 events per step gave 34.5 cm / 58° by single
-events, 9.2 cm / 13.8° by cells, against 4.65 cm / 6.5° unthinned.
+events, 9.2 cm / 13.8° by cells, against 4.35 cm / 6.5° unthinned.
 
 Depth fallback: a RoI without a valid depth (no depth frame yet, a frame older than
 ``max_depth_age_ms``, a pushed frame without depth and no earlier one, or only missing or
@@ -128,7 +128,8 @@ _THIN_RATIO = 0.75
 """Each event-thinning level keeps this share of the previous level's RoI cells."""
 
 _THIN_HEADROOM = 0.8
-"""Event thinning keeps twice the cells again when that fits in this share of the budget."""
+"""Event thinning goes back a level (more cells) only when that level's events fit in this
+share of the budget (hysteresis: the kept cells change seldom)."""
 
 _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
 """Fibonacci hashing of RoI cell indices (thinning keeps the cells of smallest hash first)."""
@@ -447,7 +448,7 @@ class Tracker:
         self.stats = TrackerStats()
         self._t: int | None = None
         self._ev_buf: list[Events] = []
-        self._thin_level = 0  # event thinning keeps 1 / 2**level of the RoI cells (_thin)
+        self._thin_level = 0  # event thinning keeps 0.75**level of the RoI cells (_thin)
         self._last_event_t: int | None = None
         self._pending: list[tuple[int, int, PoseMeasurement | _Miss | _DepthFrame | tuple]] = []
         self._pending_seq = 0

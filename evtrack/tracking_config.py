@@ -222,7 +222,7 @@ class TrackerConfig:
             step group) enter the flow (or the GE model); above it they are thinned by whole
             cells of 2 x 2 RoIs, deterministically, and counted (see :mod:`evtrack.tracker`),
             which bounds the work per step; 0: no cap. Thinning costs accuracy: on the
-            cracker box `faster` (8.6 M events/s) 4000 gave 9.2 cm / 13.8 deg against 4.65 /
+            cracker box `faster` (8.6 M events/s) 4000 gave 9.2 cm / 13.8 deg against 4.35 /
             6.5 unthinned, in 0.4x the time (real-time factor 10.1 -> 4.0). The default is
             ~5x the peak rate of the fast 640x480 simulated sequences (3.8k events per ms on
             the whole sensor).

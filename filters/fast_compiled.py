@@ -25,6 +25,8 @@ import math
 
 import numpy as np
 
+from evtrack.filters.config import VelocityKFConfig
+
 try:  # numba is a dependency; without it the NumPy fast path runs
     import numba
 except ImportError:  # pragma: no cover - exercised only where numba is missing
@@ -253,10 +255,20 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
     return post_twist, post_cov, n_mask - n_depth, n_depth - n_valid
 
 
-def velocity_update(cfg, consts: list[float], focal: np.ndarray, principal: np.ndarray,
-                    twist: np.ndarray, cov: np.ndarray, reference: np.ndarray, uv: np.ndarray,
-                    depth: np.ndarray, flow: np.ndarray, normal_only: np.ndarray | None,
-                    mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, int, int] | None:
+def velocity_update(
+    cfg: VelocityKFConfig,
+    consts: list[float],
+    focal: np.ndarray,
+    principal: np.ndarray,
+    twist: np.ndarray,
+    cov: np.ndarray,
+    reference: np.ndarray,
+    uv: np.ndarray,
+    depth: np.ndarray,
+    flow: np.ndarray,
+    normal_only: np.ndarray | None,
+    mask: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray, int, int] | None:
     """:func:`evtrack.filters.fast_path.velocity_update` compiled (same arguments and
     results); ``None`` where numba is missing.
 

@@ -337,7 +337,7 @@ def test_thinned_tracking_keeps_the_error_bounded(fast_sequence, runs) -> None:
     stays within a bound of the clean run's. Measured: 10.37 cm / 14.11 deg with 49 % of the
     events thinned, against 5.50 / 14.02 clean; thinning single events (the former rule) gave
     8.72 / 14.80 with 41 % thinned on this sparse scene, but 34.5 cm / 58 deg on the dense
-    cracker box `faster` with a budget of 4000 events per step (9.24 / 13.8 by cells, 4.65 /
+    cracker box `faster` with a budget of 4000 events per step (9.24 / 13.8 by cells, 4.35 /
     6.5 unthinned; see the next test for why). Bounds: clean + 6 cm and + 3 deg."""
     tracker, _ = make_tracker(fast_sequence, method="full", max_events_per_step=60)
     traj = tracker.track(fast_sequence)
