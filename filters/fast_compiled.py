@@ -1,6 +1,6 @@
 """Compiled (numba) form of the single-track velocity update of :mod:`fast_path`.
 
-:func:`evtrack.filters.fast_path.velocity_update` in NumPy spends most of its ~250 µs (15 RoIs)
+:func:`evtrack.filters.fast_path.velocity_update` in NumPy spends most of its ~200 µs (16 RoIs)
 in the dispatch of ~80 tiny array operations and three LAPACK calls, not in arithmetic. The
 kernel here runs the same update in one compiled loop nest: the RoI selection, the measurement
 rows, the Laplacian weighting passes and the information-form posterior, with the 6x6 algebra
