@@ -7,8 +7,8 @@ rows, the Laplacian weighting passes and the information-form posterior, with th
 by an unpivoted Cholesky factorisation written out (the matrices are symmetric positive
 definite, as LAPACK ``posv`` assumes too). Same formulas and row order as the NumPy path; the
 results agree with it and with the torch path to rounding (``tests/filters/test_fast_path.py``
-runs all three). :func:`velocity_update` returns ``None`` where numba is missing, and the
-caller takes the NumPy path. Per call with 16 RoIs (a tracker's step): 63 µs against 197 µs
+runs all three). Where numba is missing (:func:`available`), the caller takes the NumPy
+path. Per call with 16 RoIs (a tracker's step): 63 µs against 197 µs
 for the NumPy form, 400 RoIs: 107 against 265 µs (``benchmarks/bench_filters.py``, columns
 ``fast call`` and ``fast NumPy``); the kernel itself takes ~12 µs of the 63, the rest is the
 filter's input checks and conversions.
@@ -268,15 +268,13 @@ def velocity_update(
     flow: np.ndarray,
     normal_only: np.ndarray | None,
     mask: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, int, int] | None:
+) -> tuple[np.ndarray, np.ndarray, int, int]:
     """:func:`evtrack.filters.fast_path.velocity_update` compiled (same arguments and
-    results); ``None`` where numba is missing.
+    results); needs numba (:func:`available`).
 
     Raises:
         numpy.linalg.LinAlgError: if a 6x6 matrix is not positive definite.
     """
-    if numba is None:  # pragma: no cover - exercised only where numba is missing
-        return None
     _, flow_info, scale, scale_min, floor = consts
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only

@@ -176,16 +176,7 @@ class TripletFlow(nn.Module):
 
     def roi_centres(self) -> Tensor:
         """(num_rois, 2) float32 centres in px of every RoI (row-major), clipped RoIs too."""
-        return self._cached_centres()[1].clone()
-
-    def _cached_centres(self) -> tuple[tuple, Tensor]:
-        """``(key, centres)``: the RoI centres (CPU), computed again when the sensor size or
-        the RoI size changed."""
-        key = (self._sensor, self.config.roi_size)
-        cached = getattr(self, "_centres", None)
-        if cached is None or cached[0] != key:
-            self._centres = (key, self._roi_centres())
-        return self._centres
+        return self._roi_centres()
 
     def _roi_centres(self) -> Tensor:
         cols, rows = self.num_rois
@@ -412,12 +403,13 @@ class TripletFlow(nn.Module):
             n_events=n_events[reported], roi=roi, window=window)
 
     def _device_centres(self) -> Tensor:
-        """:meth:`roi_centres` on the flow's device, kept between calls (not to be changed)."""
-        key, centres = self._cached_centres()
-        on_device = getattr(self, "_centres_dev", None)
-        if on_device is None or on_device[0] != (key, self.device):
-            self._centres_dev = ((key, self.device), centres.to(self.device))
-        return self._centres_dev[1]
+        """:meth:`roi_centres` on the flow's device, kept between calls (computed again when
+        the sensor, the RoI size or the device changed; not to be changed in place)."""
+        key = (self._sensor, self.config.roi_size, self.device)
+        cached = getattr(self, "_centres", None)
+        if cached is None or cached[0] != key:
+            self._centres = (key, self._roi_centres().to(self.device))
+        return self._centres[1]
 
     def _event_flows(self, c_local: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor,
                      group_flow: Tensor, n_events: int) -> Tensor:
