@@ -84,6 +84,8 @@ class PoseTimeline:
     def start(self, t_us: int) -> None:
         """Forget the past: the current filter state is the state at ``t_us``."""
         self._times: deque[int] = deque([int(t_us)])
+        # per state tensor: (the filter's tensor, its version, the copy) at the last snapshot
+        self._copies: list[tuple[Tensor, int | None, Tensor] | None] = [None] * len(self.names)
         self._base = self._snapshot()  # the state at the start, before any measurement
         self._base_open = True  # measurements at exactly the start time may still come
         self._snaps: deque[tuple[Tensor, ...]] = deque([self._base])
@@ -91,7 +93,24 @@ class PoseTimeline:
         self._records: list[Measurement] = []
 
     def _snapshot(self) -> tuple[Tensor, ...]:
-        return tuple(getattr(self.filter, n).clone() for n in self.names)
+        """Copies of the filter's state tensors. A tensor that is the same object, unchanged
+        in place (same version counter), since the last snapshot shares that snapshot's copy
+        (snapshots are never written to; :meth:`_restore` copies them), so the counters that
+        change once in a thousand steps are not copied every step."""
+        buf = self.filter._buffers
+        last = self._copies
+        out = []
+        for i, name in enumerate(self.names):
+            x = buf[name]
+            prev = last[i]
+            if prev is not None and prev[0] is x and not x.is_inference() \
+                    and prev[1] == x._version:
+                out.append(prev[2])
+            else:
+                copy = x.clone()
+                last[i] = (x, None if x.is_inference() else x._version, copy)
+                out.append(copy)
+        return tuple(out)
 
     def _restore(self, snap: tuple[Tensor, ...]) -> None:
         for name, value in zip(self.names, snap, strict=True):

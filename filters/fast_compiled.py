@@ -26,13 +26,14 @@ import math
 import numpy as np
 
 from evtrack.filters.config import VelocityKFConfig
+from evtrack.filters.scalar_lie import normalized, quat_mul, quat_rotate, rotation_matrix, se3_exp
 
 try:  # numba is a dependency; without it the NumPy fast path runs
     import numba
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
-__all__ = ["available", "velocity_update"]
+__all__ = ["available", "pose_predict", "velocity_update"]
 
 _TINY = float(np.finfo(np.float64).tiny)
 _NOT_PD = -1  # status of a factorisation that met a non-positive pivot
@@ -290,3 +291,51 @@ def velocity_update(
     if skipped_depth < 0:
         raise np.linalg.LinAlgError("a 6x6 information matrix is not positive definite")
     return post_twist, post_cov, skipped_depth, skipped_flow
+
+
+@_njit
+def _pose_predict_kernel(t, q, cov, twist, dt, q_matrix):
+    """:func:`evtrack.filters.fast_path.pose_predict` on arrays: ``t`` (1,3), ``q`` (1,4),
+    ``cov`` (1,6,6), ``twist`` (1,6), ``q_matrix`` (6,6) -> new (1,3), (1,4), (1,6,6)."""
+    w = twist[0]
+    qd, pd = se3_exp((w[0] * dt, w[1] * dt, w[2] * dt), (w[3] * dt, w[4] * dt, w[5] * dt))
+    r = quat_rotate(qd, (t[0, 0], t[0, 1], t[0, 2]))
+    t_out = np.empty((1, 3))
+    t_out[0, 0], t_out[0, 1], t_out[0, 2] = r[0] + pd[0], r[1] + pd[1], r[2] + pd[2]
+    qn = normalized(quat_mul(qd, (q[0, 0], q[0, 1], q[0, 2], q[0, 3])))
+    q_out = np.empty((1, 4))
+    q_out[0, 0], q_out[0, 1], q_out[0, 2], q_out[0, 3] = qn
+    rows = rotation_matrix(qd)
+    rot = np.empty((3, 3))
+    for i in range(3):
+        rot[i, 0], rot[i, 1], rot[i, 2] = rows[i]
+    # A P Aᵀ with A = diag(R, R), block by block: R P_ab Rᵀ
+    p = cov[0]
+    half = np.empty((6, 6))  # A P
+    for i in range(6):
+        b, k = (i // 3) * 3, i % 3
+        for j in range(6):
+            half[i, j] = rot[k, 0] * p[b, j] + rot[k, 1] * p[b + 1, j] + rot[k, 2] * p[b + 2, j]
+    full = np.empty((6, 6))  # (A P) Aᵀ
+    for i in range(6):
+        for j in range(6):
+            b, k = (j // 3) * 3, j % 3
+            full[i, j] = (half[i, b] * rot[k, 0] + half[i, b + 1] * rot[k, 1]
+                          + half[i, b + 2] * rot[k, 2])
+    cov_out = np.empty((1, 6, 6))
+    for i in range(6):
+        for j in range(6):
+            cov_out[0, i, j] = 0.5 * (full[i, j] + full[j, i]) + dt * q_matrix[i, j]
+    return t_out, q_out, cov_out
+
+
+def pose_predict(t: np.ndarray, q: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt: float,
+                 q_matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`evtrack.filters.fast_path.pose_predict` compiled, on one track's arrays with
+    their batch dimension: ``t`` (1,3) m, ``q`` (1,4) wxyz, ``cov`` (1,6,6), ``twist`` (1,6)
+    ``[v_o (m/s), ω (rad/s)]``, ``dt`` s, ``q_matrix`` (6,6) process-noise density; returns
+    new float64 arrays ``(t (1,3), q (1,4), cov (1,6,6))``. Needs numba (:func:`available`)."""
+    f64 = np.float64
+    return _pose_predict_kernel(np.ascontiguousarray(t, f64), np.ascontiguousarray(q, f64),
+                                np.ascontiguousarray(cov, f64), np.ascontiguousarray(twist, f64),
+                                float(dt), np.ascontiguousarray(q_matrix, f64))

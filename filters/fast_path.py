@@ -34,8 +34,19 @@ from torch import Tensor
 
 from evtrack.filters import fast_compiled as _compiled
 from evtrack.filters.config import VelocityKFConfig
-from evtrack.filters.lie import _LOG_SMALL, _TINY_ANGLE
 from evtrack.filters.linalg import use_portable
+from evtrack.filters.scalar_lie import (  # noqa: F401  (re-exported: the fast path's algebra)
+    Quat,
+    Vec3,
+    cross,
+    normalized,
+    quat_exp,
+    quat_log,
+    quat_mul,
+    quat_rotate,
+    rotation_matrix,
+    se3_exp,
+)
 
 __all__ = [
     "applies",
@@ -49,8 +60,6 @@ __all__ = [
     "velocity_update",
 ]
 
-Quat = tuple[float, float, float, float]
-Vec3 = tuple[float, float, float]
 
 _EYE6 = np.eye(6)
 _ACROSS = np.array([-1.0, 1.0])  # n⊥ = (-ny, nx) scales (ny, nx) by these
@@ -125,10 +134,10 @@ def pivot_noise(q_density: np.ndarray, pivot: np.ndarray) -> np.ndarray:
         (6, 6) float64.
     """
     px, py, pz = (float(v) for v in pivot)
-    cross = np.array([[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]])
-    scaled = cross * q_density[3:]  # C Qw (columns scaled)
+    skew = np.array([[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]])
+    scaled = skew * q_density[3:]  # C Qw (columns scaled)
     out = np.empty((6, 6))
-    out[:3, :3] = scaled @ cross.T
+    out[:3, :3] = scaled @ skew.T
     out[:3, :3] = 0.5 * (out[:3, :3] + out[:3, :3].T)
     out[:3, :3] += np.diag(q_density[:3])
     out[:3, 3:] = scaled
@@ -327,94 +336,6 @@ def spd_inverse(A: np.ndarray) -> np.ndarray:
     """
     X = spd_solve(A, _EYE6 if A.shape[0] == 6 else np.eye(A.shape[0]))
     return 0.5 * (X + X.T)
-
-
-# ---------------------------------------------------------------------------- quaternions
-def quat_mul(a: Quat, b: Quat) -> Quat:
-    """Hamilton product ``a ⊗ b`` (wxyz)."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        ax * bw + aw * bx - az * by + ay * bz,
-        ay * bw + az * bx + aw * by - ax * bz,
-        az * bw - ay * bx + ax * by + aw * bz,
-    )
-
-
-def cross(a: Vec3, b: Vec3) -> Vec3:
-    """``a × b``."""
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def quat_rotate(q: Quat, p: Vec3) -> Vec3:
-    """``R(q) p`` as ``p + 2 (w c + v × c)``, ``c = v × p``."""
-    w, v = q[0], q[1:]
-    c = cross(v, p)  # type: ignore[arg-type]
-    d = cross(v, c)  # type: ignore[arg-type]
-    return (
-        p[0] + 2.0 * (w * c[0] + d[0]),
-        p[1] + 2.0 * (w * c[1] + d[1]),
-        p[2] + 2.0 * (w * c[2] + d[2]),
-    )
-
-
-def rotation_matrix(q: Quat) -> list[list[float]]:
-    """The 3x3 rotation matrix of a unit quaternion."""
-    w, x, y, z = q
-    return [
-        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
-    ]
-
-
-def normalized(q: Quat) -> Quat:
-    """``q / |q|``."""
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return (w / n, x / n, y / n, z / n)
-
-
-def _exp_parts(phi: Vec3) -> tuple[Quat, float, float, float]:
-    """``exp(φ)``, ``θ``, ``sin(θ/2)/θ`` and ``θ`` safe to divide by (as in :mod:`lie`)."""
-    theta = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-    half = 0.5 * theta
-    if theta > _TINY_ANGLE:
-        theta_safe, k = theta, math.sin(half) / theta
-    else:
-        theta_safe, k = 1.0, 0.5
-    return (math.cos(half), k * phi[0], k * phi[1], k * phi[2]), theta, k, theta_safe
-
-
-def quat_exp(phi: Vec3) -> Quat:
-    """Rotation vector (rad) -> unit quaternion."""
-    return _exp_parts(phi)[0]
-
-
-def quat_log(q: Quat) -> Vec3:
-    """Unit quaternion -> the shortest rotation vector (either sign of ``q``)."""
-    w, x, y, z = q
-    s = math.sqrt(x * x + y * y + z * z)
-    aw = abs(w)
-    ratio = 2.0 / aw if s < _LOG_SMALL else 2.0 * math.atan2(s, aw) / s
-    if w < 0:
-        ratio = -ratio
-    return (ratio * x, ratio * y, ratio * z)
-
-
-def se3_exp(rho: Vec3, phi: Vec3) -> tuple[Quat, Vec3]:
-    """The rigid motion ``(q_Δ, p_Δ)`` of the constant twist ``[ρ, φ] = dt·[v_o, ω]``."""
-    q, theta, k, theta_safe = _exp_parts(phi)
-    a = 2.0 * k * k
-    b = (theta - math.sin(theta)) / (theta_safe * theta_safe * theta_safe)
-    c1 = cross(phi, rho)
-    c2 = cross(phi, c1)
-    return q, (
-        rho[0] + a * c1[0] + b * c2[0],
-        rho[1] + a * c1[1] + b * c2[1],
-        rho[2] + a * c1[2] + b * c2[2],
-    )
 
 
 # ---------------------------------------------------------------------------- PoseUKF

@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from evtrack.filters import fast_compiled as _compiled
 from evtrack.filters import fast_path as fp
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig
@@ -509,6 +510,25 @@ class PoseUKF(_PoseFilter):
 
     def predict(self, twist: Tensor, dt: float | Tensor) -> tuple[Tensor, Tensor]:
         """Move the pose by the twist (B,6) ``[v_o, ω]`` over ``dt`` s; returns ``(t, q)``."""
+        buf = self._buffers
+        if (
+            isinstance(twist, Tensor)
+            and twist.shape == (1, 6)
+            and twist.is_cpu
+            and fp.COMPILED
+            and _compiled.available()
+            and self._fast((twist, dt))
+        ):  # one track on CPU: the compiled kernel, no conversions of the state
+            t, q, cov = _compiled.pose_predict(
+                buf["t"].numpy(),
+                buf["q"].numpy(),
+                buf["cov"].numpy(),
+                fp.as_array(twist),
+                self._fast_dt(dt),
+                buf["q_matrix"].numpy(),
+            )
+            buf.update(t=torch.from_numpy(t), q=torch.from_numpy(q), cov=torch.from_numpy(cov))
+            return buf["t"], buf["q"]
         twist = _checked(
             twist,
             (self.batch_size, 6),
@@ -517,7 +537,6 @@ class PoseUKF(_PoseFilter):
             copy=False,
         )
         if self._fast((twist, dt)):
-            buf = self._buffers
             t, q, cov = fp.pose_predict(
                 tuple(buf["t"].tolist()[0]),
                 tuple(buf["q"].tolist()[0]),

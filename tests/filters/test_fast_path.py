@@ -64,13 +64,21 @@ def calls(monkeypatch: pytest.MonkeyPatch) -> dict[str, int]:
             return _f(*args)
 
         monkeypatch.setattr(fp, name, counted)
+    original_compiled = fp._compiled.pose_predict
+
+    def counted_compiled(*args: object) -> object:
+        counts["compiled_pose_predict"] = counts.get("compiled_pose_predict", 0) + 1
+        return original_compiled(*args)
+
+    monkeypatch.setattr(fp._compiled, "pose_predict", counted_compiled)
     return counts
 
 
 # ---------------------------------------------------------------------------- VelocityKF
 @pytest.fixture(params=["compiled", "numpy"])
 def update_form(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
-    """Runs a test with the velocity update compiled (numba) and in NumPy."""
+    """Runs a test with the compiled (numba) kernels of the fast path (the velocity update,
+    the pose predict) and with their NumPy forms."""
     if request.param == "compiled" and not fp._compiled.available():
         pytest.skip("numba is not installed")
     monkeypatch.setattr(fp, "COMPILED", request.param == "compiled")
@@ -267,7 +275,7 @@ def _play(filt: PoseUKF | PoseTwistUKF, steps: list, check) -> None:  # noqa: AN
 
 
 @pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
-def test_pose_steps_equal_torch(cls: type, calls: dict) -> None:
+def test_pose_steps_equal_torch(cls: type, calls: dict, update_form: str) -> None:
     g = torch.Generator().manual_seed(5)
     steps = _pose_run(g)
     fast, ref = cls(1, fast_path=True), cls(1, fast_path=False)
@@ -290,10 +298,13 @@ def test_pose_steps_equal_torch(cls: type, calls: dict) -> None:
     n_updates = sum(s[0] == "update" for s in steps)
     n_predicts = len(steps) - n_updates
     assert calls.get("pose_update") == n_updates
-    assert calls.get("pose_predict", 0) == (n_predicts if cls is PoseUKF else 0)
+    twist_driven = n_predicts if cls is PoseUKF else 0
+    compiled = update_form == "compiled"
+    assert calls.get("compiled_pose_predict", 0) == (twist_driven if compiled else 0)
+    assert calls.get("pose_predict", 0) == (0 if compiled else twist_driven)
 
 
-def test_pose_fast_path_only_where_it_applies(calls: dict) -> None:
+def test_pose_fast_path_only_where_it_applies(calls: dict, update_form: str) -> None:
     twist = torch.zeros(1, 6, dtype=F64)
     PoseUKF(2).predict(twist.expand(2, 6), 1e-3)
     PoseUKF(1, PoseUKFConfig(sigma_points=True)).predict(twist, 1e-3)
@@ -303,7 +314,7 @@ def test_pose_fast_path_only_where_it_applies(calls: dict) -> None:
     assert calls == {}
     PoseUKF(1).predict(twist, 1e-3)
     PoseTwistUKF(1).predict(1e-3)  # sigma points: torch
-    assert calls == {"pose_predict": 1}
+    assert calls == {"compiled_pose_predict" if update_form == "compiled" else "pose_predict": 1}
 
 
 def test_pose_fast_path_checks_inputs() -> None:

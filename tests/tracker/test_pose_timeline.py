@@ -174,3 +174,36 @@ def test_pose_at_a_past_time_equals_a_plain_filter_stopped_there() -> None:
     empty = PoseTimeline(fresh, horizon_us=20_000)
     empty.step(STEP)
     assert empty.pose_at(500) is None
+
+
+def test_snapshots_are_not_changed_by_in_place_writes_to_the_filter() -> None:
+    """Snapshots share the copy of a state tensor that did not change since the last one;
+    a write in place into the filter (``load_state_dict`` copies into the buffers) changes
+    the tensor's version, so the next snapshot copies it again and the earlier ones keep the
+    old values. Also with inference tensors (no version counter: always copied)."""
+    for mode in (torch.no_grad, torch.inference_mode):
+        with mode():
+            filt = PoseUKF(1, dtype=torch.float64)
+            _start(filt)
+            line = PoseTimeline(filt, horizon_us=30_000)
+            twist = torch.zeros(1, 6, dtype=torch.float64)
+            line.step(STEP, twist)
+            before = filt.t.clone()
+            counters = line._snaps[-1][line.names.index("rejected")]
+            line.step(2 * STEP, twist)
+            # the counters did not change: the two snapshots share one copy
+            assert line._snaps[-1][line.names.index("rejected")] is counters or mode is \
+                torch.inference_mode
+            moved = {k: v.clone() for k, v in filt.state_dict().items()}
+            moved["t"] += 0.5
+            moved["rejected"] += 3
+            filt.load_state_dict(moved)  # in place into the buffers
+            line.step(3 * STEP, twist)
+            assert float(line._snaps[-1][line.names.index("t")][0, 2]) == float(before[0, 2]) + 0.5
+            assert int(line._snaps[-1][line.names.index("rejected")][0]) == 3
+            # the earlier snapshots kept their values: a replay from step 1 starts from them
+            assert torch.equal(line._snaps[1][line.names.index("t")], before)
+            assert int(line._snaps[2][line.names.index("rejected")][0]) == 0
+            line.add(1500, "pose", (before, torch.tensor([[1.0, 0.0, 0.0, 0.0]],
+                                                         dtype=torch.float64)))
+            assert abs(float(filt.t[0, 2]) - float(before[0, 2])) < 1e-3
