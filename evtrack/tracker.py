@@ -1045,7 +1045,11 @@ class Tracker:
     def _check_view(self, t1: int) -> None:
         if not self.initialized:
             return
-        visible = self.silhouette.visible_fraction(self._current_pose())
+        ukf = self.ukf
+        if self.silhouette.box_in_image(ukf.t.tolist()[0], ukf.q.tolist()[0]):
+            visible = 1.0  # the whole silhouette in view (the common case: no polygon)
+        else:
+            visible = self.silhouette.visible_fraction(self._current_pose())
         if visible >= self.config.min_visible_fraction:
             self._out_of_view_us = 0
             return

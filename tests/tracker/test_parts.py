@@ -126,6 +126,45 @@ def test_visible_fraction_equals_the_polygons(shape) -> None:
     assert sil.visible_fraction(_pose([0, 0, 0], [np.nan, 0, 1.0])) == 0.0
 
 
+@pytest.mark.parametrize("shape", ["cube", "blob"])
+def test_box_in_image_against_the_projected_corners(shape) -> None:
+    """``box_in_image(t, q)`` (compiled, the tracker's per-step test) says True exactly when
+    the 8 corners of the hull's bounding box, projected with NumPy, are in front of the camera
+    and inside the image; then the silhouette is whole in view (visible fraction 1)."""
+    rng = np.random.default_rng(4)
+    if shape == "cube":
+        points = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05)
+                           for z in (-.05, .05)])
+    else:
+        points = rng.normal(0, 0.03, (200, 3)) * [1.0, 2.0, 0.5]
+    sil = Silhouette(points, CAM)
+    lo, hi = sil.points.min(0), sil.points.max(0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    inside = outside = 0
+    for k in range(400):
+        rot = Rotation.from_rotvec(rng.normal(0, 1, 3))
+        t = [rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), rng.uniform(-0.05, 0.8)]
+        if k < 2:  # not finite; behind the camera (the corners would project inside)
+            t = [[np.nan, 0.0, 0.5], [0.0, 0.0, -0.5]][k]
+        x, y, z, w = rot.as_quat()
+        P = corners @ rot.as_matrix().T + t
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = CAM.fx * P[:, 0] / P[:, 2] + CAM.cx
+            v = CAM.fy * P[:, 1] / P[:, 2] + CAM.cy
+            expected = bool((P[:, 2] >= 1e-3).all() and (u >= -0.5).all() and (u < 159.5).all()
+                            and (v >= -0.5).all() and (v < 119.5).all())
+        got = sil.box_in_image(tuple(t), (w, x, y, z))
+        assert got == expected, (k, t)
+        inside += got
+        outside += not got
+        if got:
+            assert sil.visible_fraction(_pose(rot.as_rotvec(), t)) == 1.0
+    assert inside > 20 and outside > 20
+    distorted = PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120, dist=[0.01, 0, 0, 0, 0])
+    assert not Silhouette(points, distorted).box_in_image((0.0, 0.0, 0.5), (1.0, 0.0, 0.0, 0.0))
+
+
 def test_roi_depth_median_range_and_missing() -> None:
     depth = np.full((20, 30), 2.0, np.float32)
     depth[5:15, 5:15] = 0.5
