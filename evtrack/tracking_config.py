@@ -133,7 +133,11 @@ def _tracker_flow_defaults() -> FlowConfig:
     # (32 px) -> 5.51 / 19.0 (24) -> 4.92 / 16.4 (16) -> 4.89 / 14.9 (12) -> 6.03 / 15.4 (8).
     # The flow's generic defaults otherwise: configs/flow_fast.yaml's span bound and tighter
     # tolerance did not help in the tracker (same set, 12 px RoIs: 5.01 cm / 15.3 deg).
-    return FlowConfig(window_us=1000, roi_size=12)
+    # A 12 px RoI of one 1 ms window rarely holds more than a few dozen events: the Eq. 3
+    # search over 16 hypotheses from at most 32 events per RoI (generic: 48 from 64) gave the
+    # same accuracy (faster 4.94 / 14.89 -> 4.88 / 14.80, regular 3.00 / 6.74 -> 2.94 / 6.62)
+    # and cut the flow's time in the tracker by about a fifth (mustard faster 2.6 -> 2.0 s).
+    return FlowConfig(window_us=1000, roi_size=12, max_hypotheses=16, max_events_per_roi=32)
 
 
 def _pose_ukf_defaults() -> PoseUKFConfig:
