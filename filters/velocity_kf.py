@@ -235,6 +235,16 @@ class VelocityKF(CompilableSteps, nn.Module):
                 return self._update_fast(uv, depth, flow, normal_only, mask)
             except np.linalg.LinAlgError:  # a 6x6 not positive definite: torch gives its NaNs
                 pass
+        return self._update_torch(uv, depth, flow, normal_only, mask)
+
+    def _update_torch(
+        self,
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor | None,
+        mask: Tensor | None,
+    ) -> Tensor:
         uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
             uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
@@ -256,6 +266,23 @@ class VelocityKF(CompilableSteps, nn.Module):
         mask: Tensor | None = None,
     ) -> Tensor:
         """One predict over ``dt`` seconds then one update (arguments as in :meth:`update`)."""
+        if self._fast((dt, uv, depth, flow, normal_only, mask)):
+            # one track: the predicted state goes to the update as arrays, not through the
+            # buffers (same arithmetic as predict() then update())
+            self._check_inputs(uv, depth, flow, normal_only, mask)
+            buf = self._buffers
+            twist, cov = fp.velocity_predict(
+                buf["twist"].numpy()[0],
+                buf["cov"].numpy()[0],
+                self._fast_dt(dt),
+                buf["consts"].tolist()[0],
+                buf["q_matrix"].numpy(),
+            )
+            try:
+                return self._update_fast(uv, depth, flow, normal_only, mask, (twist, cov))
+            except np.linalg.LinAlgError:  # the torch update from the predicted state
+                buf.update(twist=torch.from_numpy(twist[None]), cov=torch.from_numpy(cov[None]))
+                return self._update_torch(uv, depth, flow, normal_only, mask)
         self.predict(dt)
         return self.update(uv, depth, flow, normal_only, mask)
 
@@ -293,19 +320,24 @@ class VelocityKF(CompilableSteps, nn.Module):
         flow: Tensor,
         normal_only: Tensor | None,
         mask: Tensor | None,
+        prior: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Tensor:
+        """:meth:`update` of one float64 CPU track; ``prior``: the (6,) twist and (6,6)
+        covariance to update instead of the buffers' (a predict not yet stored)."""
         self._check_inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
             uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
             uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
         buf = self._buffers
+        twist, cov = prior if prior is not None else (buf["twist"].numpy()[0],
+                                                       buf["cov"].numpy()[0])
         twist, cov, skipped_depth, skipped_flow = fp.velocity_update(
             self.config,
             buf["consts"].tolist(),
             buf["focal"].numpy(),
             buf["principal"].numpy(),
-            buf["twist"].numpy()[0],
-            buf["cov"].numpy()[0],
+            twist,
+            cov,
             buf["reference"].numpy()[0],
             fp.as_array(uv)[0],
             fp.as_array(depth)[0],

@@ -184,17 +184,24 @@ def test_velocity_distorted_camera(update_form: str) -> None:
     _close_gaussian(fast, ref, "distorted camera")
 
 
+@pytest.mark.parametrize("call", ["update", "forward"])
 def test_velocity_covariance_not_positive_definite_falls_back_to_torch(
-    calls: dict, update_form: str
+    calls: dict, update_form: str, call: str
 ) -> None:
+    """A prior that is not positive definite: the fast update raises inside, the torch
+    update runs from the same (predicted) state and gives its NaNs, as the torch path."""
     g = torch.Generator().manual_seed(3)
     uv, depth, flow, normal = _flows(g, 30, "mixed")
-    bad = -torch.eye(6, dtype=F64)[None]
+    bad = -100 * torch.eye(6, dtype=F64)[None]  # stays indefinite through a 1 ms predict
     fast, ref = VelocityKF(CAM, 1), VelocityKF(CAM, 1, fast_path=False)
     for kf in (fast, ref):
         kf.reset(cov=bad)
-        kf.update(uv, depth, flow, normal)
-    assert calls["velocity_update"] == 1  # tried, then torch
+        if call == "update":
+            kf.update(uv, depth, flow, normal)
+        else:
+            kf(1e-3, uv, depth, flow, normal)
+    assert calls["velocity_update"] == 1  # tried once, then torch
+    assert calls.get("velocity_predict", 0) == (call == "forward")
     torch.testing.assert_close(fast.cov, ref.cov, equal_nan=True, rtol=0, atol=0)
     torch.testing.assert_close(fast.twist, ref.twist, equal_nan=True, rtol=0, atol=0)
 

@@ -165,7 +165,18 @@ def test_box_in_image_against_the_projected_corners(shape) -> None:
     assert not Silhouette(points, distorted).box_in_image((0.0, 0.0, 0.5), (1.0, 0.0, 0.0, 0.0))
 
 
-def test_roi_depth_median_range_and_missing() -> None:
+@pytest.fixture(params=["compiled", "numpy"])
+def depth_form(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Runs a depth-lookup test with the compiled patch medians (numba) and with NumPy."""
+    import evtrack.depth_sources as depth_sources
+
+    if request.param == "compiled" and depth_sources._patch_medians is None:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(depth_sources, "COMPILED", request.param == "compiled")
+    return request.param
+
+
+def test_roi_depth_median_range_and_missing(depth_form: str) -> None:
     depth = np.full((20, 30), 2.0, np.float32)
     depth[5:15, 5:15] = 0.5
     depth[9, 9] = np.nan
@@ -178,12 +189,13 @@ def test_roi_depth_median_range_and_missing() -> None:
     assert roi_depth(depth, np.array([[14.6, 9.0]]), off, None)[0] == 2.0
 
 
-def test_roi_depth_equals_a_nanmedian_reference() -> None:
+def test_roi_depth_equals_a_nanmedian_reference(depth_form: str) -> None:
     rng = np.random.default_rng(3)
     depth = rng.uniform(0.2, 2.0, (40, 50)).astype(np.float32)
     depth[rng.random((40, 50)) < 0.3] = np.nan          # holes
     depth[rng.random((40, 50)) < 0.1] = 0.0             # invalid zeros
     depth[:12, :12] = np.nan                            # a patch with no depth at all
+    depth[rng.random((40, 50)) < 0.03] = np.inf         # invalid infinities
     off = patch_offsets(3, 1)
     uv = np.concatenate([rng.uniform(-4, 54, (300, 2)), [[4.0, 4.0]]])
     for z_range in (None, (0.5, 1.5)):
@@ -203,6 +215,7 @@ def test_roi_depth_equals_a_nanmedian_reference() -> None:
             else:
                 assert np.isnan(got[i]), i
     assert np.isnan(roi_depth(depth, uv[-1:], off)[0])
+    assert np.isnan(roi_depth(depth, np.array([[np.nan, 20.0]]), off)[0])  # no pixel
 
 
 def test_sensor_depth_reprojection_against_rendering(box) -> None:
