@@ -1,7 +1,8 @@
 """The tracker's CPU-side speed-ups, each against the code without it, side by side.
 
     python benchmarks/bench_tracker_cpu.py --sequence DIR [DIR ...] [--repeats 2]
-                                           [--variants reference blas strips mask groups kf]
+                                           [--variants reference blas strips mask groups kf
+                                                       depth eq3]
 
 Variants, cumulative (each adds one change to the one before):
 
@@ -14,18 +15,25 @@ Variants, cumulative (each adds one change to the one before):
   (:class:`evtrack.flow.compiled.CompiledSearch`);
 * ``mask``: the event mask by row spans (:func:`evtrack.silhouette.pixels_in_polygon`);
 * ``groups``: one flow call per 10 velocity steps instead of 5 (``flow_batch_steps``);
-* ``kf``: the velocity filter's update compiled with numba
-  (:mod:`evtrack.filters.fast_compiled`) instead of NumPy, the tracker's default: all five
-  changes.
+* ``kf``: the filters' single-track steps compiled with numba
+  (:mod:`evtrack.filters.fast_compiled`: the velocity update, the pose predict) instead of
+  NumPy;
+* ``depth``: the RoI depth lookup compiled (``evtrack.depth_sources.COMPILED``);
+* ``eq3``: the tracker's Eq. 3 caps, 16 hypotheses from at most 32 events per RoI window
+  (the flow's generic 48 from 64 before), the tracker's default: all eight changes.
 
-The variants before ``kf`` run the NumPy update (``fast_path.COMPILED`` off). Not a variant:
+The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
-step group) was made cheaper at the same time as ``kf`` and is in every variant.
+step group, the view test on the bounding box, the timeline's shared snapshot copies, one
+pass of checks per velocity predict + update) was made cheaper along the way and is in every
+variant.
 
-All but ``groups`` give the same trajectory as the variant before up to float rounding (the
+All but ``groups`` and ``eq3`` give the same trajectory as the variant before up to float
+rounding (the
 strips bit for bit; the BLAS thread count and the mask's arithmetic can move an event on the
 mask's edge); ``groups`` masks 10 steps of events with the silhouette predicted at their first
-step (its errors on the benchmark sets: see ``TrackerConfig.flow_batch_steps``). Each run is a
+step (its errors on the benchmark sets: see ``TrackerConfig.flow_batch_steps``); ``eq3`` solves
+Eq. 3 over fewer hypotheses (its errors: see ``evtrack.tracking_config``). Each run is a
 fresh child process, the variants interleaved run by run so that the machine's load drifts
 over all alike; each child tracks the sequence twice and times the second run (the first
 loads the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
@@ -42,7 +50,7 @@ from pathlib import Path
 
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
-VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf")
+VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3")
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
@@ -71,8 +79,14 @@ def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
             return (xy @ normals.T - offsets).max(axis=1) <= margin
 
         SilhouettePolygon.contains_pixels = point_test
+    if level < VARIANTS.index("depth"):
+        from evtrack import depth_sources
+
+        depth_sources.COMPILED = False
     config = {"method": method, "blas_threads": 0 if level < 1 else 1,
               "flow_batch_steps": 10 if level >= VARIANTS.index("groups") else 5}
+    if level < VARIANTS.index("eq3"):
+        config["flow"] = {"max_hypotheses": 48, "max_events_per_roi": 64}
     return time_tracking(sequence, config, threads)
 
 

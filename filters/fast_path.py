@@ -8,7 +8,9 @@ when :func:`applies` says so: the same model as the torch steps, written for one
 quaternion and SE(3) algebra on Python floats, per-RoI work on the usable RoIs only
 (gathered once, so no masks) as rows of (k, N) arrays, 6x6 algebra through LAPACK (SciPy's
 ``posv``). The velocity update, the costliest of them, runs compiled (:mod:`fast_compiled`,
-numba) when :data:`COMPILED` is set (the default), the NumPy code otherwise. Results equal
+numba) when :data:`COMPILED` is set (the default), the NumPy code otherwise; so does the
+pose predict of :class:`~evtrack.filters.PoseUKF` (its call site picks the form). The scalar
+algebra lives in :mod:`scalar_lie`, shared with the compiled kernels. Results equal
 the torch path to rounding (``tests/filters/test_fast_path.py``: 1e-12, in the covariance's
 metric for the velocity filter, both forms of the update; a steep fixed Laplacian scale
 makes the weights amplify rounding, as much in the torch path itself). Batches, CUDA,
@@ -146,8 +148,9 @@ def pivot_noise(q_density: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     return out
 
 
-#: Run :func:`velocity_update` through the compiled kernel of :mod:`fast_compiled` (numba)
-#: when numba is there; False keeps the NumPy code below (the tests run both).
+#: Run :func:`velocity_update` (and :meth:`PoseUKF.predict`) through the compiled kernels of
+#: :mod:`fast_compiled` (numba) when numba is there; False keeps the NumPy code below (the
+#: tests run both).
 COMPILED = True
 
 
