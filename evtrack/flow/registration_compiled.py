@@ -37,6 +37,7 @@ __all__ = ["register_groups_compiled"]
 _GOLDEN = 2654435761
 _NO_BOUND = np.int64(1) << 62
 _POS_BITS = 31  # (hash << 31) | position: a hash < 2^32 and a position < 2^31 fit in int64
+_POS_MASK = (1 << _POS_BITS) - 1
 
 
 @_njit()
@@ -86,9 +87,11 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
             keys = np.empty(k, np.int64)
             for j in range(k):
                 keys[j] = (_hash32(seq[run_first[runs_by_group[r0 + j]]]) << _POS_BITS) | j
-            order = np.argsort(keys)
-            for j in range(max_events, k):
-                keep[runs_by_group[r0 + order[j]]] = False
+            # the keys are distinct and carry their position: the k - max_events largest
+            # (those a full sort puts last) without sorting the rest
+            dropped = np.partition(keys, max_events - 1)[max_events:]
+            for j in range(k - max_events):
+                keep[runs_by_group[r0 + (dropped[j] & _POS_MASK)]] = False
         for j in range(r0, r1):
             rr = runs_by_group[j]
             if keep[rr]:
@@ -132,9 +135,12 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
         keys = np.empty(k, np.int64)
         for j in range(k):
             keys[j] = (h_key[c_start[g] + j] << _POS_BITS) | j
-        order = np.argsort(keys)
-        for j in range(h_count[g]):
-            h_cand[h_start[g] + j] = c_start[g] + order[j]
+        h = h_count[g]
+        if h < k:  # the h smallest (distinct) keys, then only those sorted
+            keys = np.partition(keys, h - 1)[:h]
+        first = np.sort(keys)
+        for j in range(h):
+            h_cand[h_start[g] + j] = c_start[g] + (first[j] & _POS_MASK)
     return c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start, h_count
 
 
