@@ -320,14 +320,14 @@ class TripletFlow(nn.Module):
         first_of_event = torch.ones(len(cands), dtype=torch.bool, device=self.device)
         if len(cands) > 1:
             first_of_event[1:] = cands.event[1:] != cands.event[:-1]
-        g_all = torch.cat([p.g_keys, gkey, c_g[first_of_event]])
-        ones_ev = torch.ones_like(gkey)
-        ones_sup = torch.ones_like(c_g[first_of_event])
-        n_ev = torch.cat([p.g_events, ones_ev, torch.zeros_like(ones_sup)])
-        n_sup = torch.cat([p.g_support, torch.zeros_like(ones_ev), ones_sup])
-        keys, inv = _unique_inverse(g_all)
-        g_events = torch.zeros_like(keys).index_add_(0, inv, n_ev)
-        g_support = torch.zeros_like(keys).index_add_(0, inv, n_sup)
+        supported = c_g[first_of_event]  # the group of each event with candidates
+        keys, inv = _unique_inverse(torch.cat([p.g_keys, gkey, supported]))
+        n_old, n_new = p.g_keys.numel(), gkey.numel()
+        # per group: the pending counts, + 1 per new event, + 1 per new event with candidates
+        g_events = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_events)
+        g_events.index_add_(0, inv[n_old:n_old + n_new], torch.ones_like(gkey))
+        g_support = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_support)
+        g_support.index_add_(0, inv[n_old + n_new:], torch.ones_like(supported))
         self._pending = _Pending(
             gkey=torch.cat([p.gkey, c_g]), seq=torch.cat([p.seq, cands.event]),
             ordinal=torch.cat([p.ordinal, ordinal]), flow=torch.cat([p.flow, cands.flow]),
