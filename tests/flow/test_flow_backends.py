@@ -307,9 +307,13 @@ def test_backend_choice_and_errors():
     assert fresh.config.device == "meta"
 
 
+@pytest.mark.parametrize("numpy_on_cpu", [True, False])
 @pytest.mark.parametrize("spread", [50, 10**12])  # dense table / sort and binary search
-def test_group_key_helpers_equal_torch(spread):
+def test_group_key_helpers_equal_torch(spread, numpy_on_cpu, monkeypatch):
+    from evtrack.flow import triplet
     from evtrack.flow.triplet import _positions, _unique_inverse
+
+    monkeypatch.setattr(triplet, "_NUMPY_ON_CPU", numpy_on_cpu)
 
     rng = np.random.default_rng(spread % 97)
     for n in (0, 1, 7, 5000):
