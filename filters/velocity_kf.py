@@ -245,6 +245,7 @@ class VelocityKF(CompilableSteps, nn.Module):
         normal_only: Tensor | None,
         mask: Tensor | None,
     ) -> Tensor:
+        """:meth:`update` through the torch step (any batch, device and dtype)."""
         uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
             uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
@@ -268,20 +269,14 @@ class VelocityKF(CompilableSteps, nn.Module):
         """One predict over ``dt`` seconds then one update (arguments as in :meth:`update`)."""
         if self._fast((dt, uv, depth, flow, normal_only, mask)):
             # one track: the predicted state goes to the update as arrays, not through the
-            # buffers (same arithmetic as predict() then update())
-            self._check_inputs(uv, depth, flow, normal_only, mask)
-            buf = self._buffers
-            twist, cov = fp.velocity_predict(
-                buf["twist"].numpy()[0],
-                buf["cov"].numpy()[0],
-                self._fast_dt(dt),
-                buf["consts"].tolist()[0],
-                buf["q_matrix"].numpy(),
-            )
+            # buffers (same arithmetic as predict() then update(); a bad input raises in
+            # _update_fast before the state changes)
+            twist, cov = self._predicted(dt)
             try:
                 return self._update_fast(uv, depth, flow, normal_only, mask, (twist, cov))
             except np.linalg.LinAlgError:  # the torch update from the predicted state
-                buf.update(twist=torch.from_numpy(twist[None]), cov=torch.from_numpy(cov[None]))
+                self._buffers.update(twist=torch.from_numpy(twist[None]),
+                                     cov=torch.from_numpy(cov[None]))
                 return self._update_torch(uv, depth, flow, normal_only, mask)
         self.predict(dt)
         return self.update(uv, depth, flow, normal_only, mask)
@@ -300,17 +295,21 @@ class VelocityKF(CompilableSteps, nn.Module):
             self._dt(dt)  # raises unless (B,)
         return float(dt)
 
-    def _predict_fast(self, dt: float | Tensor) -> Tensor:
+    def _predicted(self, dt: float | Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """The one track's predicted (6,) twist and (6,6) covariance (buffers unchanged)."""
         buf = self._buffers
-        twist, cov = fp.velocity_predict(
+        return fp.velocity_predict(
             buf["twist"].numpy()[0],
             buf["cov"].numpy()[0],
             self._fast_dt(dt),
             buf["consts"].tolist()[0],
             buf["q_matrix"].numpy(),
         )
+
+    def _predict_fast(self, dt: float | Tensor) -> Tensor:
+        twist, cov = self._predicted(dt)
         V = torch.from_numpy(twist[None])
-        buf.update(twist=V, cov=torch.from_numpy(cov[None]))
+        self._buffers.update(twist=V, cov=torch.from_numpy(cov[None]))
         return V
 
     def _update_fast(
