@@ -54,8 +54,8 @@ dense table instead of sorting / binary search: a batch's keys cover a few windo
 
 
 _NUMPY_ON_CPU = True
-"""The dense-table helpers below work in NumPy on CPU tensors (False: torch everywhere, as on
-CUDA; the tests run both)."""
+"""The dense-table helpers below and the candidates' group keys work in NumPy on CPU tensors
+(False: torch everywhere, as on CUDA; the tests run both)."""
 
 
 def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
@@ -330,15 +330,31 @@ class TripletFlow(nn.Module):
         w_open = int(torch.div(t[-1], self.config.window_us, rounding_mode="floor"))
         return self._finalise(w_open * cols * rows)
 
-    def _add_pending(self, gkey: Tensor, cands: Candidates, seq0: int) -> None:
-        p = self._pending
+    def _candidate_groups(self, gkey: Tensor, cands: Candidates, seq0: int
+                          ) -> tuple[Tensor, Tensor, Tensor]:
+        """(M,) group key and (M,) ordinal of each candidate, and the group of each event
+        that has candidates (its first candidate's); in NumPy on the CPU (as the table
+        helpers: the same int64 values)."""
         k = self.config.history
+        if self.device.type == "cpu" and _NUMPY_ON_CPU:
+            event = cands.event.numpy()
+            c_g_np = gkey.numpy()[event - seq0]
+            ordinal_np = (cands.offset.numpy() * k + cands.age_j.numpy()) * k \
+                + cands.age_i.numpy()
+            first_np = np.ones(len(event), np.bool_)
+            np.not_equal(event[1:], event[:-1], out=first_np[1:])
+            return (torch.from_numpy(c_g_np), torch.from_numpy(ordinal_np),
+                    torch.from_numpy(c_g_np[first_np]))
         c_g = gkey[cands.event - seq0]
         ordinal = (cands.offset * k + cands.age_j) * k + cands.age_i
         first_of_event = torch.ones(len(cands), dtype=torch.bool, device=self.device)
         if len(cands) > 1:
             first_of_event[1:] = cands.event[1:] != cands.event[:-1]
-        supported = c_g[first_of_event]  # the group of each event with candidates
+        return c_g, ordinal, c_g[first_of_event]
+
+    def _add_pending(self, gkey: Tensor, cands: Candidates, seq0: int) -> None:
+        p = self._pending
+        c_g, ordinal, supported = self._candidate_groups(gkey, cands, seq0)
         keys, inv = _unique_inverse(torch.cat([p.g_keys, gkey, supported]))
         n_old, n_new = p.g_keys.numel(), gkey.numel()
         # per group: the pending counts, + 1 per new event, + 1 per new event with candidates
