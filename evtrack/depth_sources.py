@@ -27,11 +27,8 @@ import torch
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
-
-try:  # numba is a dependency; without it the lookup runs in NumPy (same values)
-    from numba import njit as _numba_njit
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    _numba_njit = None
+from evtrack.jit import available as numba_available
+from evtrack.jit import njit
 
 __all__ = ["DepthSource", "SensorDepth", "ModelDepth", "patch_offsets", "roi_depth"]
 
@@ -66,7 +63,7 @@ def roi_depth(depth_map: np.ndarray, uv: np.ndarray, offsets: np.ndarray,
     h, w = depth_map.shape
     with np.errstate(invalid="ignore"):  # NaN pixels: no patch (as out of the map)
         centre = np.rint(uv).astype(np.int64)
-    if _patch_medians is not None and COMPILED:
+    if COMPILED and numba_available():  # without numba the NumPy form is the faster
         lo, hi = z_range if z_range is not None else (-math.inf, math.inf)
         return _patch_medians(np.ascontiguousarray(depth_map), centre,
                               np.ascontiguousarray(offsets, np.int64), float(lo), float(hi))
@@ -88,7 +85,8 @@ def roi_depth(depth_map: np.ndarray, uv: np.ndarray, offsets: np.ndarray,
 COMPILED = True
 
 
-def _compiled_patch_medians(depth_map, centre, offsets, lo, hi):
+@njit
+def _patch_medians(depth_map, centre, offsets, lo, hi):
     """:func:`roi_depth`'s medians: for each ``centre`` (N, 2) int pixel, the median of the
     depths at ``centre + offsets`` inside the map, finite, > 0 and in ``[lo, hi]``; NaN
     where there is none."""
@@ -114,9 +112,6 @@ def _compiled_patch_medians(depth_map, centre, offsets, lo, hi):
         out[i] = np.nan if k == 0 else (values[(k - 1) // 2] + values[k // 2]) / 2.0
     return out
 
-
-_patch_medians = (None if _numba_njit is None
-                  else _numba_njit(cache=True, nogil=True)(_compiled_patch_medians))
 
 
 def _row_medians(values: np.ndarray, counts: np.ndarray) -> np.ndarray:

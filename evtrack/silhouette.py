@@ -22,16 +22,8 @@ import torch
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
-
-try:  # numba is a dependency; without it the box test below runs as plain Python
-    from numba import njit as _numba_njit
-
-    def _njit(fn):
-        return _numba_njit(cache=True, nogil=True)(fn)
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-
-    def _njit(fn):
-        return fn
+from evtrack.filters.scalar_lie import rotation_matrix
+from evtrack.jit import njit
 
 __all__ = ["Silhouette", "SilhouettePolygon", "hull_vertices", "pixels_in_polygon",
            "points_in_polygon"]
@@ -302,19 +294,10 @@ class Silhouette:
                                  visible)
 
 
-@_njit
+@njit
 def _box_in_image(t, q, box, fx, fy, cx, cy, w, h, min_depth):
     """:meth:`Silhouette.box_in_image` on floats: ``box`` (8, 3) object-frame corners."""
-    qw, qx, qy, qz = q
-    r00 = 1.0 - 2.0 * (qy * qy + qz * qz)
-    r01 = 2.0 * (qx * qy - qw * qz)
-    r02 = 2.0 * (qx * qz + qw * qy)
-    r10 = 2.0 * (qx * qy + qw * qz)
-    r11 = 1.0 - 2.0 * (qx * qx + qz * qz)
-    r12 = 2.0 * (qy * qz - qw * qx)
-    r20 = 2.0 * (qx * qz - qw * qy)
-    r21 = 2.0 * (qy * qz + qw * qx)
-    r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rotation_matrix(q)
     for i in range(box.shape[0]):
         bx, by, bz = box[i, 0], box[i, 1], box[i, 2]
         x = r00 * bx + r01 * by + r02 * bz + t[0]

@@ -73,7 +73,6 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
-import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -93,6 +92,7 @@ from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth
 from evtrack.errors import ConfigError, EventsError
 from evtrack.events import Events, concatenate
 from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
+from evtrack.filters.scalar_lie import normalized, rotation_matrix
 from evtrack.flow import FlowResult, TripletFlow
 from evtrack.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
 from evtrack.geometry import integrate_twist, matrix_to_tq
@@ -308,14 +308,9 @@ def _quat_to_matrix(t, q) -> np.ndarray:
     """(3,), (4,) wxyz (arrays or sequences of numbers) -> (4, 4) float64. Python floats and
     one array: the tracker asks at every step, where NumPy's per-operation cost on scalars
     (~1 µs each) would be most of the time."""
-    w, x, y, z = (float(v) for v in q)
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / n, x / n, y / n, z / n
+    r0, r1, r2 = rotation_matrix(normalized(tuple(float(v) for v in q)))
     tx, ty, tz = (float(v) for v in t)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y), tx],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x), ty],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y), tz],
-                     [0.0, 0.0, 0.0, 1.0]])
+    return np.array([[*r0, tx], [*r1, ty], [*r2, tz], [0.0, 0.0, 0.0, 1.0]])
 
 
 class Tracker:

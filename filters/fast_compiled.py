@@ -33,11 +33,8 @@ import numpy as np
 
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.scalar_lie import normalized, quat_mul, quat_rotate, rotation_matrix, se3_exp
-
-try:  # numba is a dependency; without it the NumPy fast path runs
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
+from evtrack.jit import available as _numba_available
+from evtrack.jit import njit as _njit
 
 __all__ = ["available", "pose_predict", "velocity_update"]
 
@@ -46,12 +43,8 @@ _NOT_PD = -1  # status of a factorisation that met a non-positive pivot
 
 
 def available() -> bool:
-    """Whether the compiled kernel can run (numba is installed)."""
-    return numba is not None
-
-
-def _njit(fn):
-    return numba.njit(cache=True, nogil=True)(fn) if numba is not None else fn
+    """Whether the compiled kernels can run (numba is installed)."""
+    return _numba_available()
 
 
 @_njit

@@ -170,7 +170,7 @@ def depth_form(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) 
     """Runs a depth-lookup test with the compiled patch medians (numba) and with NumPy."""
     import evtrack.depth_sources as depth_sources
 
-    if request.param == "compiled" and depth_sources._patch_medians is None:
+    if request.param == "compiled" and not depth_sources.numba_available():
         pytest.skip("numba is not installed")
     monkeypatch.setattr(depth_sources, "COMPILED", request.param == "compiled")
     return request.param
