@@ -93,9 +93,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reference-events", type=int, default=20_000,
                         help="events given to the sequential reference")
     parser.add_argument("--repeats", type=int, default=2, help="best of this many runs")
-    parser.add_argument("--cache", type=Path, default=Path("/tmp/evtrack_bench_flow_events.pt"),
+    parser.add_argument("--cache", default="/tmp/evtrack_bench_flow_events.pt",
                         help="cache of the generated scene ('' to disable)")
-    parser.add_argument("--no-cuda", action="store_true")
+    parser.add_argument("--no-cuda", action="store_true", help="skip CUDA (same as --devices cpu)")
+    parser.add_argument("--devices", default="cpu,cuda",
+                        help="comma-separated devices to measure (default cpu,cuda; CUDA only "
+                             "when available); the sequential reference always runs")
     parser.add_argument("--sim", default=None,
                         help="object of the simulated scene (default: 006_mustard_bottle with "
                              "../shared, else box; '' to skip)")
@@ -110,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     thread_counts = [int(v) for v in args.threads.split(",")]
     torch.set_num_threads(thread_counts[0])
     w, h = (int(v) for v in args.size.lower().split("x"))
-    cache = args.cache if str(args.cache) else None
+    cache = Path(args.cache) if args.cache else None
     scenes = [(f"translating texture {w}x{h}", _scene((w, h), args.duration_ms, cache))]
     sim_object = args.sim if args.sim is not None else _default_sim_object()
     if sim_object:
@@ -180,8 +183,10 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
                          max_speed=cfg.max_speed, max_span_us=cfg.max_span_us)
     ref_rate = len(sub) / (time.perf_counter() - t0)
 
-    runs = [(torch.device("cpu"), n, b) for n in thread_counts for b in _cpu_backends()]
-    if torch.cuda.is_available() and not args.no_cuda:
+    devices = {d.strip() for d in args.devices.split(",")}
+    runs = ([(torch.device("cpu"), n, b) for n in thread_counts for b in _cpu_backends()]
+            if "cpu" in devices else [])
+    if torch.cuda.is_available() and not args.no_cuda and "cuda" in devices:
         runs.append((torch.device("cuda"), thread_counts[0], "torch"))
     print(f"{'device':<20}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
           f"{'x reference':>14}{'calib Gop/s':>13}")

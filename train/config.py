@@ -248,6 +248,8 @@ class DataConfig:
         cache_dir: when set, samples are rendered once into HDF5 shards under
             ``cache_dir/<fingerprint>/`` and read from there (else made on the fly).
         samples_per_shard: samples per shard file.
+        render_workers: processes that render the shard cache (``0``: the main process);
+            the shards are the same for any number.
         batch_size: per device.
         num_workers: DataLoader worker processes.
         augment: domain randomisation of training images.
@@ -265,6 +267,7 @@ class DataConfig:
     val_seed: int = 1
     cache_dir: str | None = None
     samples_per_shard: int = 256
+    render_workers: int = 0
     batch_size: int = 16
     num_workers: int = 0
     augment: AugmentConfig = field(default_factory=AugmentConfig)
@@ -278,8 +281,9 @@ class DataConfig:
         if self.train_samples < 1 or self.val_samples < 0 or self.batch_size < 1:
             raise ConfigError("data: train_samples and batch_size must be >= 1, "
                               "val_samples >= 0")
-        if self.num_workers < 0 or self.samples_per_shard < 1:
-            raise ConfigError("data: num_workers must be >= 0, samples_per_shard >= 1")
+        if self.num_workers < 0 or self.render_workers < 0 or self.samples_per_shard < 1:
+            raise ConfigError("data: num_workers and render_workers must be >= 0, "
+                              "samples_per_shard >= 1")
         if self.seed == self.val_seed and self.val_source is None and self.val_samples:
             raise ConfigError("data: seed and val_seed are equal, so validation samples would "
                               "repeat training samples")

@@ -17,6 +17,7 @@ import lightning as L
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
+from tqdm.auto import tqdm
 
 from evtrack.models.cuboid import Cuboid
 from evtrack.train.augment import AugmentConfig, Compose
@@ -191,9 +192,13 @@ class PoseDataModule(L.LightningDataModule):
             if folder is None or (folder / INDEX_NAME).exists():
                 continue
             kind, spec = self._spec(split)
-            write_shards(build_source(kind, spec), folder,
-                         samples_per_shard=self.config.samples_per_shard,
-                         fingerprint_value=folder.name)
+            with tqdm(total=spec.num_samples, unit="sample", desc=f"rendering {split} cache",
+                      disable=None) as bar:
+                write_shards(build_source(kind, spec), folder,
+                             samples_per_shard=self.config.samples_per_shard,
+                             fingerprint_value=folder.name,
+                             workers=self.config.render_workers,
+                             progress=lambda done, total: bar.update(done - bar.n))
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_source is None:

@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import os
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +73,26 @@ def _write_shard(path: Path, samples: list[PoseSample]) -> None:
                          data=np.array([x.num_instances for x in samples], np.int32))
 
 
+def _render_shard(source: SampleSource, path: Path, start: int, stop: int
+                  ) -> tuple[int, tuple[int, int]]:
+    """Render samples ``[start, stop)`` of ``source`` into the shard ``path``.
+
+    Returns:
+        ``(count, (H, W))`` of the shard's samples.
+
+    Raises:
+        ValueError: the samples' images differ in size.
+    """
+    batch = [source[i].check(f"sample {i}") for i in range(start, stop)]
+    size = batch[0].image.shape[:2]
+    for i, x in enumerate(batch):
+        if x.image.shape[:2] != size:
+            raise ValueError(f"sample {start + i}: image size {x.image.shape[:2]} differs "
+                             f"from {size}; shards need one size")
+    _write_shard(path, batch)
+    return len(batch), tuple(size)
+
+
 def write_shards(
     source: SampleSource,
     folder: str | Path,
@@ -78,6 +100,7 @@ def write_shards(
     samples_per_shard: int = 256,
     fingerprint_value: str = "",
     progress: Callable[[int, int], None] | None = None,
+    workers: int = 0,
 ) -> Path:
     """Render every sample of ``source`` into HDF5 shards in ``folder``.
 
@@ -85,11 +108,17 @@ def write_shards(
     by accident; an incomplete one (a crashed run) is overwritten.
 
     Args:
-        source: any sample source; all its images must have one size.
+        source: any sample source; all its images must have one size. Samples must depend on
+            their index only (as every registered source does), so that any split of the
+            work gives the same shards.
         folder: destination folder (created).
         samples_per_shard: samples per shard file.
         fingerprint_value: stored in the index to recognise the cache later.
-        progress: called with ``(done, total)`` after each shard.
+        progress: called with ``(done, total)`` after each shard (in completion order when
+            ``workers`` > 0).
+        workers: render the shards in this many processes (``spawn``ed, so each makes its
+            own OpenGL context); ``0`` renders in this process. The shards are the same
+            either way.
 
     Returns:
         ``folder``.
@@ -100,23 +129,37 @@ def write_shards(
                                  "remove it or choose another folder")
     if samples_per_shard < 1:
         raise ConfigError(f"samples_per_shard must be >= 1, got {samples_per_shard}")
+    if workers < 0:
+        raise ConfigError(f"workers must be >= 0, got {workers}")
     folder.mkdir(parents=True, exist_ok=True)
     n = len(source)
-    shards, size = [], None
-    for start in range(0, n, samples_per_shard):
-        stop = min(n, start + samples_per_shard)
-        batch = [source[i].check(f"sample {i}") for i in range(start, stop)]
-        for i, x in enumerate(batch):
-            if size is None:
-                size = x.image.shape[:2]
-            if x.image.shape[:2] != size:
-                raise ValueError(f"sample {start + i}: image size {x.image.shape[:2]} differs "
-                                 f"from {size}; shards need one size")
-        name = f"shard_{len(shards):05d}.h5"
-        _write_shard(folder / name, batch)
-        shards.append({"file": name, "count": len(batch)})
-        if progress is not None:
-            progress(start + len(batch), n)
+    ranges = [(start, min(n, start + samples_per_shard))
+              for start in range(0, n, samples_per_shard)]
+    names = [f"shard_{k:05d}.h5" for k in range(len(ranges))]
+    results: list[tuple[int, tuple[int, int]]] = []
+    if workers == 0 or len(ranges) < 2:
+        done = 0
+        for name, (start, stop) in zip(names, ranges, strict=True):
+            results.append(_render_shard(source, folder / name, start, stop))
+            done += stop - start
+            if progress is not None:
+                progress(done, n)
+    else:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(min(workers, len(ranges)), mp_context=context) as pool:
+            futures = [pool.submit(_render_shard, source, folder / name, start, stop)
+                       for name, (start, stop) in zip(names, ranges, strict=True)]
+            done = 0
+            for future, (start, stop) in zip(futures, ranges, strict=True):
+                results.append(future.result())
+                done += stop - start
+                if progress is not None:
+                    progress(done, n)
+    size = results[0][1] if results else None
+    for (start, _), (_, shard_size) in zip(ranges, results, strict=True):
+        if shard_size != size:
+            raise ValueError(f"sample {start}: image size {shard_size} differs from {size}; "
+                             "shards need one size")
     index = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -126,7 +169,8 @@ def write_shards(
         "num_samples": n,
         "fingerprint": fingerprint_value,
         "description": source.description,
-        "shards": shards,
+        "shards": [{"file": name, "count": count}
+                   for name, (count, _) in zip(names, results, strict=True)],
     }
     atomic_write_text(folder / INDEX_NAME, json.dumps(index, indent=1))
     return folder

@@ -57,6 +57,22 @@ def test_roundtrip(source, folder):
         cached[7]
 
 
+def test_rendering_in_worker_processes_gives_the_same_shards(source, folder, tmp_path):
+    out = tmp_path / "parallel"
+    done = []
+    write_shards(source, out, samples_per_shard=3, fingerprint_value="abc", workers=2,
+                 progress=lambda d, n: done.append((d, n)))
+    assert done[-1] == (7, 7) and len(done) == 3
+    assert (out / "index.json").read_text() == (folder / "index.json").read_text()
+    serial, parallel = ShardSource(folder), ShardSource(out)
+    for i in range(7):
+        np.testing.assert_array_equal(parallel[i].image, serial[i].image)
+        np.testing.assert_array_equal(parallel[i].poses, serial[i].poses)
+        np.testing.assert_array_equal(parallel[i].keypoints, serial[i].keypoints)
+    with pytest.raises(ConfigError, match="workers must be >= 0"):
+        write_shards(source, tmp_path / "bad", workers=-1)
+
+
 def test_source_pickles_for_worker_processes(folder):
     cached = ShardSource(folder)
     cached[0]  # opens a file handle
