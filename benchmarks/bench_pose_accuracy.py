@@ -96,15 +96,15 @@ def main() -> None:
                         help="also each decoding refined on the depth frames (ICP)")
     parser.add_argument("--decode", action="append", default=[],
                         choices=["strongest", "search", "ransac", "search+ransac"],
-                        help="decoding to evaluate (repeatable; default: strongest): each corner's "
-                             "strongest peak, the search over corner identities, with or without "
-                             "RANSAC PnP (see evtrack.models.decode)")
+                        help="decoding to evaluate (repeatable; default: ransac, the library's "
+                             "default): each corner's strongest peak, the search over corner "
+                             "identities, with or without RANSAC PnP (see evtrack.models.decode)")
     args = parser.parse_args()
     if args.weights is None:
         args.weights = find_object_weights(args.object)
     decodings = {name: DecodeConfig(correspondence="search" if "search" in name else "strongest",
                                     ransac="ransac" in name)
-                 for name in (args.decode or ["strongest"])}
+                 for name in (args.decode or ["ransac"])}
     torch.set_num_threads(args.threads)
 
     if args.per_preset < 1:

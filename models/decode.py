@@ -70,7 +70,12 @@ class DecodeConfig:
         min_affinity_norm: corners whose affinity vector is shorter than this are ignored
             (the field is ~unit length where the network is sure).
         min_points: fewest keypoints (corners + centroid) for a pose (>= 4).
-        ransac: run EPnP inside RANSAC (needs >= 6 points, else plain EPnP).
+        ransac: run EPnP inside RANSAC (needs >= 6 points, else plain EPnP). On by default:
+            with the shipped demo weights, held-out regular frames gave ADD 0.85 against 0.73
+            without it (median 0.81 cm / 2.55 deg against 1.06 / 2.91;
+            ``benchmarks/bench_pose_accuracy.py --decode ransac --decode strongest``), in the
+            same time per frame. OpenCV seeds its sampler on every call: the same maps give the same
+            pose, but its choice of inliers can follow the last bits of the maps.
         ransac_reprojection_px: RANSAC inlier threshold, pixels.
         ransac_iterations: RANSAC iterations.
         refine: ``"lm"`` (Levenberg-Marquardt on the reprojection error) or ``"none"``.
@@ -93,7 +98,7 @@ class DecodeConfig:
     max_angle_deg: float = 30.0
     min_affinity_norm: float = 0.2
     min_points: int = 5
-    ransac: bool = False
+    ransac: bool = True
     ransac_reprojection_px: float = 6.0
     ransac_iterations: int = 100
     refine: str = "lm"

@@ -27,12 +27,21 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from expelliarmus import Wizard
 
 from evtrack.errors import EventFileError
 from evtrack.events import Events
 from evtrack.io.formats import MAX_RAW_HEADER_BYTES, RawHeader, parse_raw_header
 from evtrack.io.reader import EventReader, Locator, check_events
+
+
+def _wizard(path: Path, **kwargs):
+    """An expelliarmus ``Wizard``; imported here so that ``import evtrack`` works without it."""
+    try:
+        from expelliarmus import Wizard
+    except ImportError as exc:
+        raise EventFileError(path, "reading Prophesee RAW files needs the expelliarmus package "
+                                   f"(pip install expelliarmus): {exc}") from exc
+    return Wizard(**kwargs)
 
 __all__ = ["RawReader", "SENSOR_SIZES_BY_GENERATION", "sensor_size_from_header", "CHUNK_EVENTS"]
 
@@ -149,7 +158,8 @@ class RawReader(EventReader):
     def _raw_chunks(self) -> Iterator[tuple[Events, Locator | None]]:
         if self._data_bytes == 0:
             return
-        wizard = Wizard(encoding=self.format, fpath=self._decoder_path(), chunk_size=self._chunk)
+        wizard = _wizard(self.path, encoding=self.format, fpath=self._decoder_path(),
+                         chunk_size=self._chunk)
         decoded = 0
         try:
             for arr in wizard.read_chunk():
@@ -170,7 +180,7 @@ class RawReader(EventReader):
         if self._data_bytes == 0:
             return Events.empty(self.sensor_size)
         try:
-            arr = Wizard(encoding=self.format).read(self._decoder_path())
+            arr = _wizard(self.path, encoding=self.format).read(self._decoder_path())
         except (RuntimeError, ValueError) as exc:
             raise EventFileError(self.path, f"expelliarmus failed: {exc}") from exc
         if arr is None:  # no events, or a decode failure: the chunked pass tells which

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 
@@ -155,3 +157,10 @@ def test_aedat4_stream_choice(aedat4_file):
         assert r.num_events == AEDAT4_COUNT
     with pytest.raises(EventFileError, match="stream 2 is not an event stream"):
         Aedat4Reader(aedat4_file, stream_id=2)  # the IMU stream
+
+
+def test_raw_without_expelliarmus_is_a_clear_error(evt3_file, monkeypatch):
+    """``import evtrack`` works without the decoder; reading a RAW file then names it."""
+    monkeypatch.setitem(sys.modules, "expelliarmus", None)  # makes the import fail
+    with pytest.raises(EventFileError, match="needs the expelliarmus package"):
+        read_events(evt3_file)
