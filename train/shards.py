@@ -93,6 +93,14 @@ def _render_shard(source: SampleSource, path: Path, start: int, stop: int
     return len(batch), tuple(size)
 
 
+def _check_size(results: list[tuple[int, tuple[int, int]]], start: int) -> None:
+    """Raise unless the last shard's image size equals the first's (``start``: its first
+    sample)."""
+    if results[-1][1] != results[0][1]:
+        raise ValueError(f"sample {start}: image size {results[-1][1]} differs from "
+                         f"{results[0][1]}; shards need one size")
+
+
 def write_shards(
     source: SampleSource,
     folder: str | Path,
@@ -114,8 +122,7 @@ def write_shards(
         folder: destination folder (created).
         samples_per_shard: samples per shard file.
         fingerprint_value: stored in the index to recognise the cache later.
-        progress: called with ``(done, total)`` after each shard (in completion order when
-            ``workers`` > 0).
+        progress: called with ``(done, total)`` after each shard, in shard order.
         workers: render the shards in this many processes (``spawn``ed, so each makes its
             own OpenGL context); ``0`` renders in this process. The shards are the same
             either way.
@@ -141,6 +148,7 @@ def write_shards(
         done = 0
         for name, (start, stop) in zip(names, ranges, strict=True):
             results.append(_render_shard(source, folder / name, start, stop))
+            _check_size(results, start)
             done += stop - start
             if progress is not None:
                 progress(done, n)
@@ -150,16 +158,17 @@ def write_shards(
             futures = [pool.submit(_render_shard, source, folder / name, start, stop)
                        for name, (start, stop) in zip(names, ranges, strict=True)]
             done = 0
-            for future, (start, stop) in zip(futures, ranges, strict=True):
-                results.append(future.result())
-                done += stop - start
-                if progress is not None:
-                    progress(done, n)
+            try:
+                for future, (start, stop) in zip(futures, ranges, strict=True):
+                    results.append(future.result())
+                    _check_size(results, start)
+                    done += stop - start
+                    if progress is not None:
+                        progress(done, n)
+            except BaseException:
+                pool.shutdown(cancel_futures=True)  # do not render the rest first
+                raise
     size = results[0][1] if results else None
-    for (start, _), (_, shard_size) in zip(ranges, results, strict=True):
-        if shard_size != size:
-            raise ValueError(f"sample {start}: image size {shard_size} differs from {size}; "
-                             "shards need one size")
     index = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,

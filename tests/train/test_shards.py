@@ -73,6 +73,30 @@ def test_rendering_in_worker_processes_gives_the_same_shards(source, folder, tmp
         write_shards(source, tmp_path / "bad", workers=-1)
 
 
+class _BrokenAtFive:
+    """A source whose sample 5 fails (module level, so spawned workers can unpickle it)."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.object_name, self.cuboid, self.description = inner.object_name, inner.cuboid, "x"
+
+    def __len__(self):
+        return len(self.inner)
+
+    def __getitem__(self, i):
+        if i == 5:
+            raise RuntimeError("broken sample 5")
+        return self.inner[i]
+
+
+@pytest.mark.parametrize("workers", [0, 2])
+def test_a_failing_sample_leaves_no_index(source, tmp_path, workers):
+    out = tmp_path / "broken"
+    with pytest.raises(RuntimeError, match="broken sample 5"):
+        write_shards(_BrokenAtFive(source), out, samples_per_shard=3, workers=workers)
+    assert not (out / "index.json").exists()
+
+
 def test_source_pickles_for_worker_processes(folder):
     cached = ShardSource(folder)
     cached[0]  # opens a file handle
