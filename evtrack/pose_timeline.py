@@ -37,7 +37,8 @@ class Measurement:
 
     Attributes:
         t_us: the time it describes (µs).
-        kind: ``"pose"`` (``value`` = (t (1,3), q (1,4))), ``"twist"`` (``value`` = (1,6)) or
+        kind: ``"pose"`` (``value`` = (t (1,3), q (1,4))), ``"pose_reinit"`` (a pose that
+            re-initialises the filter if its gate rejects it), ``"twist"`` (``value`` = (1,6)) or
             ``"range"`` (``value`` = (direction (1,3), distance (1,)): the position's component
             along a direction, see :meth:`~evtrack.filters.PoseUKF.update_range`).
         value: see ``kind``.
@@ -129,6 +130,8 @@ class PoseTimeline:
     def _fuse(self, m: Measurement) -> None:
         if m.kind == "pose":
             self.filter.update(m.value[0], m.value[1], m.cov)
+        elif m.kind == "pose_reinit":
+            self.filter.update(m.value[0], m.value[1], m.cov, reinit_after=1)
         elif m.kind == "range":
             self.filter.update_range(m.value[0], m.value[1], m.cov)
         else:

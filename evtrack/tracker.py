@@ -35,7 +35,8 @@ events to follow, may stop short inside it; a miss counts when its result would 
 available, ``pose_latency_ms`` after the frame). The pose filter then forgets its state and the
 next pose re-initialises it (meanwhile the last pose is held and flagged). The pose filter also
 re-initialises itself after ``reinit_after`` gated poses in a row
-(:class:`~evtrack.filters.PoseUKF`).
+(:class:`~evtrack.filters.PoseUKF`), and on the second of two gated poses in a row that agree
+with each other (``reinit_on_agreement``: the filter has drifted off, the poses have not).
 
 Event bursts: a step whose events outside the object's predicted silhouette (plus
 ``mask_margin_px``) exceed ``burst_rate_hz`` per pixel over the image outside it is an event
@@ -451,6 +452,7 @@ class Tracker:
         self._ever_lost = False
         self._out_of_view_us = 0
         self._misses = 0  # pose-source misses in a row
+        self._rejected_pose: tuple[int, np.ndarray] | None = None  # the last pose, if gated
         self._held: np.ndarray | None = None
         self._out_t: list[int] = []
         self._out_tq: list[np.ndarray] = []
@@ -911,15 +913,36 @@ class Tracker:
         if m.t_us > self.timeline.now:  # pragma: no cover - _apply_due never lets it happen
             raise RuntimeError(f"pose at {m.t_us} µs applied before the clock reached it")
         was_init = self.initialized
-        if not self.timeline.add(m.t_us, "pose", (t, q), cov):
+        pose = m.pose.numpy()
+        kind = "pose_reinit" if self._agrees_with_rejected(m.t_us, pose) else "pose"
+        if not self.timeline.add(m.t_us, kind, (t, q), cov):
             self.stats.poses_late += 1
             return
-        self.stats.poses_rejected += max(0, int(self.ukf.rejected[0]) - rejected)
-        self.stats.reinitialisations += max(0, int(self.ukf.reinitialised[0]) - reinit)
+        newly_rejected = int(self.ukf.rejected[0]) - rejected
+        newly_reinit = int(self.ukf.reinitialised[0]) - reinit
+        self.stats.poses_rejected += max(0, newly_rejected)
+        self.stats.reinitialisations += max(0, newly_reinit)
+        self._rejected_pose = (m.t_us, pose) if newly_rejected > 0 and newly_reinit <= 0 else None
         if self.initialized and not was_init:
             self._out_of_view_us = 0
             if self.method == "frame-flow":
                 self._replay_frame_flow(m.t_us)
+
+    def _agrees_with_rejected(self, t_us: int, pose: np.ndarray) -> bool:
+        """Whether the previous pose was rejected by the gate and ``pose`` lies within the
+        motion the config allows since (``reinit_agree_*``): two poses that agree with each
+        other but not with the filter mean the filter is off, so the second re-initialises
+        it. Random outliers rarely agree with each other."""
+        c = self.config
+        if not c.reinit_on_agreement or self._rejected_pose is None or not self.initialized:
+            return False
+        t0, pose0 = self._rejected_pose
+        dt = max(0.0, (t_us - t0) * 1e-6)
+        moved = float(np.linalg.norm(pose[:3, 3] - pose0[:3, 3]))
+        cos = (np.trace(pose0[:3, :3].T @ pose[:3, :3]) - 1.0) / 2.0
+        turned = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        return (moved <= c.reinit_agree_m + c.reinit_agree_m_per_s * dt
+                and turned <= c.reinit_agree_deg + c.reinit_agree_deg_per_s * dt)
 
     def _fuse_range(self, frame: _DepthFrame) -> None:
         """Measure the object's range on a depth frame at the filter's pose of the frame's
@@ -1058,6 +1081,7 @@ class Tracker:
         self._ever_lost = True
         self.stats.lost += 1
         self._out_of_view_us = 0
+        self._rejected_pose = None
         self.ukf.reset(1)
         self.vkf.reset(1)
         self.timeline.start(t_now)

@@ -151,7 +151,10 @@ def _pose_ukf_defaults() -> PoseUKFConfig:
     # 5 Hz) instead of the filter's default sixth. Demo sequences (coded box, network poses,
     # seeds 0-5): mean 17.5 cm / 27.6 deg -> 15.9 / 25.2 (seed 3: 42.6 / 61.7 -> 32.8 / 47.4;
     # the other seeds unchanged). Taking the second (reinit_after 2: 14.0 / 22.6) would accept
-    # two random outliers in a row, which tests/tracker/test_robustness.py rejects.
+    # two random outliers in a row, which tests/tracker/test_robustness.py rejects; the
+    # tracker's reinit_on_agreement takes the second only when the two agree with each other
+    # (with RANSAC decoding, full method: 15.6 / 25.7 -> 13.9 / 23.1; seed 3 32.6 -> 25.7 cm,
+    # seed 2 26.2 -> 22.4 cm, the others unchanged).
     return PoseUKFConfig(q_translation=0.01, q_rotation=0.3, reinit_after=3)
 
 
@@ -271,6 +274,16 @@ class TrackerConfig:
             rate).
         pose_min_confidence: detections below this confidence are ignored (they count as
             misses, see ``lost_after_misses``).
+        reinit_on_agreement: when a pose is rejected by the pose filter's gate right after
+            another rejected pose and the two agree with each other (the second within
+            ``reinit_agree_m + reinit_agree_m_per_s * dt`` metres and ``reinit_agree_deg +
+            reinit_agree_deg_per_s * dt`` degrees of the first, ``dt`` seconds later), the
+            filter re-initialises on the second: the filter has drifted off, the poses have
+            not. Random outliers rarely agree with each other, so they stay rejected (the
+            filter's ``reinit_after`` still re-initialises after that many rejections in a
+            row, agreeing or not).
+        reinit_agree_m, reinit_agree_m_per_s, reinit_agree_deg, reinit_agree_deg_per_s: see
+            ``reinit_on_agreement``.
         history_ms: how far back the pose filter keeps its past states for late poses; a pose
             older than that is dropped and counted.
         velocity_before_pose: before the first pose (and after losing the object) run the
@@ -316,6 +329,11 @@ class TrackerConfig:
     pose_rate_hz: float = 5.0
     pose_latency_ms: float = 200.0
     pose_min_confidence: float = 0.0
+    reinit_on_agreement: bool = True
+    reinit_agree_m: float = 0.05
+    reinit_agree_m_per_s: float = 1.0
+    reinit_agree_deg: float = 10.0
+    reinit_agree_deg_per_s: float = 180.0
     history_ms: float = 1000.0
     velocity_before_pose: bool = True
     use_flow_normal_flags: bool = True
@@ -342,7 +360,8 @@ class TrackerConfig:
                                                 "lost_after_misses", "max_events_per_step")
                       else 1)
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
-                     "pose_min_confidence", "burst_rate_hz"):
+                     "pose_min_confidence", "burst_rate_hz", "reinit_agree_m",
+                     "reinit_agree_m_per_s", "reinit_agree_deg", "reinit_agree_deg_per_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"tracker config field {name!r} must be finite and >= 0, "

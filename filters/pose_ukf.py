@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from evtrack.errors import ConfigError
 from evtrack.filters import fast_compiled as _compiled
 from evtrack.filters import fast_path as fp
 from evtrack.filters.compiled import CompilableSteps
@@ -166,6 +167,7 @@ class _PoseFilter(CompilableSteps, nn.Module):
         q_meas: Tensor,
         cov_meas: Tensor | None = None,
         valid: Tensor | None = None,
+        reinit_after: int | None = None,
     ) -> Tensor:
         """Fuse a pose measurement; returns (B,) bool, True where the pose was used.
 
@@ -175,17 +177,22 @@ class _PoseFilter(CompilableSteps, nn.Module):
                 from the config.
             valid: (B,) bool, False for tracks without a pose this time (default all True).
                 Non-finite poses or covariances count as missing.
+            reinit_after: ``config.reinit_after`` for this update only (``1``: a rejected
+                pose re-initialises the filter); ``None`` keeps the config's.
         """
+        if reinit_after is not None and reinit_after < 1:
+            raise ConfigError(f"reinit_after must be >= 1, got {reinit_after}")
         t_meas, q_meas, R, valid = self._update_inputs(t_meas, q_meas, cov_meas, valid)
         if self._fast((t_meas, q_meas, R, valid)):
             try:
-                return self._update_fast(t_meas, q_meas, R, valid)
+                return self._update_fast(t_meas, q_meas, R, valid, reinit_after)
             except np.linalg.LinAlgError:  # S not positive definite: torch gives its NaNs
                 pass
         t, q, extra, P = self._state()
         t, q, extra, P, self.initialized, self.rejected_run, used, rejected, reinit = (
             self.step_function("update_pose_state")(
-                t, q, extra, P, self.initialized, self.rejected_run, t_meas, q_meas, R, valid
+                t, q, extra, P, self.initialized, self.rejected_run, t_meas, q_meas, R, valid,
+                reinit_after=reinit_after,
             )
         )
         self._set_state(t, q, extra, P)
@@ -284,7 +291,8 @@ class _PoseFilter(CompilableSteps, nn.Module):
             self._dt(dt)  # raises unless (B,)
         return float(dt)
 
-    def _update_fast(self, t_meas: Tensor, q_meas: Tensor, R: Tensor, valid: Tensor) -> Tensor:
+    def _update_fast(self, t_meas: Tensor, q_meas: Tensor, R: Tensor, valid: Tensor,
+                     reinit_after: int | None = None) -> Tensor:
         """:meth:`update` of one float64 CPU track through :func:`fast_path.pose_update`."""
         buf = self._buffers
         extra = buf["twist"].numpy()[0] if self.n > 6 else _NO_EXTRA
@@ -300,7 +308,7 @@ class _PoseFilter(CompilableSteps, nn.Module):
             R.numpy()[0],
             bool(valid.tolist()[0]),
             buf["gate"].tolist(),
-            self.config.reinit_after,
+            self.config.reinit_after if reinit_after is None else reinit_after,
         )
         self._set_state_fast(out.t, out.q, out.extra if self.n > 6 else None, out.cov)
         buf.update(
@@ -339,12 +347,14 @@ class _PoseFilter(CompilableSteps, nn.Module):
         q_meas: Tensor,
         cov_meas: Tensor,
         valid: Tensor,
+        reinit_after: int | None = None,
     ) -> tuple[Tensor, ...]:
         """Pure, gated unscented pose update.
 
         Args:
             t (B,3), q (B,4), extra (B,k), cov (B,n,n): the prior; initialized (B,) bool;
             rejected_run (B,) int64; t_meas (B,3), q_meas (B,4), cov_meas (B,6,6), valid (B,).
+            reinit_after: overrides ``config.reinit_after`` (see :meth:`update`).
 
         Returns:
             ``(t, q, extra, cov, initialized, rejected_run, used, rejected, reinitialised)``,
@@ -383,7 +393,8 @@ class _PoseFilter(CompilableSteps, nn.Module):
         fresh = ~initialized
         accept = ok & (fresh | (d2 <= self.gate))
         reject = ok & ~accept
-        reinit = reject & (rejected_run >= cfg.reinit_after - 1)
+        limit = cfg.reinit_after if reinit_after is None else reinit_after
+        reinit = reject & (rejected_run >= limit - 1)
         take = ok & fresh | reinit
         fuse = accept & ~fresh
         take1, fuse1 = take.unsqueeze(-1), fuse.unsqueeze(-1)
@@ -735,19 +746,22 @@ class PoseTwistUKF(_PoseFilter):
         return self._propagate(t, q, twist, cov, None, dt, torch.cat([top, bottom], dim=-2))
 
     def update_pose_state(self, t: Tensor, q: Tensor, extra: Tensor, cov: Tensor,
-                          initialized: Tensor, *args: Tensor) -> tuple[Tensor, ...]:
+                          initialized: Tensor, *args: Tensor,
+                          reinit_after: int | None = None) -> tuple[Tensor, ...]:
         """As :meth:`PoseUKF.update_pose_state`; a track that starts on this pose gets its
         twist spread at the pose's position (``config.object_centred``)."""
-        out = super().update_pose_state(t, q, extra, cov, initialized, *args)
+        out = super().update_pose_state(t, q, extra, cov, initialized, *args,
+                                        reinit_after=reinit_after)
         if not self.config.object_centred:
             return out
         started = (~initialized & out[4])[:, None, None]
         cov_new = torch.where(started, self._with_object_twist_cov(out[3], out[0]), out[3])
         return (*out[:3], cov_new, *out[4:])
 
-    def _update_fast(self, t_meas: Tensor, q_meas: Tensor, R: Tensor, valid: Tensor) -> Tensor:
+    def _update_fast(self, t_meas: Tensor, q_meas: Tensor, R: Tensor, valid: Tensor,
+                     reinit_after: int | None = None) -> Tensor:
         was_initialized = bool(self._buffers["initialized"].tolist()[0])
-        used = super()._update_fast(t_meas, q_meas, R, valid)
+        used = super()._update_fast(t_meas, q_meas, R, valid, reinit_after)
         if self.config.object_centred and not was_initialized and bool(used.tolist()[0]):
             buf = self._buffers
             buf["cov"] = self._with_object_twist_cov(buf["cov"], buf["t"])

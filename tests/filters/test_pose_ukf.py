@@ -12,6 +12,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 from scipy.spatial.transform import Rotation
 
 from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError
 from evtrack.filters import PoseTwistUKF, PoseTwistUKFConfig, PoseUKF, PoseUKFConfig, VelocityKF
 from evtrack.filters.lie import quat_exp
 from evtrack.geometry import integrate_twist, integrate_twist_tq, matrix_to_tq, tq_to_matrix
@@ -224,6 +225,30 @@ def test_gating_rejects_outliers_and_reinitialises_after_a_run() -> None:
     assert ukf.rejected_run.tolist() == [1, 1]
     ukf.update(good_t + torch.tensor([1.0, 0.0, 0.0], dtype=F64), q)  # near track 0's new state
     assert ukf.rejected_run.tolist() == [0, 2]
+
+
+@pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
+@pytest.mark.parametrize("fast_path", [True, False])
+def test_reinit_after_of_one_update_overrides_the_config(cls: type, fast_path: bool) -> None:
+    """``update(..., reinit_after=1)``: a rejected pose re-initialises at once; accepted poses
+    and later updates are unaffected (one CPU track: the fast path, or torch)."""
+    ukf = cls(1, fast_path=fast_path)  # the config's reinit_after: 5
+    ukf.reset(t=torch.tensor([[0.0, 0.0, 1.0]], dtype=F64),
+              q=torch.tensor([[1.0, 0, 0, 0]], dtype=F64))
+    far = torch.tensor([[0.5, 0.0, 1.0]], dtype=F64)
+    near = torch.tensor([[0.001, 0.0, 1.0]], dtype=F64)
+    q = ukf.q.clone()
+    assert ukf.update(near, q, reinit_after=1).tolist() == [True]  # accepted: fused
+    assert ukf.reinitialised.tolist() == [0] and ukf.rejected.tolist() == [0]
+    assert ukf.update(far, q).tolist() == [False]  # the config's reinit_after: rejected
+    assert ukf.rejected_run.tolist() == [1]
+    assert ukf.update(far, q, reinit_after=1).tolist() == [True]
+    assert ukf.rejected.tolist() == [2] and ukf.reinitialised.tolist() == [1]
+    assert ukf.rejected_run.tolist() == [0]
+    torch.testing.assert_close(ukf.t, far)
+    assert ukf.update(far + 0.5, q).tolist() == [False]  # back to the config's rule
+    with pytest.raises(ConfigError, match="reinit_after must be >= 1"):
+        ukf.update(far, q, reinit_after=0)
 
 
 def test_gate_threshold_is_the_mahalanobis_distance() -> None:

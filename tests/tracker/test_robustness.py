@@ -145,6 +145,35 @@ def test_pose_outliers_are_rejected_against_the_clean_run(rest_sequence, robust_
     assert err.rotation_rmse_deg < base.rotation_rmse_deg + 3.0
 
 
+@pytest.mark.parametrize("agreement", [True, False])
+def test_agreeing_rejected_poses_reinitialise_at_the_second(rest_sequence, agreement) -> None:
+    """From 0.8 s (at rest) every pose is 0.4 m farther away, as when the filter has drifted
+    off: the gate rejects the shifted poses (the innovation is over 7 sigma). With
+    ``reinit_on_agreement`` the second shifted pose agrees with the first (same shift, the
+    object at rest) and re-initialises the filter: 2 rejected, 1 re-initialisation, and the
+    rest are fused. Without it the filter's ``reinit_after`` (3 in the tracker) takes the
+    third. Both end on the shifted poses."""
+    seq = rest_sequence
+    shift = np.array([0.0, 0.0, 0.4])
+    tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED, reinit_on_agreement=agreement)
+
+    def shifted(t_us, rgb, depth):
+        m = oracle(t_us, rgb, depth)
+        if m is None or t_us < 800_000:
+            return m
+        pose = m.pose.clone()
+        pose[:3, 3] += torch.from_numpy(shift)
+        return PoseMeasurement(m.t_us, pose, m.cov, m.confidence)
+
+    tracker.pose_source = shifted
+    traj = tracker.track(seq)
+    assert tracker.stats.poses_rejected == (2 if agreement else 3)
+    assert tracker.stats.reinitialisations == 1 and tracker.stats.lost == 0
+    truth = torch.as_tensor(seq.ground_truth.pose_at(traj.t_us[-1:]))[0]
+    offset = (traj.poses[-1, :3, 3] - truth[:3, 3]).numpy()
+    assert np.linalg.norm(offset - shift) < 0.03
+
+
 # ---------------------------------------------------------------------------- at rest
 def test_a_second_at_rest(rest_sequence, robust_runs) -> None:
     """The object stops at 0.45 s and stays still for a second: the sensor sees no event. The
