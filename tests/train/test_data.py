@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
+from evtrack.errors import ConfigError
 from evtrack.models import Cuboid
 from evtrack.train import (
     AugmentConfig,
@@ -73,6 +75,38 @@ def test_data_module_renders_the_cache_once(tmp_path):
                                       seed=9, cache_dir=str(tmp_path / "cache")), "box", CUBOID)
     other.prepare_data()  # another seed: another fingerprint, another folder
     assert len(list((tmp_path / "cache").iterdir())) == 3
+
+
+def test_render_workers_fill_the_same_cache(tmp_path, monkeypatch):
+    """``data.render_workers`` renders the cache in processes: same folder (the fingerprint
+    ignores the worker count), same samples."""
+    from evtrack.train import data as data_module
+
+    asked = []
+    real = data_module.write_shards
+
+    def recording(*args, **kwargs):
+        asked.append(kwargs["workers"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(data_module, "write_shards", recording)
+    caches = []
+    for workers in (0, 2):
+        cfg = DataConfig(train_samples=6, val_samples=0, image_size=(48, 64), batch_size=4,
+                         cache_dir=str(tmp_path / f"cache{workers}"), samples_per_shard=2,
+                         render_workers=workers)
+        dm = PoseDataModule(cfg, "box", CUBOID, mean=MEAN, std=STD)
+        dm.prepare_data()
+        dm.setup("fit")
+        caches.append(dm)
+    assert asked == [0, 2]
+    serial, parallel = (c.train_source for c in caches)
+    assert serial.folder.name == parallel.folder.name
+    for i in range(6):
+        np.testing.assert_array_equal(serial[i].image, parallel[i].image)
+        np.testing.assert_array_equal(serial[i].keypoints, parallel[i].keypoints)
+    with pytest.raises(ConfigError, match="render_workers must be >= 0"):
+        DataConfig(render_workers=-1)
 
 
 def test_lightning_advances_the_sampler_epoch():
