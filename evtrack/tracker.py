@@ -74,6 +74,7 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -91,6 +92,7 @@ from evtrack.camera import PinholeCamera
 from evtrack.depth_range import DepthRange
 from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth
 from evtrack.errors import ConfigError, EventsError
+from evtrack.eval.metrics import position_errors, rotation_errors
 from evtrack.events import Events, concatenate
 from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
 from evtrack.filters.scalar_lie import normalized, rotation_matrix
@@ -452,7 +454,7 @@ class Tracker:
         self._ever_lost = False
         self._out_of_view_us = 0
         self._misses = 0  # pose-source misses in a row
-        self._rejected_pose: tuple[int, np.ndarray] | None = None  # the last pose, if gated
+        self._rejected_pose: tuple[int, Tensor] | None = None  # the last pose, if gated
         self._held: np.ndarray | None = None
         self._out_t: list[int] = []
         self._out_tq: list[np.ndarray] = []
@@ -913,8 +915,7 @@ class Tracker:
         if m.t_us > self.timeline.now:  # pragma: no cover - _apply_due never lets it happen
             raise RuntimeError(f"pose at {m.t_us} µs applied before the clock reached it")
         was_init = self.initialized
-        pose = m.pose.numpy()
-        kind = "pose_reinit" if self._agrees_with_rejected(m.t_us, pose) else "pose"
+        kind = "pose_reinit" if self._agrees_with_rejected(m.t_us, m.pose) else "pose"
         if not self.timeline.add(m.t_us, kind, (t, q), cov):
             self.stats.poses_late += 1
             return
@@ -922,13 +923,14 @@ class Tracker:
         newly_reinit = int(self.ukf.reinitialised[0]) - reinit
         self.stats.poses_rejected += max(0, newly_rejected)
         self.stats.reinitialisations += max(0, newly_reinit)
-        self._rejected_pose = (m.t_us, pose) if newly_rejected > 0 and newly_reinit <= 0 else None
+        self._rejected_pose = ((m.t_us, m.pose) if newly_rejected > 0 and newly_reinit <= 0
+                               else None)
         if self.initialized and not was_init:
             self._out_of_view_us = 0
             if self.method == "frame-flow":
                 self._replay_frame_flow(m.t_us)
 
-    def _agrees_with_rejected(self, t_us: int, pose: np.ndarray) -> bool:
+    def _agrees_with_rejected(self, t_us: int, pose: Tensor) -> bool:
         """Whether the previous pose was rejected by the gate and ``pose`` lies within the
         motion the config allows since (``reinit_agree_*``): two poses that agree with each
         other but not with the filter mean the filter is off, so the second re-initialises
@@ -938,9 +940,8 @@ class Tracker:
             return False
         t0, pose0 = self._rejected_pose
         dt = max(0.0, (t_us - t0) * 1e-6)
-        moved = float(np.linalg.norm(pose[:3, 3] - pose0[:3, 3]))
-        cos = (np.trace(pose0[:3, :3].T @ pose[:3, :3]) - 1.0) / 2.0
-        turned = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        moved = float(position_errors(pose, pose0))
+        turned = math.degrees(float(rotation_errors(pose, pose0)))
         return (moved <= c.reinit_agree_m + c.reinit_agree_m_per_s * dt
                 and turned <= c.reinit_agree_deg + c.reinit_agree_deg_per_s * dt)
 
