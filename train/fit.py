@@ -67,7 +67,8 @@ def build_module(config: TrainConfig) -> tuple[PoseLightningModule, PoseDataModu
     if config.data.targets.stride != record.output_stride:
         raise ConfigError(f"data.targets.stride {config.data.targets.stride} differs from the "
                           f"network's output stride {record.output_stride}")
-    module = PoseLightningModule(net, record, config.optim, config.loss)
+    module = PoseLightningModule(net, record, config.optim, config.loss,
+                                 channels_last=config.model.channels_last)
     data = PoseDataModule(config.data, config.object.name, cuboid, config.object.mesh,
                           config.model.mean, config.model.std)
     return module, data

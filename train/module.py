@@ -217,6 +217,8 @@ class PoseLightningModule(L.LightningModule):
         record: the weights record to save with the weights (object, cuboid, normalisation).
         optim: optimiser settings.
         loss: loss weights.
+        channels_last: run the network and its inputs in the NHWC memory format (faster
+            training on CPUs with oneDNN; the weights are the same).
 
     The hyper-parameters saved in checkpoints are plain dicts (record, optim, loss), so
     checkpoints load with ``torch.load(..., weights_only=True)`` and
@@ -229,6 +231,8 @@ class PoseLightningModule(L.LightningModule):
         record: WeightsRecord,
         optim: OptimConfig | None = None,
         loss: LossConfig | None = None,
+        *,
+        channels_last: bool = False,
     ) -> None:
         super().__init__()
         arch = getattr(net, "arch_name", None)
@@ -237,7 +241,8 @@ class PoseLightningModule(L.LightningModule):
         if record.arch != arch or record.arch_kwargs != getattr(net, "arch_kwargs", {}):
             raise ConfigError(f"record describes {record.arch} {record.arch_kwargs}, the net is "
                               f"{arch} {net.arch_kwargs}")
-        self.net = net
+        self.channels_last = bool(channels_last)
+        self.net = net.to(memory_format=torch.channels_last) if channels_last else net
         self.record = record
         self.optim_config = optim or OptimConfig()
         self.loss_config = loss or LossConfig()
@@ -287,7 +292,10 @@ class PoseLightningModule(L.LightningModule):
         return total, lb, la, li
 
     def _common_step(self, batch: dict[str, Tensor], stage: str) -> Tensor:
-        stages = self.net.forward_stages(batch["image"])
+        image = batch["image"]
+        if self.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
+        stages = self.net.forward_stages(image)
         loss, lb, la, li = self.compute_loss(stages, batch["belief"], batch["affinity"])
         bs = batch["image"].shape[0]
         train = stage == "train"

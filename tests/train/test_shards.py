@@ -104,6 +104,19 @@ def test_source_pickles_for_worker_processes(folder):
     np.testing.assert_array_equal(clone[5].image, cached[5].image)
 
 
+def test_samples_do_not_share_the_cached_shard_arrays(folder):
+    cached = ShardSource(folder)
+    first = cached[4]
+    kept = first.keypoints.copy(), first.K.copy(), first.poses.copy()
+    first.keypoints[:] = -1.0  # a caller (an augmentation) writing into its sample
+    first.K[:] = 0.0
+    first.poses[:] = 0.0
+    again = cached[4]
+    np.testing.assert_array_equal(again.keypoints, kept[0])
+    np.testing.assert_array_equal(again.K, kept[1])
+    np.testing.assert_array_equal(again.poses, kept[2])
+
+
 def test_complete_folders_are_not_overwritten(source, folder):
     with pytest.raises(ShardError, match="already holds a complete shard set"):
         write_shards(source, folder)
