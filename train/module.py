@@ -44,6 +44,12 @@ class OptimConfig:
             ``"constant"``.
         warmup_steps: linear warm-up steps from 0.
         final_lr_fraction: end of the cosine schedule as a fraction of ``lr``.
+        schedule_by: what the cosine's progress counts: ``"steps"`` (of ``max_epochs`` or
+            ``max_steps``) or ``"time"``: the larger of the step fraction and the fraction of
+            ``trainer.max_time`` spent, so a run that a time budget stops still ends its
+            schedule (a 2-core run that reached 28 of 44 planned epochs stopped at 64% of its
+            cosine). With ``"time"`` the learning rate of a step depends on the machine's
+            speed, so two runs of one config are no longer the same bit for bit.
     """
 
     lr: float = 2e-3
@@ -51,11 +57,15 @@ class OptimConfig:
     schedule: str = "cosine"
     warmup_steps: int = 100
     final_lr_fraction: float = 0.02
+    schedule_by: str = "steps"
 
     def __post_init__(self) -> None:
         if self.schedule not in ("cosine", "constant"):
             raise ConfigError(f"optim.schedule must be 'cosine' or 'constant', "
                               f"got {self.schedule!r}")
+        if self.schedule_by not in ("steps", "time"):
+            raise ConfigError(f"optim.schedule_by must be 'steps' or 'time', "
+                              f"got {self.schedule_by!r}")
         if self.lr <= 0 or self.weight_decay < 0 or self.warmup_steps < 0:
             raise ConfigError("optim: lr must be > 0, weight_decay and warmup_steps >= 0")
 
@@ -353,6 +363,7 @@ class PoseLightningModule(L.LightningModule):
         opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         total = max(1, int(self.trainer.estimated_stepping_batches)) if self._trainer else 1
         warm = min(cfg.warmup_steps, max(0, total - 1))
+        timer = self._schedule_timer() if cfg.schedule_by == "time" else None
 
         def factor(step: int) -> float:
             if step < warm:
@@ -360,12 +371,27 @@ class PoseLightningModule(L.LightningModule):
             if cfg.schedule == "constant":
                 return 1.0
             progress = min(1.0, (step - warm) / max(1, total - warm))
+            if timer is not None:
+                elapsed, remaining = timer.time_elapsed(), timer.time_remaining()
+                if remaining is not None and elapsed + remaining > 0:
+                    progress = max(progress, min(1.0, elapsed / (elapsed + remaining)))
             lo = cfg.final_lr_fraction
             # a Python float: numpy scalars would make checkpoints unloadable with weights_only
             return float(lo + (1 - lo) * 0.5 * (1 + math.cos(math.pi * progress)))
 
         sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def _schedule_timer(self):
+        """The trainer's ``max_time`` timer, which ``optim.schedule_by: time`` follows."""
+        from lightning.pytorch.callbacks import Timer
+
+        timers = [c for c in (self.trainer.callbacks if self._trainer else [])
+                  if isinstance(c, Timer)]
+        if not timers:
+            raise ConfigError("optim.schedule_by: 'time' needs trainer.max_time (the time "
+                              "budget the schedule spreads over)")
+        return timers[0]
 
     def export_weights(self, path: str, **record_updates) -> str:
         """Save the network with its record (updated with ``record_updates``) as a weights file."""

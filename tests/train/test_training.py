@@ -101,6 +101,51 @@ def test_channels_last_training_step_matches_the_contiguous_one(tmp_path):
         torch.testing.assert_close(s1[k], s0[k])
 
 
+class LrRecorder(L.Callback):
+    def __init__(self):
+        self.lrs = []
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        self.lrs.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+
+@pytest.mark.parametrize("schedule_by", ["steps", "time"])
+def test_a_time_schedule_ends_its_cosine_when_max_time_stops_the_run(schedule_by):
+    src = SyntheticCuboidSource(CUBOID, 2, (32, 32), options=CuboidSourceOptions(
+        empty_probability=0, distance_range=(1.8, 2.5), distractor_boxes=0))
+    loader = torch.utils.data.DataLoader(PoseDataset(src, MEAN, STD), batch_size=2)
+    record = WeightsRecord(arch="dope_lite_tiny", object_name="box", cuboid=CUBOID)
+    optim = OptimConfig(lr=1e-3, warmup_steps=0, schedule_by=schedule_by)
+    module = PoseLightningModule(create("dope_lite_tiny"), record, optim)
+    recorder = LrRecorder()
+    trainer = L.Trainer(max_epochs=100_000, max_time={"seconds": 2}, accelerator="cpu",
+                        logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, callbacks=[recorder])
+    trainer.fit(module, loader)
+    lrs = recorder.lrs
+    assert trainer.current_epoch < 100_000 - 1 and len(lrs) > 5  # the time budget stopped it
+    if schedule_by == "steps":  # planned for 100k epochs: hardly started its cosine
+        assert lrs[-1] > 0.99e-3
+    else:  # followed the clock: annealed to the end, monotonically
+        assert lrs[-1] < 0.1e-3
+        assert all(b <= a for a, b in zip(lrs, lrs[1:], strict=False))
+
+
+def test_a_time_schedule_needs_max_time():
+    src = SyntheticCuboidSource(CUBOID, 2, (32, 32))
+    loader = torch.utils.data.DataLoader(PoseDataset(src, MEAN, STD), batch_size=2)
+    record = WeightsRecord(arch="dope_lite_tiny", object_name="box", cuboid=CUBOID)
+    module = PoseLightningModule(create("dope_lite_tiny"), record,
+                                 OptimConfig(schedule_by="time"))
+    trainer = L.Trainer(max_steps=2, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False)
+    with pytest.raises(ConfigError, match="needs trainer.max_time"):
+        trainer.fit(module, loader)
+    with pytest.raises(ConfigError, match="schedule_by must be"):
+        OptimConfig(schedule_by="epochs")
+
+
 def test_module_rejects_a_record_of_another_network():
     net = create("dope_lite_tiny")
     with pytest.raises(ConfigError, match="record describes dope_lite_small"):
