@@ -6,7 +6,8 @@ Prints one table: for each chunk size, events per second of
 * ``flow``: the whole ``TripletFlow`` (search + RoI registration), fed one ``update()`` per
   chunk as a live stream would (``update`` works in pieces of the config's ``chunk_size``),
 
-for each backend (``torch``: batched tensor code; ``compiled``: the numba kernels of
+for each backend (``torch``: batched tensor code, with each ``--lookups`` way of finding an
+event's predecessors in its chunk, ``passes`` or ``sorted``; ``compiled``: the numba kernels of
 ``evtrack.flow.compiled``, CPU only) on CPU with each of ``--threads`` thread counts (default
 2) and on CUDA when available, next to the
 sequential per-event reference of ``tests/flow/flow_reference.py`` run in the same process
@@ -106,6 +107,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="folder of the simulated scene")
     parser.add_argument("--sequence", type=Path, action="append", default=[],
                         help="a sequence folder to measure as well (repeatable)")
+    parser.add_argument("--lookups", default="passes,sorted",
+                        help="comma-separated FlowConfig.lookup values measured for the torch "
+                             "backend, side by side (default passes,sorted)")
     parser.add_argument("--config", type=Path, action="append", default=[],
                         help="a YAML flow config to measure besides the defaults (repeatable; "
                              "e.g. configs/flow_fast.yaml)")
@@ -184,22 +188,27 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
     ref_rate = len(sub) / (time.perf_counter() - t0)
 
     devices = {d.strip() for d in args.devices.split(",")}
-    runs = ([(torch.device("cpu"), n, b) for n in thread_counts for b in _cpu_backends()]
+    lookups = [v.strip() for v in args.lookups.split(",")]
+    runs = ([(torch.device("cpu"), n, b, lk) for n in thread_counts for b in _cpu_backends()
+             for lk in (lookups if b == "torch" else ["-"])]
             if "cpu" in devices else [])
     if torch.cuda.is_available() and not args.no_cuda and "cuda" in devices:
-        runs.append((torch.device("cuda"), thread_counts[0], "torch"))
-    print(f"{'device':<20}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
+        runs += [(torch.device("cuda"), thread_counts[0], "torch", lk) for lk in lookups]
+    print(f"{'device':<26}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
           f"{'x reference':>14}{'calib Gop/s':>13}")
-    print(f"{'cpu/1 reference':<20}{'-':>10}{'(sequential)':>16}{ref_rate:>16,.0f}{1.0:>14.1f}")
-    for dev, threads, backend in runs:
+    print(f"{'cpu/1 reference':<26}{'-':>10}{'(sequential)':>16}{ref_rate:>16,.0f}{1.0:>14.1f}")
+    for dev, threads, backend, lookup in runs:
         torch.set_num_threads(threads)
         label = (f"cpu/{threads} {backend}" if dev.type == "cpu" else "cuda torch")
+        if backend == "torch":
+            label += f" {lookup}"
         sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
         evd = ev.to(dev)
         calib = _calibration(dev)
         for chunk in (int(c) for c in args.chunks.split(",")):
             # update() splits a chunk into pieces of the config's chunk_size, as for a user
-            c = cfg.replace(device=str(dev), backend=backend)
+            c = cfg.replace(device=str(dev), backend=backend,
+                            **({"lookup": lookup} if backend == "torch" else {}))
             make_search = CompiledSearch if backend == "compiled" else CandidateSearch
 
             def search(c=c, evd=evd, dev=dev, make_search=make_search, chunk=chunk):
@@ -216,7 +225,7 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
 
             r_search = _rate(search, len(ev), args.repeats, sync)
             r_flow = _rate(flow, len(ev), args.repeats, sync)
-            print(f"{label:<20}{chunk:>10,}{r_search:>16,.0f}{r_flow:>16,.0f}"
+            print(f"{label:<26}{chunk:>10,}{r_search:>16,.0f}{r_flow:>16,.0f}"
                   f"{r_flow / ref_rate:>14.1f}{calib:>13.2f}")
 
 

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from evtrack.flow.config import US_PER_S, FlowConfig, dt_bounds_us, search_offsets
-from evtrack.flow.history import MAX_SPAN_US, EventHistory
+from evtrack.flow.history import MAX_SPAN_US, EventHistory, SortedChunk
 
 __all__ = ["Candidates", "CandidateSearch", "pass_bounds", "pass_starts", "NEVER_US"]
 
@@ -159,6 +159,7 @@ class CandidateSearch:
         self.device = torch.device(device)
         self.width, self.height = config.sensor_size
         self.block_size = config.resolved_block_size(self.device.type)
+        self.lookup = config.resolved_lookup(self.device.type)
         offsets = search_offsets(config.radius)
         dev = self.device
         self.offsets = torch.as_tensor(offsets, device=dev)
@@ -256,6 +257,13 @@ class CandidateSearch:
         cell = hist.cell_index(x, y, p)
         t_rel = hist.relative_times(t)
         pos = torch.arange(m, dtype=torch.int32, device=dev)
+        if self.lookup == "sorted":
+            chunk = SortedChunk(hist, cell, t_rel, seq)
+            parts = [self._block(pos[b0:b0 + self.block_size], cell[b0:b0 + self.block_size],
+                                 t_rel, seq, chunk)
+                     for b0 in range(0, m, self.block_size)]
+            chunk.close()
+            return Candidates.cat(parts)
         rank, next_end = pass_starts(cell, self.config.pass_repeats)
         next_same = self._next_same_cell(cell)
         parts = []
@@ -317,14 +325,17 @@ class CandidateSearch:
         return out
 
     # ------------------------------------------------------------------ one block
-    def _block(self, pos: Tensor, cell: Tensor, t_rel: Tensor, seq: Tensor) -> Candidates:
+    def _block(self, pos: Tensor, cell: Tensor, t_rel: Tensor, seq: Tensor,
+               lookups: EventHistory | SortedChunk | None = None) -> Candidates:
         """Candidates of the chunk's events at positions ``pos`` (all in the open pass).
 
         Args:
             pos: (b,) int32 chunk positions; cell: (b,) int64 their cells.
             t_rel: (n_chunk,) int32 relative times; seq: (n_chunk,) int64 stream indices.
+            lookups: what answers the lookups: the history with its open pass (default), or
+                the :class:`SortedChunk` of the chunk (``lookup == "sorted"``).
         """
-        hist = self.history
+        hist = self.history if lookups is None else lookups
         b = pos.shape[0]
         d = self.offsets.shape[0]
         k = self.config.history

@@ -42,6 +42,7 @@ from evtrack.errors import ConfigError
 __all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S", "BACKENDS"]
 
 BACKENDS = ("auto", "torch", "compiled")
+LOOKUPS = ("auto", "passes", "sorted")
 """Values of :attr:`FlowConfig.backend`."""
 
 US_PER_S = 1_000_000
@@ -125,6 +126,15 @@ class FlowConfig:
             ring buffer keeps ``history + pass_repeats`` slots per pixel and polarity; larger
             values mean fewer sequential passes but wider lookups. With the burst filter on,
             repeated onsets of one cell within a chunk are rare and 1 is fastest.
+        lookup: how the tensor code finds each event's predecessors within its chunk.
+            ``"passes"``: the chunk is cut into conflict-free passes (above) and a lookup is a
+            gather of a cell's ring-buffer slots; a fast object re-fires its pixels within a
+            chunk, so a chunk can need hundreds of passes, each a few dozen small kernels.
+            ``"sorted"``: the whole chunk is one pass: its events are sorted by (cell,
+            position) once and a lookup binary-searches that order (two searches per lookup,
+            any number of events per cell); the rings take each cell's newest events at the
+            chunk's end. ``"auto"``: sorted on CUDA, passes on CPU. Same candidates, bit for
+            bit. The compiled CPU backend does not use it.
         pair_budget: largest number of (hypothesis, candidate) distances the registration
             evaluates at once (bounds its memory).
         device: torch device of the history and of all computation.
@@ -159,6 +169,7 @@ class FlowConfig:
     chunk_size: int = 200_000
     block_size: int | None = None
     pass_repeats: int = 1
+    lookup: str = "auto"
     pair_budget: int = 4_000_000
     device: str = "cpu"
     backend: str = "auto"
@@ -196,6 +207,7 @@ class FlowConfig:
         need(float(self.max_speed) > float(self.min_speed), "max_speed",
              f"must exceed min_speed ({self.min_speed}), got {self.max_speed}")
         need(isinstance(self.refine, bool), "refine", f"expected true/false, got {self.refine!r}")
+        need(self.lookup in LOOKUPS, "lookup", f"expected one of {LOOKUPS}, got {self.lookup!r}")
         need(self.backend in BACKENDS, "backend",
              f"expected one of {BACKENDS}, got {self.backend!r}")
         need(float(self.line_gate) > 0.0, "line_gate", f"must be > 0, got {self.line_gate}")
@@ -224,6 +236,13 @@ class FlowConfig:
         if self.block_size is not None:
             return int(self.block_size)
         return 262_144 if device_type == "cuda" else 16_384
+
+    def resolved_lookup(self, device_type: str) -> str:
+        """:attr:`lookup`, with ``"auto"`` resolved for ``device_type``: ``"sorted"`` or
+        ``"passes"``."""
+        if self.lookup != "auto":
+            return self.lookup
+        return "sorted" if device_type == "cuda" else "passes"
 
     def use_compiled(self, device_type: str) -> bool:
         """Whether the compiled CPU kernels run for a flow on ``device_type`` (see

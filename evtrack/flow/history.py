@@ -36,7 +36,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["EventHistory", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US", "UNUSED", "NO_PASS_T"]
+__all__ = ["EventHistory", "SortedChunk", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US", "UNUSED",
+           "NO_PASS_T"]
 
 T_LIMIT = 1 << 29
 """Relative timestamps stay below this (µs); the base moves forward before they reach it."""
@@ -264,3 +265,74 @@ class EventHistory:
         self.ring_t.copy_(state["ring_t"].to(self.device, torch.int32))
         self.ring_s.copy_(state["ring_s"].to(self.device, torch.int64))
         self.t_base = state["t_base"]
+
+
+class SortedChunk:
+    """A whole chunk as one pass: lookups by binary search in the chunk sorted by cell.
+
+    The alternative to :meth:`EventHistory.open_pass` / :meth:`EventHistory.close_pass` for
+    ``FlowConfig.lookup == "sorted"``. The chunk's events are ordered by the key
+    ``cell * m + position`` (``m`` events, so keys are unique and a cell's events stay in
+    stream order). The events of cell ``c`` before chunk position ``q`` are then the sorted
+    entries ``[searchsorted(c * m), searchsorted(c * m + q))``; a lookup takes the newest of
+    those first and continues in the cell's ring, as a sequential ring buffer would. Nothing
+    is sequential in the number of events per cell, so a chunk needs no passes.
+
+    Args:
+        history: the :class:`EventHistory` whose rings hold the events before the chunk.
+        cell: (m,) int64 cell ids of the chunk's events, in stream order.
+        t: (m,) int32 relative timestamps of the chunk's events.
+        seq: (m,) int64 stream indices of the chunk's events.
+    """
+
+    def __init__(self, history: EventHistory, cell: Tensor, t: Tensor, seq: Tensor) -> None:
+        self.history = history
+        self.m = int(cell.shape[0])
+        pos = torch.arange(self.m, dtype=torch.int64, device=cell.device)
+        self.keys, order = torch.sort(cell * self.m + pos)
+        self.t_sorted = t.index_select(0, order)
+        self.s_sorted = seq.index_select(0, order)
+        self.cells = torch.unique_consecutive(torch.div(self.keys, self.m,
+                                                        rounding_mode="floor"))
+        self._ages = torch.arange(history.history, device=cell.device)
+
+    def _visible(self, cell: Tensor, pos: Tensor) -> tuple[Tensor, Tensor]:
+        """(end, count): sorted index after the last event of ``cell`` before ``pos``, and
+        how many of the cell's chunk events precede ``pos`` (both (Q,) int64)."""
+        base = cell * self.m
+        end = torch.searchsorted(self.keys, base + pos.to(torch.int64))
+        start = torch.searchsorted(self.keys, base)
+        return end, end - start
+
+    def _entries(self, cell: Tensor, end: Tensor, count: Tensor, age: Tensor,
+                 chunk_values: Tensor, ring: Tensor) -> Tensor:
+        """Entry ``age`` (Q, A) of the newest-first sequence [chunk events, ring]."""
+        from_chunk = age < count[:, None]
+        idx = (end[:, None] - 1 - age).clamp_min(0)
+        ring_age = (age - count[:, None]).clamp(0, self.history.history - 1)
+        return torch.where(from_chunk, chunk_values[idx], ring[cell].gather(1, ring_age))
+
+    def lookup_times(self, cell: Tensor, pos: Tensor, t: Tensor | None = None) -> Tensor:
+        """:meth:`EventHistory.lookup_times` for the chunk (``t`` is not needed): (Q, K)
+        int32 times of the last K events of each cell before each query, newest first."""
+        end, count = self._visible(cell, pos)
+        return self._entries(cell, end, count, self._ages.expand(cell.shape[0], -1),
+                             self.t_sorted, self.history.ring_t)
+
+    def lookup_seq(self, cell: Tensor, pos: Tensor, age: Tensor,
+                   seq: Tensor | None = None) -> Tensor:
+        """:meth:`EventHistory.lookup_seq` for the chunk: (M,) int64 stream index of entry
+        ``age`` of each query."""
+        end, count = self._visible(cell, pos)
+        return self._entries(cell, end, count, age[:, None], self.s_sorted,
+                             self.history.ring_s)[:, 0]
+
+    def close(self) -> None:
+        """Move each touched cell's K newest events (chunk, then ring) into its ring."""
+        cells = self.cells
+        end, count = self._visible(cells, torch.full_like(cells, self.m))
+        ages = self._ages.expand(cells.shape[0], -1)
+        ring_t = self._entries(cells, end, count, ages, self.t_sorted, self.history.ring_t)
+        ring_s = self._entries(cells, end, count, ages, self.s_sorted, self.history.ring_s)
+        self.history.ring_t.index_put_((cells,), ring_t)
+        self.history.ring_s.index_put_((cells,), ring_s)

@@ -90,13 +90,14 @@ def test_span_bound_drops_long_triplets_only():
 @given(seed=st.integers(0, 10_000), n=st.integers(0, 250), chunk=st.integers(1, 300),
        block=st.integers(1, 64), radius=st.integers(1, 3), history=st.integers(1, 3),
        repeats=st.integers(1, 4), refractory=st.sampled_from([0, 40, 400]),
-       max_gap=st.sampled_from([0, 3, 60]), span=st.sampled_from([0, 300, 2000]))
+       max_gap=st.sampled_from([0, 3, 60]), span=st.sampled_from([0, 300, 2000]),
+       lookup=st.sampled_from(["passes", "sorted"]))
 def test_random_streams_equal_reference(seed, n, chunk, block, radius, history, repeats,
-                                        refractory, max_gap, span):
+                                        refractory, max_gap, span, lookup):
     size = (9, 7)
     x, y, t, p = _random_stream(seed, n, size, max_gap)
     cfg = FlowConfig(sensor_size=size, radius=radius, history=history, pass_repeats=repeats,
-                     refractory_us=refractory, chunk_size=chunk, block_size=block,
+                     lookup=lookup, refractory_us=refractory, chunk_size=chunk, block_size=block,
                      tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6,
                      max_span_us=span)
     got = CandidateSearch(cfg)(x, y, t, p)
@@ -104,26 +105,27 @@ def test_random_streams_equal_reference(seed, n, chunk, block, radius, history, 
     _assert_same(got, ref)
 
 
+@pytest.mark.parametrize("lookup", ["passes", "sorted"])
 @pytest.mark.parametrize("chunk", [1, 13, 500, 100_000])
 @pytest.mark.parametrize("block", [7, 4096])
-def test_structured_stream_equals_reference_for_any_chunking(chunk, block):
+def test_structured_stream_equals_reference_for_any_chunking(chunk, block, lookup):
     x, y, t, p = _structured_stream()
-    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=chunk, block_size=block)
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=chunk, block_size=block, lookup=lookup)
     got = CandidateSearch(cfg)(x, y, t, p)
     ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
     assert len(ref) > 100  # the scene really produces triplets
     _assert_same(got, ref)
 
 
-@pytest.mark.parametrize("repeats", [1, 3])
-def test_long_streams_move_the_time_base_without_changing_the_result(repeats):
+@pytest.mark.parametrize(("repeats", "lookup"), [(1, "passes"), (3, "passes"), (1, "sorted")])
+def test_long_streams_move_the_time_base_without_changing_the_result(repeats, lookup):
     """Relative int32 times: crossing the base's limit (2^29 µs) keeps the result exact."""
     x, y, t, p = _structured_stream(2000)
     t = t.clone()
     t[1000:] += (1 << 29) - 4_000  # the second half straddles the limit
     t[1500:] += 1 << 30            # and jumps by more than the history keeps
     cfg = FlowConfig(sensor_size=(40, 30), chunk_size=300, refractory_us=0,
-                     pass_repeats=repeats)
+                     pass_repeats=repeats, lookup=lookup)
     got = CandidateSearch(cfg)(x, y, t, p)
     ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
     assert any(r[0] >= 1500 for r in ref) and any(1000 <= r[0] < 1500 for r in ref)
@@ -232,10 +234,12 @@ def test_burst_memory_is_bounded_by_block_size(monkeypatch):
     assert max(chunk_sizes) <= 5000
 
 
-def test_search_on_the_test_device_equals_reference(device):
+@pytest.mark.parametrize("lookup", ["passes", "sorted"])
+def test_search_on_the_test_device_equals_reference(device, lookup):
     """Run with ``pytest --device cuda`` to check the CUDA path against the reference."""
     x, y, t, p = _structured_stream(2500)
-    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=900, block_size=300, device=str(device))
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=900, block_size=300, device=str(device),
+                     lookup=lookup)
     got = CandidateSearch(cfg, device)(x.to(device), y.to(device), t.to(device), p.to(device))
     ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
     _assert_same(got.select(torch.arange(len(got), device=device)), ref)
