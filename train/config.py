@@ -225,9 +225,11 @@ class ModelConfig:
             checkpoint of the same architecture and object) instead of a random
             initialisation: fine-tuning, or more epochs with a fresh schedule. Unlike
             ``--resume``, the optimiser, schedule and epoch count start afresh.
-        channels_last: train in the NHWC memory format (``torch.channels_last``). On CPUs
-            with oneDNN a ``dope_lite_small`` training step ran 1.2-1.3x faster this way
-            (``benchmarks/bench_train_speed.py``); the saved weights are the same either way.
+        channels_last: train in the NHWC memory format (``torch.channels_last``). On 2 CPU
+            cores (oneDNN) a ``dope_lite_small`` step with the data prepared in the training
+            process took 355 / 323 ms instead of 395 / 411 ms (1.11x / 1.27x, two runs of
+            ``benchmarks/bench_train_speed.py``); about as fast as NCHW with the data in one
+            loader process (372 / 330 ms). The saved weights are the same either way.
     """
 
     name: str = "dope_lite_base"
