@@ -39,11 +39,12 @@ import yaml
 
 from evtrack.errors import ConfigError
 
-__all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S", "BACKENDS"]
+__all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S", "BACKENDS", "LOOKUPS"]
 
 BACKENDS = ("auto", "torch", "compiled")
-LOOKUPS = ("auto", "passes", "sorted")
 """Values of :attr:`FlowConfig.backend`."""
+LOOKUPS = ("auto", "passes", "sorted")
+"""Values of :attr:`FlowConfig.lookup`."""
 
 US_PER_S = 1_000_000
 """Microseconds per second (timestamps are µs, flows px/s)."""

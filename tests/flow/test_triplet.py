@@ -287,6 +287,11 @@ def test_config_loading_and_errors(tmp_path):
         FlowConfig(min_speed=100.0, max_speed=50.0)
     with pytest.raises(ConfigError, match="'max_span_us'"):
         FlowConfig.from_dict({"max_span_us": -5})
+    with pytest.raises(ConfigError, match="'lookup'.*'sortd'"):
+        FlowConfig.from_dict({"lookup": "sortd"})
+    assert FlowConfig().resolved_lookup("cuda") == "sorted"
+    assert FlowConfig().resolved_lookup("cpu") == "passes"
+    assert FlowConfig(lookup="sorted").resolved_lookup("cpu") == "sorted"
     bad = tmp_path / "bad.yaml"
     bad.write_text("- not a mapping\n")
     with pytest.raises(ConfigError, match="bad.yaml"):
