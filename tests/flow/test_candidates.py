@@ -9,7 +9,7 @@ from flow_reference import reference_candidates, reference_offsets
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from evtrack.flow.candidates import CandidateSearch, pass_bounds, pass_starts
+from evtrack.flow.candidates import Candidates, CandidateSearch, pass_bounds, pass_starts
 from evtrack.flow.config import FlowConfig, dt_bounds_us, search_offsets
 from evtrack.flow.scenes import translating_texture
 
@@ -148,6 +148,23 @@ def test_tolerance_interval_equals_reference(monkeypatch, tabulated, tolerance_r
     ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
     assert len(ref) > 100
     _assert_same(got, ref)
+
+
+def test_a_stream_can_switch_lookup_between_chunks():
+    """Both lookups leave the same rings between chunks, so a flow moved to another device
+    (``TripletFlow.to``, which may change the lookup) mid-stream stays exact."""
+    x, y, t, p = _structured_stream()
+    cfg = FlowConfig(sensor_size=(40, 30), chunk_size=400, lookup="passes")
+    first = CandidateSearch(cfg)
+    half = len(t) // 2
+    got_1 = first(x[:half], y[:half], t[:half], p[:half])
+    second = CandidateSearch(cfg.replace(lookup="sorted"))
+    second.history.load_state_dict(first.history.state_dict())
+    second.next_seq, second.last_t, second.last_p = first.next_seq, first.last_t, first.last_p
+    got_2 = second(x[half:], y[half:], t[half:], p[half:])
+    ref, _ = _reference(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg)
+    assert len(got_2) > 50
+    _assert_same(Candidates.cat([got_1, got_2]), ref)
 
 
 def test_streaming_calls_equal_one_call():
