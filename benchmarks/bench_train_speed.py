@@ -11,11 +11,13 @@ batches are made and laid out:
 * ``main+nhwc``: the same with ``model.channels_last: true`` (the CPU recipe,
   ``configs/pose_demo_coded_box_cpu*.yaml``).
 
-On 2 cores a worker process competes with the network's two threads for the cores; the
-network's step dominates, so keeping both cores for it wins. The samples are rendered once
-into a small cache (``--cache``); validation and checkpoints are off, so the numbers are the
-training step alone. Issue 6's target is the whole recipe under 60 minutes on 2 CPU cores:
-the recipe's own wall time is in its model card (``models/weights/README.md``).
+On 2 cores a worker process competes with the network's two threads for the cores. Measured
+on the 2-core machine (two runs, ms per step): worker+nchw 372 / 330, main+nchw 395 / 411,
+main+nhwc 355 / 323: NHWC pays for keeping the data in the training process, no more.
+The samples are rendered once into a small cache (``--cache``); validation and checkpoints
+are off, so the numbers are the training step alone. Issue 6's target is the whole recipe
+under 60 minutes on 2 CPU cores: the recipe's own wall time is in its model card
+(``models/weights/README.md``).
 
     python benchmarks/bench_train_speed.py [--config configs/pose_demo_coded_box_cpu.yaml]
         [--samples 512] [--steps 40] [--warmup 8] [--threads 2]

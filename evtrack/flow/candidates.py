@@ -18,6 +18,9 @@ events before it, including earlier events of the same chunk:
    lookups of its events in blocks of ``block_size`` events. A lookup skips the cell's entries
    that come after the querying event (keys carry the stream index), which leaves exactly the
    ``history`` events that a sequential, event-by-event ring buffer would hold.
+   With ``FlowConfig.lookup == "sorted"`` (the CUDA default) steps 1-2 are replaced by one
+   pass per chunk: :class:`~evtrack.flow.history.SortedChunk` sorts the chunk by cell and
+   answers the same lookups by binary search, then updates the rings once.
 3. For each event, displacement and pair of visible entries, the triplet tests run on a dense
    ``(block, D, K, K)`` tensor; the surviving positions are the candidates, in the order
    (event, displacement, age of e_j, age of e_i).
