@@ -16,6 +16,15 @@ runs group by group in compiled loops:
    rank, is that of the full evaluation), then the events' constraint lines, the inlier
    count and the IRLS intersection of the lines.
 
+   The hypotheses after the first are evaluated side by side in lanes of up to
+   ``_MAX_LANES`` (:func:`_lane_costs`): one pass over the group's candidates updates every
+   lane's per-event minimum, a loop over the lanes that the compiler turns into SIMD
+   instructions, and the rounding of those minima is branch-free per lane. A lane is
+   abandoned against the bound of the best cost when its block starts, which is never below
+   the bound the one-by-one order would give it, so the arg-min is unchanged. The events'
+   nearest candidate to ``F`` is found from the smallest float32 squared distance, rounding
+   only the candidates that can round to the same value (:func:`_nearest`).
+
 Everything up to the lines is integer or exactly specified float arithmetic (float32 squared
 distances with separate IEEE operations, :func:`~evtrack.flow.registration.rounded_distance`,
 float64 comparisons), so ``full_flow``, ``cost``, ``used_events``, ``inliers`` and ``lines``
@@ -38,6 +47,8 @@ _GOLDEN = 2654435761
 _NO_BOUND = np.int64(1) << 62
 _POS_BITS = 31  # (hash << 31) | position: a hash < 2^32 and a position < 2^31 fit in int64
 _POS_MASK = (1 << _POS_BITS) - 1
+_MAX_LANES = 48
+"""Most hypotheses evaluated side by side in one block (the flow's default caps try 48)."""
 
 
 @_njit()
@@ -168,6 +179,129 @@ def _hypothesis_cost(hx, hy, c_x, c_y, c_event, c0, c1, bound, cost_scale, q_max
     return total + _rounded_distance(best, cost_scale, q_max)
 
 
+@_njit()
+def _rounded_lanes(mins, out, n_lanes, cost_scale, q_max):
+    """``out[l] = _rounded_distance(mins[l])`` for ``l < n_lanes``, without branches (the same
+    exact rule: a ``sqrt`` guess corrected by exact float64 squares, ties to even)."""
+    cs2 = cost_scale * cost_scale
+    qm2 = q_max * q_max
+    for lane in range(n_lanes):
+        dd = np.float64(mins[lane]) * cs2
+        capped = dd >= qm2
+        dd = 0.0 if capped else dd
+        n = np.floor(np.sqrt(dd) + 0.5)
+        up = (n + 0.5) * (n + 0.5)
+        down = (n - 0.5) * (n - 0.5)
+        n = n + (1.0 if dd > up else 0.0) - (1.0 if (dd < down and n > 0.0) else 0.0)
+        up = (n + 0.5) * (n + 0.5)
+        down = (n - 0.5) * (n - 0.5)
+        odd = (np.int64(n) & 1) == 1
+        n = n + (1.0 if (odd and dd == up) else 0.0) - (1.0 if (odd and dd == down) else 0.0)
+        out[lane] = np.int64(q_max) if capped else np.int64(n)
+
+
+@_njit()
+def _lane_costs(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q, cost_scale,
+                q_max):
+    """:func:`_hypothesis_cost` of ``n_lanes`` hypotheses at once.
+
+    Events ``e < n_ev`` hold the candidates ``ev_ptr[e]..ev_ptr[e + 1]``. On return
+    ``total[l]`` is lane ``l``'s exact cost, or a value ``>= bound[l]`` (the evaluation stops
+    once every lane has reached its bound)."""
+    for lane in range(n_lanes):
+        total[lane] = 0
+    for e in range(n_ev):
+        for lane in range(n_lanes):
+            mins[lane] = np.float32(np.inf)
+        for c in range(ev_ptr[e], ev_ptr[e + 1]):
+            cx = c_x[c]
+            cy = c_y[c]
+            for lane in range(n_lanes):  # SIMD over the lanes
+                dx = hx[lane] - cx
+                dy = hy[lane] - cy
+                d2 = dx * dx
+                d2 = d2 + dy * dy
+                mins[lane] = d2 if d2 < mins[lane] else mins[lane]
+        _rounded_lanes(mins, q, n_lanes, cost_scale, q_max)
+        done = 0
+        for lane in range(n_lanes):
+            total[lane] += q[lane]
+            done += 1 if total[lane] >= bound[lane] else 0
+        if done == n_lanes:
+            return
+
+
+@_njit()
+def _nearest(c_x, c_y, i0, i1, fx, fy, cost_scale, q_max):
+    """The first candidate of ``i0..i1`` (``i0 < i1``) with the smallest rounded distance to
+    ``(fx, fy)``, and its float32 squared distance.
+
+    The smallest squared distance gives that rounded distance ``q`` (the rounding is
+    monotone); only candidates with ``d2 * COST_SCALE^2 <= (q + 0.5)^2`` can round to it too,
+    and only those are rounded."""
+    best = np.float32(np.inf)
+    for i in range(i0, i1):
+        dx = c_x[i] - fx
+        dy = c_y[i] - fy
+        d2 = dx * dx
+        d2 = d2 + dy * dy
+        if d2 < best:
+            best = d2
+    q_min = _rounded_distance(best, cost_scale, q_max)
+    edge = (np.float64(q_min) + 0.5) * (np.float64(q_min) + 0.5)
+    cs2 = cost_scale * cost_scale
+    for i in range(i0, i1):
+        dx = c_x[i] - fx
+        dy = c_y[i] - fy
+        d2 = dx * dx
+        d2 = d2 + dy * dy
+        if q_min < q_max and np.float64(d2) * cs2 > edge:
+            continue  # rounds above q_min
+        if _rounded_distance(d2, cost_scale, q_max) == q_min:
+            return i, d2
+    return -1, np.float32(np.nan)  # not reached: the smallest d2 rounds to q_min
+
+
+@_njit()
+def _nearest_nonparallel(c_x, c_y, i0, i1, fx, fy, ax, ay, eps2, cost_scale, q_max):
+    """As :func:`_nearest` among the candidates ``b`` of ``i0..i1`` not parallel to
+    ``a = (ax, ay)`` (float64: ``cross(b, a)^2 > eps2 |b|^2 |a|^2``); -1 if there is none."""
+    a2 = ax * ax + ay * ay
+    best = np.float32(np.inf)
+    found = False
+    for i in range(i0, i1):
+        bx, by = np.float64(c_x[i]), np.float64(c_y[i])
+        cross = bx * ay - by * ax
+        if cross * cross <= eps2 * (bx * bx + by * by) * a2:
+            continue
+        dx = c_x[i] - fx
+        dy = c_y[i] - fy
+        d2 = dx * dx
+        d2 = d2 + dy * dy
+        found = True
+        if d2 < best:
+            best = d2
+    if not found:
+        return -1
+    q_min = _rounded_distance(best, cost_scale, q_max)
+    edge = (np.float64(q_min) + 0.5) * (np.float64(q_min) + 0.5)
+    cs2 = cost_scale * cost_scale
+    for i in range(i0, i1):
+        bx, by = np.float64(c_x[i]), np.float64(c_y[i])
+        cross = bx * ay - by * ax
+        if cross * cross <= eps2 * (bx * bx + by * by) * a2:
+            continue
+        dx = c_x[i] - fx
+        dy = c_y[i] - fy
+        d2 = dx * dx
+        d2 = d2 + dy * dy
+        if q_min < q_max and np.float64(d2) * cs2 > edge:
+            continue
+        if _rounded_distance(d2, cost_scale, q_max) == q_min:
+            return i
+    return -1  # not reached
+
+
 @_njit(parallel=True)
 def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                   ev_per_group, cost_scale, q_max, parallel_eps, line_gate, irls_delta,
@@ -211,15 +345,47 @@ def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
         g_best = _hypothesis_cost(hx[first], hy[first], c_x, c_y, c_event, c0, c1, _NO_BOUND,
                                   cost_scale, q_max)
         best_rank = first
-        for j in range(nh):
-            if j == first:
+        # the group's events: candidates ev_ptr[e]..ev_ptr[e + 1]
+        n_ev = ev_per_group[g]
+        ev_ptr = np.empty(n_ev + 1, np.int64)
+        e = 0
+        for c in range(c0, c1):
+            if c > c0 and c_event[c] != c_event[c - 1]:
+                e += 1
+                ev_ptr[e] = c
+        ev_ptr[0], ev_ptr[n_ev] = c0, c1
+        # the others in rank order, in blocks of lanes of about equal size. A lane's bound
+        # is taken when its block starts: the best only improves during the block, so that
+        # bound is never below the one-by-one bound and a lane abandoned against it could not
+        # have won; the lanes are then compared in rank order with the one-by-one rule.
+        n_blocks = (nh - 2 + _MAX_LANES) // _MAX_LANES
+        per_block = (nh - 2 + n_blocks) // n_blocks if n_blocks else 1
+        lx = np.empty(per_block, np.float32)
+        ly = np.empty(per_block, np.float32)
+        l_rank = np.empty(per_block, np.int64)
+        l_bound = np.empty(per_block, np.int64)
+        l_total = np.empty(per_block, np.int64)
+        l_min = np.empty(per_block, np.float32)
+        l_q = np.empty(per_block, np.int64)
+        j = 0
+        while j < nh:
+            n_lanes = 0
+            while j < nh and n_lanes < per_block:
+                if j != first:
+                    lx[n_lanes], ly[n_lanes], l_rank[n_lanes] = hx[j], hy[j], j
+                    # an earlier rank also wins a tie: it must reach best + 1 to lose
+                    l_bound[n_lanes] = g_best + 1 if j < best_rank else g_best
+                    n_lanes += 1
+                j += 1
+            if n_lanes == 0:
                 continue
-            # an earlier rank also wins a tie: it must reach best + 1 to lose
-            bound = g_best + 1 if j < best_rank else g_best
-            cost = _hypothesis_cost(hx[j], hy[j], c_x, c_y, c_event, c0, c1, bound, cost_scale,
-                                    q_max)
-            if cost < bound:
-                g_best, best_rank = cost, j
+            _lane_costs(lx, ly, n_lanes, c_x, c_y, ev_ptr, n_ev, l_bound, l_total, l_min,
+                        l_q, cost_scale, q_max)
+            for lane in range(n_lanes):
+                rank = l_rank[lane]
+                bound = g_best + 1 if rank < best_rank else g_best
+                if l_total[lane] < l_bound[lane] and l_total[lane] < bound:
+                    g_best, best_rank = l_total[lane], rank
         chosen = h_cand[h0 + best_rank]
         has[g] = True
         best_cost[g] = g_best
@@ -228,50 +394,22 @@ def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
         f2 = fx * fx
         f2 = f2 + fy * fy
         lim2 = gate2 * max(np.float64(f2), 1.0)
-        # one constraint line per kept event
-        n_ev = ev_per_group[g]
+        # one constraint line per kept event that agrees with F
         ln_x = np.empty(n_ev, np.float64)
         ln_y = np.empty(n_ev, np.float64)
         ln_s = np.empty(n_ev, np.float64)
         n_lines = 0
-        c = c_start[g]
-        c_end = c_start[g] + counts[g]
-        while c < c_end:
-            e0 = c
-            e = c_event[c]
-            while c < c_end and c_event[c] == e:
-                c += 1
-            i1 = -1
-            q1 = np.int64(0)
-            d2_1 = np.float32(0.0)
-            for i in range(e0, c):
-                dx = c_x[i] - fx
-                dy = c_y[i] - fy
-                d2 = dx * dx
-                d2 = d2 + dy * dy
-                q = _rounded_distance(d2, cost_scale, q_max)
-                if i1 < 0 or q < q1:
-                    i1, q1, d2_1 = i, q, d2
+        for e in range(n_ev):
+            e0, e1 = ev_ptr[e], ev_ptr[e + 1]
+            i1, d2_1 = _nearest(c_x, c_y, e0, e1, fx, fy, cost_scale, q_max)
+            if np.float64(d2_1) > lim2:
+                continue  # disagrees with F: neither an inlier nor a line
+            inliers[g] += 1
             ax, ay = np.float64(c_x[i1]), np.float64(c_y[i1])
-            a2 = ax * ax + ay * ay
-            i2 = -1
-            q2 = np.int64(0)
-            for i in range(e0, c):
-                bx, by = np.float64(c_x[i]), np.float64(c_y[i])
-                cross = bx * ay - by * ax
-                if cross * cross <= eps2 * (bx * bx + by * by) * a2:
-                    continue  # parallel to the first (the first itself included)
-                dx = c_x[i] - fx
-                dy = c_y[i] - fy
-                d2 = dx * dx
-                d2 = d2 + dy * dy
-                q = _rounded_distance(d2, cost_scale, q_max)
-                if i2 < 0 or q < q2:
-                    i2, q2 = i, q
-            agree = np.float64(d2_1) <= lim2
-            if agree:
-                inliers[g] += 1
-            if agree and i2 >= 0:
+            # the nearest not parallel to the first (the first itself is parallel)
+            i2 = _nearest_nonparallel(c_x, c_y, e0, e1, fx, fy, ax, ay, eps2, cost_scale,
+                                      q_max)
+            if i2 >= 0:
                 tx = ax - np.float64(c_x[i2])
                 ty = ay - np.float64(c_y[i2])
                 length = max(np.sqrt(tx * tx + ty * ty), 1e-30)

@@ -238,6 +238,33 @@ def test_compiled_registration_equals_the_tensor_registration(seed):
                                atol=1e-5, equal_nan=True)
 
 
+def test_compiled_registration_breaks_cost_ties_by_rank_after_the_median_start():
+    """Collinear events: every flow between the two middle ones costs the same. The compiled
+    solver starts from the candidate nearest the median (here the right one of the tied
+    pair); the tie must still go to the smaller hash rank, as in the tensor solver, which
+    evaluates every hypothesis in full."""
+    xs = [0.0, 1.0, 10.0, 13.0, 29.0, 30.0]
+    winners = set()
+    for trial in range(40):
+        rng = np.random.default_rng(trial)
+        seq = np.cumsum(rng.integers(1, 1000, len(xs)))
+        group, sq, ordinal, flow = [], [], [], []
+        for k, x in enumerate(xs):
+            cands = [(x, 0.0)] + ([(12.9, 1000.0)] if k == 0 else [])  # moves the median
+            for o, c in enumerate(cands):
+                group.append(0)
+                sq.append(int(seq[k]))
+                ordinal.append(o)
+                flow.append(c)
+        args = (torch.tensor(group), torch.tensor(sq), torch.tensor(ordinal),
+                torch.tensor(flow, dtype=torch.float32), 1, 64, 48, 0.05, 10_000)
+        a = register_groups(*args, n_ordinals=8)
+        b = register_groups(*args, n_ordinals=8, compiled=True)
+        assert torch.equal(a.full_flow, b.full_flow) and torch.equal(a.cost, b.cost), trial
+        winners.add(float(a.full_flow[0, 0]))
+    assert winners == {10.0, 13.0}  # both ranks orders occurred
+
+
 def test_compiled_flow_leaves_torch_threads_as_set():
     """numba's OpenMP layer resets the process's thread count when it first starts; the flow
     must leave the caller's ``torch.set_num_threads`` in place (fresh process: first start)."""
@@ -287,6 +314,103 @@ def test_rounded_distance_is_exact_in_both_backends():
     assert np.array_equal(rounded_distance(torch.from_numpy(d2)).numpy(), expected)
     got = [compiled._rounded_distance(np.float32(v), COST_SCALE, float(1 << 25)) for v in d2]
     assert np.array_equal(np.array(got), expected)
+
+
+def test_lane_rounding_equals_the_scalar_rounding():
+    """The branch-free rounding of the registration's lanes is the exact scalar rule: ties
+    between two integers, zero, tiny, capped and infinite distances."""
+    from evtrack.flow import registration_compiled as rc
+
+    rng = np.random.default_rng(4)
+    ties = (rng.integers(0, 4000, 300) + 0.5) ** 2 / COST_SCALE ** 2
+    d2 = np.concatenate([rng.random(2000) * 1e8, ties, rng.random(300) * 10,
+                         [0.0, 1e-30, np.inf, 1e30, float(1 << 25) ** 2 / 256]]
+                        ).astype(np.float32)
+    out = np.empty(d2.shape[0], np.int64)
+    rc._rounded_lanes(d2, out, d2.shape[0], COST_SCALE, float(1 << 25))
+    assert np.array_equal(out, [_exact_rounded(float(v)) for v in d2])
+
+
+def _first_nearest(cx, cy, fx, fy, allowed):
+    """Brute force: the first allowed candidate with the smallest rounded distance."""
+    best, arg = None, -1
+    for i in range(cx.shape[0]):
+        if not allowed[i]:
+            continue
+        dx, dy = np.float32(cx[i] - fx), np.float32(cy[i] - fy)
+        q = compiled._rounded_distance(np.float32(dx * dx) + np.float32(dy * dy),
+                                       COST_SCALE, float(1 << 25))
+        if best is None or q < best:
+            best, arg = q, i
+    return arg
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_nearest_candidate_is_the_first_of_the_smallest_rounded_distance(seed):
+    """The registration's nearest candidate to F (smallest float32 distance first, then only
+    the candidates that round alike) equals rounding every candidate; ties of the rounded
+    distance with different float distances go to the earlier candidate."""
+    from evtrack.flow import registration_compiled as rc
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 12))
+    fx, fy = np.float32(rng.normal(0, 300)), np.float32(rng.normal(0, 300))
+    # distances a fraction of 1/COST_SCALE apart: many round to the same integer
+    radius = rng.choice([0.0, 0.01, 0.5, 3.0, 300.0])
+    angle = rng.random(n) * 2 * np.pi
+    dist = radius + rng.integers(0, 3, n) / COST_SCALE + rng.random(n) * (0.9 / COST_SCALE)
+    cx = (fx + dist * np.cos(angle)).astype(np.float32)
+    cy = (fy + dist * np.sin(angle)).astype(np.float32)
+    if seed % 5 == 0:  # exact repeats and a parallel pair
+        cx[-1], cy[-1] = cx[0], cy[0]
+        cx[n // 2], cy[n // 2] = cx[0] * np.float32(2), cy[0] * np.float32(2)
+    i1, d2 = rc._nearest(cx, cy, 0, n, fx, fy, COST_SCALE, float(1 << 25))
+    assert i1 == _first_nearest(cx, cy, fx, fy, np.ones(n, bool))
+    dx, dy = cx[i1] - fx, cy[i1] - fy
+    assert d2 == np.float32(dx * dx) + np.float32(dy * dy)
+    ax, ay = np.float64(cx[i1]), np.float64(cy[i1])
+    eps2 = 1e-3 * 1e-3
+    bx, by = cx.astype(np.float64), cy.astype(np.float64)
+    nonpar = (bx * ay - by * ax) ** 2 > eps2 * (bx * bx + by * by) * (ax * ax + ay * ay)
+    i2 = rc._nearest_nonparallel(cx, cy, 0, n, fx, fy, ax, ay, eps2, COST_SCALE,
+                                 float(1 << 25))
+    assert i2 == _first_nearest(cx, cy, fx, fy, nonpar)
+
+
+@pytest.mark.parametrize("lanes", [1, 5, 47])
+def test_lane_costs_equal_the_one_by_one_costs(lanes):
+    """Hypotheses evaluated side by side give each lane's exact cost, or stop only once every
+    lane has reached its bound."""
+    from evtrack.flow import registration_compiled as rc
+
+    rng = np.random.default_rng(lanes)
+    n_ev = 30
+    sizes = rng.integers(1, 9, n_ev)
+    ev_ptr = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    c_event = np.repeat(np.arange(n_ev), sizes).astype(np.int64)
+    c_x = rng.normal(0, 200, ev_ptr[-1]).astype(np.float32)
+    c_y = rng.normal(0, 200, ev_ptr[-1]).astype(np.float32)
+    pick = rng.integers(0, ev_ptr[-1], lanes)
+    hx, hy = c_x[pick].copy(), c_y[pick].copy()
+    exact = np.array([rc._hypothesis_cost(hx[k], hy[k], c_x, c_y, c_event, 0, ev_ptr[-1],
+                                          rc._NO_BOUND, COST_SCALE, float(1 << 25))
+                      for k in range(lanes)])
+    args = (c_x, c_y, ev_ptr, n_ev)
+    total, mins, q = (np.empty(lanes, np.int64), np.empty(lanes, np.float32),
+                      np.empty(lanes, np.int64))
+    no_bound = np.full(lanes, rc._NO_BOUND, np.int64)
+    rc._lane_costs(hx, hy, lanes, *args, no_bound, total, mins, q, COST_SCALE,
+                   float(1 << 25))
+    assert np.array_equal(total, exact)
+    bound = np.full(lanes, int(np.median(exact)), np.int64)  # some lanes above, some below
+    rc._lane_costs(hx, hy, lanes, *args, bound, total, mins, q, COST_SCALE, float(1 << 25))
+    below = exact < bound
+    assert np.array_equal(total[below], exact[below])
+    assert (total[~below] >= bound[~below]).all()
+    # every lane at or above its bound: the evaluation stops early, above the bounds
+    bound = np.full(lanes, int(exact.min()) // 2, np.int64)
+    rc._lane_costs(hx, hy, lanes, *args, bound, total, mins, q, COST_SCALE, float(1 << 25))
+    assert (total >= bound).all() and (total < exact).any()
 
 
 def test_backend_choice_and_errors():
