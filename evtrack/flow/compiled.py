@@ -11,7 +11,11 @@ compiled event-by-event loop is the faster form of the *same* rule:
   (same candidates, bit for bit, in the same order; same stream indices; state carried
   across calls). It keeps ``history`` entries per cell, newest first, like the sequential
   reference of the tests, and tests the speed bounds as the integer ``t_k - t_i`` bounds of
-  :func:`~evtrack.flow.config.dt_bounds_us`.
+  :func:`~evtrack.flow.config.dt_bounds_us`. The search is bound by the latency of its
+  lookups (up to ``2 * D`` cells around each event), so its state is compact: int32 times
+  relative to a base that moves forward as the stream goes on (as
+  :class:`~evtrack.flow.history.EventHistory`'s), an empty slot marked by a time too old for
+  any triplet, and a pixel's latest time and polarity packed in one int32;
 * large batches are searched in horizontal strips of the sensor in parallel (one per
   thread, each with private copies of the ``2 * radius`` rows around it; see
   :class:`CompiledSearch`), with the same candidates in the same order;
@@ -35,8 +39,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.flow.candidates import NEVER_US, Candidates
+from evtrack.flow.candidates import Candidates
 from evtrack.flow.config import US_PER_S, FlowConfig, dt_bounds_us, search_offsets
+from evtrack.flow.history import EMPTY_T, MAX_SPAN_US, T_KEEP, T_LIMIT
 
 try:  # numba is optional: without it the torch backend runs everywhere
     import numba
@@ -45,7 +50,8 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
 
 __all__ = ["available", "CompiledSearch"]
 
-NEVER = NEVER_US  # a module global: numba freezes it as a compile-time constant
+NO_EVENT = np.int32(-(1 << 31))
+"""``last`` of a pixel without an event (``last = 2 * t + (p > 0)`` otherwise)."""
 _prange = numba.prange if numba is not None else range
 
 
@@ -101,9 +107,11 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
                    lo, hi, r2, halo_pix, halo_cell):
     """Process events ``start..`` until done or until the output might overflow.
 
-    ``last[pixel] = (t, p)`` of the pixel's latest event; ``hist[cell] = (n, t_0..t_{K-1})``:
-    the cell's ``n <= K`` latest onsets, newest first (one short row: one cache line per
-    lookup); ``hist_s[cell]``: their stream indices (read only for a candidate). Returns
+    Times ``t`` and the state's are int32-range µs relative to the search's base.
+    ``last[pixel] = 2 * t + (p > 0)`` of the pixel's latest event (``NO_EVENT``: none);
+    ``hist[cell] = (t_0..t_{K-1})``: the cell's latest onsets, newest first, ``EMPTY_T``
+    where it holds fewer (``t - EMPTY_T`` exceeds every speed bound, so the loops stop
+    there); ``hist_s[cell]``: their stream indices (read only for a candidate). Returns
     ``(next event index, rows written)``; the state is updated for every processed event
     only, so a call can resume where the previous one stopped.
 
@@ -130,13 +138,14 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
         xk, tk, pk = x[k], t[k], p[k]
         seq = seq0 + k
         pix = _pixel_index(yk, xk, lo, hi, r2, width, halo_pix)
-        prev_t, prev_p = last[pix, 0], last[pix, 1]
-        last[pix, 0] = tk
-        last[pix, 1] = pk
+        positive = 1 if pk > 0 else 0
+        prev = last[pix]
+        last[pix] = 2 * tk + positive
         k += 1
-        if refractory > 0 and prev_t != NEVER and prev_p == pk and tk - prev_t <= refractory:
+        if (refractory > 0 and prev != NO_EVENT and (prev & 1) == positive
+                and tk - (prev >> 1) <= refractory):
             continue  # inside a burst: neither searched nor stored
-        plane = 0 if pk > 0 else 1
+        plane = 1 - positive
         if own:
             for o in range(n_off):
                 dx, dy = off_x[o], off_y[o]
@@ -144,26 +153,24 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
                 if xi < 0 or xi >= width or yi < 0 or yi >= height:
                     continue
                 cj = _cell_index(plane, yk - dy, xk - dx, lo, hi, r2, width, pixels, halo_cell)
-                nj = hist[cj, 0]
-                if nj == 0:
+                if hist[cj, 0] == EMPTY_T:
                     continue
                 ci = _cell_index(plane, yi, xi, lo, hi, r2, width, pixels, halo_cell)
-                ni = hist[ci, 0]
-                if ni == 0:
+                if hist[ci, 0] == EMPTY_T:
                     continue
                 lo_dt, hi_dt, top_j = dt_lo[o], dt_hi[o], hi_j[o]
-                for aj in range(nj):
-                    tj = hist[cj, 1 + aj]
+                for aj in range(history):
+                    tj = np.int64(hist[cj, aj])
                     dkj = tk - tj
                     if dkj < 1:
                         continue
                     if dkj >= top_j:
-                        break  # older e_j are older still: no t_k - t_i can complete them
-                    for ai in range(ni):
-                        ti = hist[ci, 1 + ai]
+                        break  # older (or empty) e_j: no t_k - t_i can complete them
+                    for ai in range(history):
+                        ti = np.int64(hist[ci, ai])
                         dki = tk - ti
                         if dki > hi_dt:
-                            break  # older e_i are older still
+                            break  # older e_i are older still (an empty slot: the oldest)
                         dji = tj - ti
                         if dji < 1 or dki < lo_dt:
                             continue
@@ -180,17 +187,12 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
                         o_flow[n_out, 0] = num_x[o] / dt32
                         o_flow[n_out, 1] = num_y[o] / dt32
                         n_out += 1
-        # store e_k: newest first, the oldest of a full cell drops out
+        # store e_k: newest first, the oldest (or an empty slot) drops out
         c = _cell_index(plane, yk, xk, lo, hi, r2, width, pixels, halo_cell)
-        m = hist[c, 0]
-        if m < history:
-            hist[c, 0] = m + 1
-        else:
-            m = history - 1
-        for a in range(m, 0, -1):
-            hist[c, 1 + a] = hist[c, a]
+        for a in range(history - 1, 0, -1):
+            hist[c, a] = hist[c, a - 1]
             hist_s[c, a] = hist_s[c, a - 1]
-        hist[c, 1] = tk
+        hist[c, 0] = tk
         hist_s[c, 0] = seq
     return k, n_out
 
@@ -210,8 +212,7 @@ def _copy_halos(lo_s, hi_s, r2, width, height, last, hist, hist_s, halo_pix0, ha
             for xx in range(width):
                 src = yy * width + xx
                 dst = halo_pix0 + s * strip_pix + row * width + xx
-                last[dst, 0] = last[src, 0]
-                last[dst, 1] = last[src, 1]
+                last[dst] = last[src]
                 for plane in range(2):
                     cs = plane * pixels + src
                     cd = halo_cell0 + s * 2 * strip_pix + (plane * 2 * r2 + row) * width + xx
@@ -341,15 +342,16 @@ class CompiledSearch:
         """Forget every event seen."""
         self._allocate(0)
         self.next_seq = 0
+        self.t_base: int | None = None
+        """The base (µs) of the state's relative times; ``None`` before the first event."""
 
     def _allocate(self, strips: int) -> None:
         """Fresh state with private rows for ``strips`` strips after the shared ones."""
         pixels = self.width * self.height
         extra = strips * 2 * self._r2 * self.width  # pixels of private rows
         k = self.config.history
-        self.last = np.zeros((pixels + extra, 2), dtype=np.int64)  # (t, p) of the latest
-        self.last[:, 0] = NEVER_US
-        self.hist = np.zeros((2 * (pixels + extra), 1 + k), dtype=np.int64)  # (n, times)
+        self.last = np.full(pixels + extra, NO_EVENT, dtype=np.int32)  # 2 t + (p > 0)
+        self.hist = np.full((2 * (pixels + extra), k), EMPTY_T, dtype=np.int32)  # times
         self.hist_s = np.zeros((2 * (pixels + extra), k), dtype=np.int64)  # stream indices
         self._room = strips
 
@@ -398,15 +400,45 @@ class CompiledSearch:
         n = int(t.shape[0])
         if n == 0:
             return Candidates.empty(self.device)
-        arrays = [np.ascontiguousarray(a.detach().cpu().numpy(), dtype=np.int64)
-                  for a in (x, y, t, p)]
-        lo_s, hi_s, own = self._strip_rows(arrays[1])
-        if lo_s.shape[0] == 1:
-            parts = self._search_whole(arrays, n)
-        else:
-            parts = self._search_in_strips(arrays, n, lo_s, hi_s, own)
-        self.next_seq += n
+        x, y, t, p = (np.ascontiguousarray(a.detach().cpu().numpy(), dtype=np.int64)
+                      for a in (x, y, t, p))
+        parts = []
+        start = 0
+        while start < n:  # pieces spanning less than MAX_SPAN_US, as the torch search
+            stop = int(np.searchsorted(t, t[start] + MAX_SPAN_US, side="left"))
+            self._ensure_range(int(t[start]), int(t[stop - 1]))
+            arrays = [x[start:stop], y[start:stop], t[start:stop] - self.t_base,
+                      p[start:stop]]
+            lo_s, hi_s, own = self._strip_rows(arrays[1])
+            if lo_s.shape[0] == 1:
+                parts += self._search_whole(arrays, stop - start)
+            else:
+                parts += self._search_in_strips(arrays, stop - start, lo_s, hi_s, own)
+            self.next_seq += stop - start
+            start = stop
         return Candidates.cat(parts)
+
+    def _ensure_range(self, t_first: int, t_last: int) -> None:
+        """Move the base so that ``[t_first, t_last]`` (spanning less than ``MAX_SPAN_US``)
+        maps into ``[0, T_LIMIT)``; entries older than ``T_KEEP`` before ``t_last`` are
+        emptied (beyond any speed bound, see ``FlowConfig``)."""
+        if self.t_base is None:
+            self.t_base = t_first
+        if t_first < self.t_base:
+            raise ValueError(f"events must be given in stream order: t={t_first} µs is before "
+                             f"the search's time base ({self.t_base} µs)")
+        if t_last - self.t_base < T_LIMIT:
+            return
+        shift = t_last - self.t_base - T_KEEP
+        pixels = self.width * self.height
+        hist = self.hist[:2 * pixels].astype(np.int64) - shift
+        self.hist[:2 * pixels] = np.where((hist >= 0) & (self.hist[:2 * pixels] != EMPTY_T),
+                                          hist, EMPTY_T)
+        last = self.last[:pixels].astype(np.int64)
+        moved = (last >> 1) - shift
+        self.last[:pixels] = np.where((last != NO_EVENT) & (moved >= 0),
+                                      2 * moved + (last & 1), NO_EVENT)
+        self.t_base += shift
 
     def _capacity(self, n: int) -> int:
         return max(self.rows_per_event * n + self._worst, self.min_rows)

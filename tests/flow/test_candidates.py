@@ -122,7 +122,8 @@ def test_long_streams_move_the_time_base_without_changing_the_result(repeats, lo
     """Relative int32 times: crossing the base's limit (2^29 µs) keeps the result exact."""
     x, y, t, p = _structured_stream(2000)
     t = t.clone()
-    t[1000:] += (1 << 29) - 4_000  # the second half straddles the limit
+    t[1000:] += (1 << 29) + int(t[0]) - int(t[1200])  # the second half crosses the limit
+    assert t[1199] - t[0] < (1 << 29) <= t[1200] - t[0]  # at event 1200, amid dense events
     t[1500:] += 1 << 30            # and jumps by more than the history keeps
     cfg = FlowConfig(sensor_size=(40, 30), chunk_size=300, refractory_us=0,
                      pass_repeats=repeats, lookup=lookup)

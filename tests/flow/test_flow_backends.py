@@ -91,6 +91,40 @@ def test_textured_scene_equals_the_reference_and_the_torch_search():
     assert torch.equal(tensor_search.flow, flow)  # same float32 flows, bit for bit
 
 
+@pytest.mark.parametrize("strips", [1, 2])
+@pytest.mark.parametrize("cuts", [list(range(150, 2100, 150)), []])
+def test_long_streams_move_the_time_base_without_changing_the_result(strips, cuts):
+    """The compiled state holds int32 times relative to a base: crossing its limit
+    (2^29 µs), a jump longer than the history keeps, and one call spanning more than
+    ``MAX_SPAN_US`` (searched in pieces) keep the candidates of the sequential reference,
+    with the refractory period at work across the moves."""
+    from evtrack.flow.history import MAX_SPAN_US, T_LIMIT
+
+    ev, _ = translating_texture((40, 30), velocity=(900.0, -400.0), duration_us=12_000, seed=3)
+    ev = ev[:2100]
+    t = ev.t.clone()
+    # the second part crosses the base's limit at event k ~ 1050, amid a dense stretch
+    k = 1050 + int(torch.nonzero(t[1050:] > t[1049:-1])[0])
+    t[700:] += T_LIMIT + int(t[0]) - int(t[k])
+    assert t[k - 1] - t[0] < T_LIMIT <= t[k] - t[0]
+    t[1400:] += 1 << 30            # the third jumps by more than the history keeps
+    t[1750:] += MAX_SPAN_US // 2   # and one call may span several MAX_SPAN_US
+    t[1900:] += MAX_SPAN_US
+    cfg = FlowConfig(sensor_size=(40, 30), refractory_us=40)
+    rows, flow = _search_in_chunks(cfg, ev.x, ev.y, t, ev.p, cuts, strips)
+    ref = _reference_rows(ev.x, ev.y, t, ev.p, cfg)
+    assert any(r[0] >= 1400 for r in ref) and any(700 <= r[0] < 1400 for r in ref)
+    assert rows == [r[:7] for r in ref]
+
+
+def test_compiled_search_refuses_events_before_its_time_base():
+    search = compiled.CompiledSearch(FlowConfig(sensor_size=(8, 8)))
+    one = torch.tensor([3])
+    search(one, one, torch.tensor([1_000]), torch.tensor([1]))
+    with pytest.raises(ValueError, match="stream order"):
+        search(one, one, torch.tensor([999]), torch.tensor([1]))
+
+
 @pytest.mark.parametrize("strips", [2, 5])
 @pytest.mark.parametrize("tight", [False, True])
 def test_strips_equal_the_reference_on_a_textured_scene(strips, tight):
