@@ -126,6 +126,7 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
     capacity = o_event.shape[0]
     worst = n_off * history * history
     pixels = width * height
+    step = off_y * width + off_x  # flat index of a displacement within a plane
     k = start
     while k < n:
         if n_out + worst > capacity:
@@ -147,16 +148,22 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
             continue  # inside a burst: neither searched nor stored
         plane = 1 - positive
         if own:
+            # inner: every cell read lies in the strip's own rows and inside the sensor
+            inner = yk - r2 >= lo and yk + r2 < hi and xk >= r2 and xk < width - r2
+            cell_k = plane * pixels + yk * width + xk
             for o in range(n_off):
-                dx, dy = off_x[o], off_y[o]
-                xi, yi = xk - 2 * dx, yk - 2 * dy
-                if xi < 0 or xi >= width or yi < 0 or yi >= height:
-                    continue
-                cj = _cell_index(plane, yk - dy, xk - dx, lo, hi, r2, width, pixels, halo_cell)
-                if hist[cj, 0] == EMPTY_T:
-                    continue
-                ci = _cell_index(plane, yi, xi, lo, hi, r2, width, pixels, halo_cell)
-                if hist[ci, 0] == EMPTY_T:
+                if inner:
+                    cj = cell_k - step[o]
+                    ci = cj - step[o]
+                else:
+                    dx, dy = off_x[o], off_y[o]
+                    xi, yi = xk - 2 * dx, yk - 2 * dy
+                    if xi < 0 or xi >= width or yi < 0 or yi >= height:
+                        continue
+                    cj = _cell_index(plane, yk - dy, xk - dx, lo, hi, r2, width, pixels,
+                                     halo_cell)
+                    ci = _cell_index(plane, yi, xi, lo, hi, r2, width, pixels, halo_cell)
+                if hist[cj, 0] == EMPTY_T or hist[ci, 0] == EMPTY_T:
                     continue
                 lo_dt, hi_dt, top_j = dt_lo[o], dt_hi[o], hi_j[o]
                 for aj in range(history):
