@@ -403,8 +403,11 @@ class TripletFlow(nn.Module):
         result.event_start = self._emitted
         self._emitted += n_done_events
         g, s = p.gkey[n_c:], p.seq[n_c:]
-        if not self.return_event_flow and g.numel():
-            # prune the open windows to the events the registration can ever use
+        if not self.return_event_flow and g.numel() > 4 * cfg.chunk_size:
+            # prune the open windows to the events the registration can ever use (the same
+            # hash selection as the registration's cap, so pruning now or later, or not at
+            # all, gives the same flow; pruning only large ones bounds the memory and spares
+            # small calls the work)
             first = torch.ones_like(s, dtype=torch.bool)
             first[1:] = s[1:] != s[:-1]
             run = torch.cumsum(first.to(torch.int64), 0) - 1

@@ -11,6 +11,7 @@ import torch
 from evtrack.errors import ConfigError, EventsError
 from evtrack.events import Events, concatenate
 from evtrack.flow import FlowConfig, FlowResult, TripletFlow
+from evtrack.flow.config import search_offsets
 from evtrack.flow.scenes import moving_stripes, translating_texture
 
 SIZE = (64, 48)
@@ -99,6 +100,32 @@ def test_streaming_equals_one_call(texture):
         torch.testing.assert_close(getattr(joined, name), getattr(whole, name), equal_nan=True)
     torch.testing.assert_close(joined.event_flow, whole.event_flow, equal_nan=True)
     assert whole.event_flow.shape == (len(ev), 2) and joined.event_start == 0
+
+
+@pytest.mark.parametrize("backend", ["torch", "auto"])
+def test_long_open_windows_keep_memory_bounded_and_the_same_flow(texture, backend):
+    """One window spans the whole stream, given in many small calls: its pending candidates
+    are pruned to the events the registration's cap can use once they exceed 4 chunk sizes,
+    and the flow equals that of one call."""
+    ev, _ = texture
+    cfg = FlowConfig(roi_size=24, window_us=1_000_000, chunk_size=300, max_events_per_roi=16,
+                     max_hypotheses=12, backend=backend)
+    whole = TripletFlow(cfg)(ev)
+    flow = TripletFlow(cfg)
+    parts, pending = [], []
+    for a in range(0, len(ev), 250):
+        parts.append(flow.update(ev[a:a + 250]))
+        pending.append(flow._pending.gkey.numel())
+    parts.append(flow.flush())
+    cols, rows = flow.num_rois
+    worst_event = len(search_offsets(cfg.radius)) * cfg.history ** 2  # candidates per event
+    bound = 4 * cfg.chunk_size + cols * rows * cfg.max_events_per_roi * worst_event
+    assert max(pending) <= bound
+    assert min(pending[5:]) < max(pending)  # pruned on the way
+    joined = FlowResult.cat(parts)
+    assert len(whole) > 0
+    for name in ("xy", "t", "flow", "support", "cost", "normal", "roi", "window", "n_events"):
+        torch.testing.assert_close(getattr(joined, name), getattr(whole, name), equal_nan=True)
 
 
 @pytest.mark.parametrize("backend", ["torch", "auto"])
