@@ -139,12 +139,16 @@ class FlowConfig:
         pair_budget: largest number of (hypothesis, candidate) distances the registration
             evaluates at once (bounds its memory).
         device: torch device of the history and of all computation.
-        backend: ``"auto"``: on CPU, the compiled kernels of :mod:`evtrack.flow.compiled`
-            (numba) when numba is installed, else the batched tensor code; on CUDA, the
-            tensor code. ``"torch"``: always the tensor code. ``"compiled"``: always the
-            kernels (CPU only; an error without numba). Both give the same candidates, the
-            same RoIs with the same Eq. 3 solutions, costs and inlier counts, bit for bit;
-            the refined flows agree to float rounding. On 2 CPU cores the kernels were 2.5-4x
+        backend: ``"auto"``: compiled kernels where they can run, else the batched tensor
+            code. On CPU the kernels are :mod:`evtrack.flow.compiled` and
+            :mod:`evtrack.flow.registration_compiled` (numba) for the search and the
+            registration; on CUDA the search is the tensor code and the registration's
+            per-group solve is one Triton kernel (:mod:`evtrack.flow.registration_triton`;
+            Triton comes with PyTorch's CUDA builds). ``"torch"``: always the tensor code.
+            ``"compiled"``: always the kernels (an error where they cannot run: without
+            numba on CPU, without Triton on CUDA). All give the same candidates, the same
+            RoIs with the same Eq. 3 solutions, costs and inlier counts, bit for bit; the
+            refined flows agree to float rounding. On 2 CPU cores the kernels were 4-10x
             faster (``benchmarks/bench_flow_speed.py``).
     """
 
@@ -246,21 +250,33 @@ class FlowConfig:
         return "sorted" if device_type == "cuda" else "passes"
 
     def use_compiled(self, device_type: str) -> bool:
-        """Whether the compiled CPU kernels run for a flow on ``device_type`` (see
+        """Whether the compiled CPU kernels (numba) run for a flow on ``device_type`` (see
         :attr:`backend`); raises :class:`ConfigError` when ``"compiled"`` cannot run."""
         from evtrack.flow import compiled
 
-        if self.backend == "torch":
+        if self.backend == "compiled" and device_type not in ("cpu", "cuda"):
+            raise ConfigError(f"flow config field 'backend': 'compiled' runs on CPU (numba) "
+                              f"and CUDA (Triton), not {device_type}; use 'auto' or 'torch'")
+        if self.backend == "torch" or device_type != "cpu":
             return False
-        if self.backend == "compiled":
-            if device_type != "cpu":
-                raise ConfigError(f"flow config field 'backend': 'compiled' runs on CPU, not "
-                                  f"{device_type}; use 'auto' or 'torch'")
-            if not compiled.available():
-                raise ConfigError("flow config field 'backend': 'compiled' needs numba "
-                                  "(pip install numba); use 'auto' or 'torch'")
-            return True
-        return device_type == "cpu" and compiled.available()
+        if self.backend == "compiled" and not compiled.available():
+            raise ConfigError("flow config field 'backend': 'compiled' needs numba "
+                              "(pip install numba); use 'auto' or 'torch'")
+        return compiled.available()
+
+    def use_triton(self, device_type: str) -> bool:
+        """Whether the registration's per-group solve runs as a Triton kernel for a flow on
+        ``device_type`` (CUDA; see :attr:`backend`); raises :class:`ConfigError` when
+        ``"compiled"`` asks for it and Triton is missing."""
+        if self.backend == "torch" or device_type != "cuda":
+            return False
+        from evtrack.flow import registration_triton
+
+        ok = registration_triton.available(device_type)
+        if self.backend == "compiled" and not ok:
+            raise ConfigError("flow config field 'backend': 'compiled' on CUDA needs triton "
+                              "(it comes with PyTorch's CUDA builds); use 'auto' or 'torch'")
+        return ok
 
     def replace(self, **changes: Any) -> FlowConfig:
         """A copy with some fields changed (validated again)."""

@@ -178,7 +178,7 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                     max_events: int, max_hypotheses: int, aperture_ratio: float,
                     pair_budget: int, refine: bool = True, line_gate: float = 0.35,
                     refine_iters: int = 5, compiled: bool = False,
-                    n_ordinals: int = 1 << 20) -> Registration:
+                    n_ordinals: int = 1 << 20, triton: bool = False) -> Registration:
     """Solve Eq. 3 for ``n_groups`` groups at once.
 
     Args:
@@ -202,6 +202,9 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
             (:mod:`evtrack.flow.registration_compiled`): the same ``full_flow``, ``cost``,
             ``used_events``, ``inliers`` and ``lines`` bit for bit; ``flow``, ``ratio`` and
             ``normal_dir`` to float rounding.
+        triton: solve each group in one program of a Triton kernel (CUDA;
+            :mod:`evtrack.flow.registration_triton`) after the tensor code's caps: the same
+            results as ``compiled`` relative to the tensor path.
 
     Returns:
         The :class:`Registration` of every group.
@@ -235,7 +238,7 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     else:
         has, full, best_cost, ev_per_group, inliers, fit = _solve_tensor(
             group, seq, ordinal, flow, g_count, max_events, max_hypotheses, pair_budget,
-            line_gate, refine_iters, n_ordinals)
+            line_gate, refine_iters, n_ordinals, triton)
         out.inliers = inliers
     out.used_events = ev_per_group
     out.full_flow = full
@@ -259,9 +262,10 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
 
 def _solve_tensor(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, g_count: int,
                   max_events: int, max_hypotheses: int, pair_budget: int, line_gate: float,
-                  refine_iters: int, n_ordinals: int
+                  refine_iters: int, n_ordinals: int, triton: bool = False
                   ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, dict[str, Tensor]]:
-    """The tensor form of the caps, Eq. 3, the constraint lines and their fit.
+    """The tensor form of the caps, Eq. 3, the constraint lines and their fit (with
+    ``triton``, the caps only: the rest runs in :mod:`evtrack.flow.registration_triton`).
 
     Returns:
         ``has`` (G,) bool, ``full`` (G, 2) float32 arg-min candidate (NaN without one),
@@ -303,6 +307,9 @@ def _solve_tensor(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, g_c
     h_first[1:] = h_group[1:] != h_group[:-1]
     hpos = torch.arange(h_idx.numel(), device=dev)
     h_rank = hpos - torch.cummax(torch.where(h_first, hpos, torch.zeros_like(hpos)), 0).values
+    if triton:
+        return _solve_triton(c_flow, ev_first, ev_start, ev_per_group, h_idx, h_group,
+                             g_count, max_events, max_hypotheses, line_gate, refine_iters)
     c_event = c_run - take(ev_start, 0, c_group)
     cost = _hypothesis_costs(h_idx, h_group, c_flow, counts, c_start, c_event,
                              ev_per_group, pair_budget)
@@ -322,6 +329,32 @@ def _solve_tensor(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, g_c
     inliers = torch.bincount(ev_group[lines["agree"]], minlength=g_count)
     fit = _fit_lines(lines, full, g_count, refine_iters)
     return has, full, best_cost, ev_per_group, inliers, fit
+
+
+def _solve_triton(c_flow: Tensor, ev_first: Tensor, ev_start: Tensor, ev_per_group: Tensor,
+                  h_idx: Tensor, h_group: Tensor, g_count: int, max_events: int,
+                  max_hypotheses: int, line_gate: float, refine_iters: int
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, dict[str, Tensor]]:
+    """:func:`_solve_tensor`'s outputs from the capped, arranged candidates, by the Triton
+    kernel (one program per group; no host synchronisation)."""
+    from evtrack.flow.registration_triton import solve_groups
+
+    dev = c_flow.device
+    h_count = torch.bincount(h_group, minlength=g_count)
+    h_first = torch.cumsum(h_count, 0) - h_count
+    ev_ptr = torch.cat([ev_first, torch.full((1,), c_flow.shape[0], dtype=torch.int64,
+                                             device=dev)])
+    res = solve_groups(c_flow, ev_ptr, ev_start, ev_per_group, h_idx, h_first, h_count,
+                       max_events, max_hypotheses, COST_SCALE, _Q_MAX, _PARALLEL_EPS,
+                       line_gate, _IRLS_DELTA, refine_iters, _RANK_BITS)
+    has = h_count > 0
+    nan2 = torch.full((g_count, 2), float("nan"), dtype=torch.float32, device=dev)
+    full = torch.where(has[:, None], c_flow[res["chosen"].clamp(0, c_flow.shape[0] - 1)],
+                       nan2)
+    fit = {"flow": res["fit_flow"].to(torch.float32), "ratio": res["ratio"],
+           "count": res["lines"], "major": res["major"].to(torch.float32),
+           "normal_speed": res["normal_speed"].to(torch.float32)}
+    return has, full, res["best_cost"], ev_per_group, res["inliers"], fit
 
 
 def _event_lines(c_group: Tensor, c_run: Tensor, c_flow: Tensor, full: Tensor, n_events: int,

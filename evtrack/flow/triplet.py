@@ -176,6 +176,7 @@ class TripletFlow(nn.Module):
         return self
 
     def _new_search(self) -> CandidateSearch | CompiledSearch:
+        self.config.use_triton(self.device.type)  # a backend that cannot run fails here
         if self.config.use_compiled(self.device.type):
             return CompiledSearch(self.config, self.device)
         return CandidateSearch(self.config, self.device)
@@ -390,7 +391,8 @@ class TripletFlow(nn.Module):
                               keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
                               cfg.aperture_ratio, cfg.pair_budget, cfg.refine, cfg.line_gate,
                               cfg.refine_iters, compiled=cfg.use_compiled(self.device.type),
-                              n_ordinals=self._n_ordinals)
+                              n_ordinals=self._n_ordinals,
+                              triton=cfg.use_triton(self.device.type))
         support = p.g_support[:n_g]
         agree = reg.inliers.to(torch.float64) >= (float(cfg.min_inlier_fraction)
                                                   * reg.used_events.to(torch.float64))

@@ -453,8 +453,10 @@ def test_backend_choice_and_errors():
     assert not FlowConfig(backend="torch").use_compiled("cpu")
     with pytest.raises(ConfigError, match="'backend'"):
         FlowConfig(backend="fast")
-    with pytest.raises(ConfigError, match="runs on CPU"):
-        FlowConfig(backend="compiled").use_compiled("cuda")
+    # on CUDA "compiled" means the Triton registration (the search is the tensor code)
+    assert not FlowConfig(backend="compiled").use_compiled("cuda")
+    with pytest.raises(ConfigError, match="runs on CPU .* and CUDA"):
+        FlowConfig(backend="compiled").use_compiled("mps")
     flow = TripletFlow(FlowConfig(sensor_size=(32, 24), backend="compiled"))
     ev, _ = translating_texture((32, 24), velocity=(500.0, 0.0), duration_us=5_000, seed=1)
     flow.update(ev)
@@ -463,6 +465,19 @@ def test_backend_choice_and_errors():
     assert flow.device.type == "cpu" and flow.config.device == "cpu"  # left as it was
     fresh = TripletFlow(FlowConfig(sensor_size=(32, 24))).to("meta")  # no events yet: fine
     assert fresh.config.device == "meta"
+
+
+def test_triton_backend_choice_and_errors(monkeypatch):
+    from evtrack.flow import registration_triton
+
+    assert not FlowConfig(backend="auto").use_triton("cpu")
+    assert not FlowConfig(backend="torch").use_triton("cuda")
+    assert FlowConfig(backend="auto").use_triton("cuda") == (registration_triton.triton
+                                                             is not None)
+    monkeypatch.setattr(registration_triton, "triton", None)
+    assert not FlowConfig(backend="auto").use_triton("cuda")  # falls back to the tensor code
+    with pytest.raises(ConfigError, match="needs triton"):
+        FlowConfig(backend="compiled").use_triton("cuda")
 
 
 @pytest.mark.parametrize("numpy_on_cpu", [True, False])
