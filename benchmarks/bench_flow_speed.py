@@ -7,9 +7,11 @@ Prints one table: for each chunk size, events per second of
   chunk as a live stream would (``update`` works in pieces of the config's ``chunk_size``),
 
 for each backend (``torch``: batched tensor code, with each ``--lookups`` way of finding an
-event's predecessors in its chunk, ``passes`` or ``sorted``; ``compiled``: the numba kernels of
-``evtrack.flow.compiled``, CPU only) on CPU with each of ``--threads`` thread counts (default
-2) and on CUDA when available, next to the
+event's predecessors in its chunk, ``passes`` or ``sorted``; ``compiled``: on CPU the numba
+kernels of ``evtrack.flow.compiled`` and ``registration_compiled``, on CUDA the tensor search
+with the Triton registration of ``evtrack.flow.registration_triton``, rows ``cuda
+triton-reg``) on CPU with each of ``--threads`` thread counts (default 2) and on CUDA when
+available, next to the
 sequential per-event reference of ``tests/flow/flow_reference.py`` run in the same process
 on a prefix of the same events (it is far slower, so it sees fewer events). A calibration
 line (int32 add throughput) helps compare runs on busy machines.
@@ -47,7 +49,7 @@ import evtrack  # noqa: F401  # isort: skip
 import torch
 
 from evtrack.events import Events
-from evtrack.flow import CandidateSearch, FlowConfig, TripletFlow
+from evtrack.flow import CandidateSearch, FlowConfig, TripletFlow, registration_triton
 from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.scenes import translating_texture
 from evtrack.openmp_wait import wait_policy
@@ -193,14 +195,20 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
              for lk in (lookups if b == "torch" else ["-"])]
             if "cpu" in devices else [])
     if torch.cuda.is_available() and not args.no_cuda and "cuda" in devices:
-        runs += [(torch.device("cuda"), thread_counts[0], "torch", lk) for lk in lookups]
+        # the tensor registration and, where Triton is installed, the Triton kernel
+        # (backend "compiled" on CUDA; the search is the tensor code in both)
+        cuda_backends = ["torch"] + (["compiled"] if registration_triton.available("cuda")
+                                     else [])
+        runs += [(torch.device("cuda"), thread_counts[0], b, lk) for b in cuda_backends
+                 for lk in lookups]
     print(f"{'device':<26}{'chunk':>10}{'search ev/s':>16}{'flow ev/s':>16}"
           f"{'x reference':>14}{'calib Gop/s':>13}")
     print(f"{'cpu/1 reference':<26}{'-':>10}{'(sequential)':>16}{ref_rate:>16,.0f}{1.0:>14.1f}")
     for dev, threads, backend, lookup in runs:
         torch.set_num_threads(threads)
-        label = (f"cpu/{threads} {backend}" if dev.type == "cpu" else "cuda torch")
-        if backend == "torch":
+        label = (f"cpu/{threads} {backend}" if dev.type == "cpu" else
+                 f"cuda {'triton-reg' if backend == 'compiled' else 'torch'}")
+        if backend == "torch" or dev.type == "cuda":
             label += f" {lookup}"
         sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
         evd = ev.to(dev)
@@ -208,8 +216,9 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
         for chunk in (int(c) for c in args.chunks.split(",")):
             # update() splits a chunk into pieces of the config's chunk_size, as for a user
             c = cfg.replace(device=str(dev), backend=backend,
-                            **({"lookup": lookup} if backend == "torch" else {}))
-            make_search = CompiledSearch if backend == "compiled" else CandidateSearch
+                            **({"lookup": lookup} if lookup != "-" else {}))
+            make_search = (CompiledSearch if backend == "compiled" and dev.type == "cpu"
+                           else CandidateSearch)
 
             def search(c=c, evd=evd, dev=dev, make_search=make_search, chunk=chunk):
                 s = make_search(c, dev)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from evtrack.flow.registration import COST_SCALE, register_groups, select_smallest
+from evtrack.flow.registration import COST_SCALE, register_groups, run_starts, select_smallest
 
 
 def _groups(seed, n_groups=5, max_events=12, max_cands=6):
@@ -182,3 +182,13 @@ def test_events_on_lines_through_one_point_all_agree():
     reg = register_groups(group, seq, ordinal, flow, 1, 100, 400, 0.05, 10**6, line_gate=0.35)
     # every event has a candidate within ~9 degrees of the truth, hence near the Eq. 3 solution
     assert int(reg.inliers[0]) == int(reg.used_events[0]) == 25
+
+
+@pytest.mark.parametrize("by_search", [True, False])
+def test_run_starts_give_the_first_position_of_each_run(by_search):
+    rng = np.random.default_rng(7)
+    values = torch.from_numpy(np.sort(rng.integers(0, 40, 500)))
+    got = run_starts(values, by_search=by_search)
+    expected = [int(np.searchsorted(values.numpy(), v)) for v in values.numpy()]
+    assert got.tolist() == expected
+    assert run_starts(torch.zeros(0, dtype=torch.int64), by_search=by_search).numel() == 0
