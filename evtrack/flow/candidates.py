@@ -251,8 +251,8 @@ class CandidateSearch:
         dev = self.device
         seq = torch.arange(self.next_seq, self.next_seq + n, device=dev)
         if self.config.refractory_us > 0:
-            onset = self._onsets(x, y, t, p)
-            x, y, t, p, seq = x[onset], y[onset], t[onset], p[onset], seq[onset]
+            onset = torch.nonzero(self._onsets(x, y, t, p)).reshape(-1)  # one sync on CUDA
+            x, y, t, p, seq = (torch.index_select(v, 0, onset) for v in (x, y, t, p, seq))
         self.next_seq += n
         m = int(t.numel())
         if m == 0:

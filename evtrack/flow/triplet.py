@@ -62,7 +62,7 @@ def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
     """``(lo, span)`` of int64 ``values`` when a dense table over them is small, else None."""
     if values.numel() == 0:
         return None
-    lo, hi = int(values.min()), int(values.max())
+    lo, hi = (int(v) for v in torch.aminmax(values))  # one pass; on CUDA, one sync
     span = hi - lo + 1
     return (lo, span) if span <= _DENSE_SLACK * count + 65_536 else None
 
@@ -430,16 +430,21 @@ class TripletFlow(nn.Module):
               n_events: Tensor) -> FlowResult:
         cols, rows = self.num_rois
         n_roi = cols * rows
-        k = keys[reported]
+        idx = torch.nonzero(reported).reshape(-1)  # one mask -> index (a sync on CUDA)
+
+        def pick(v: Tensor) -> Tensor:
+            return torch.index_select(v, 0, idx)
+
+        k = pick(keys)
         window = torch.div(k, n_roi, rounding_mode="floor")
         roi = k - window * n_roi
         centres = self._device_centres()
         w_us = self.config.window_us
         return FlowResult(
-            xy=centres[roi], t=window * w_us + w_us // 2, flow=reg.flow[reported],
-            support=support[reported], cost=reg.cost[reported], normal=reg.normal[reported],
-            normal_dir=reg.normal_dir[reported], full_flow=reg.full_flow[reported],
-            n_events=n_events[reported], roi=roi, window=window)
+            xy=torch.index_select(centres, 0, roi), t=window * w_us + w_us // 2,
+            flow=pick(reg.flow), support=pick(support), cost=pick(reg.cost),
+            normal=pick(reg.normal), normal_dir=pick(reg.normal_dir),
+            full_flow=pick(reg.full_flow), n_events=pick(n_events), roi=roi, window=window)
 
     def _device_centres(self) -> Tensor:
         """:meth:`roi_centres` on the flow's device, kept between calls (computed again when
