@@ -223,7 +223,8 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
             ``normal_dir`` to float rounding.
         triton: solve each group in one program of a Triton kernel (CUDA;
             :mod:`evtrack.flow.registration_triton`) after the tensor code's caps: the same
-            results as ``compiled`` relative to the tensor path.
+            results as ``compiled`` relative to the tensor path. Caps above
+            ``registration_triton.MAX_CAP`` run the tensor path instead.
 
     Returns:
         The :class:`Registration` of every group.
@@ -255,6 +256,10 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                "count": count, "major": res["major"].to(torch.float32),
                "normal_speed": res["normal_speed"].to(torch.float32)}
     else:
+        if triton:
+            from evtrack.flow.registration_triton import fits
+
+            triton = fits(max_events, max_hypotheses)
         has, full, best_cost, ev_per_group, inliers, fit = _solve_tensor(
             group, seq, ordinal, flow, g_count, max_events, max_hypotheses, pair_budget,
             line_gate, refine_iters, n_ordinals, triton)

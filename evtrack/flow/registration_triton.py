@@ -41,9 +41,12 @@ try:  # optional: present with PyTorch's CUDA builds
 except ImportError:  # pragma: no cover - exercised where triton is missing
     triton = None
 
-__all__ = ["available", "solve_groups"]
+__all__ = ["available", "fits", "solve_groups", "MAX_CAP"]
 
 _INT64_MAX = (1 << 63) - 1
+MAX_CAP = 256
+"""Largest ``max_events_per_roi`` and ``max_hypotheses`` the kernel takes: one program holds
+a group's hypotheses and its events' lines in registers, padded to a power of two."""
 
 
 def available(device_type: str) -> bool:
@@ -242,6 +245,12 @@ if triton is not None:
             tl.store(out_major + 2 * g, mx)
             tl.store(out_major + 2 * g + 1, my)
             tl.store(out_speed + g, speed)
+
+
+def fits(max_events: int, max_hypotheses: int) -> bool:
+    """Whether caps of this size fit one program (at most :data:`MAX_CAP` each); larger caps
+    run the tensor registration."""
+    return 1 <= int(max_events) <= MAX_CAP and 1 <= int(max_hypotheses) <= MAX_CAP
 
 
 def solve_groups(c_flow: Tensor, ev_ptr: Tensor, ev_start: Tensor, ev_per_group: Tensor,

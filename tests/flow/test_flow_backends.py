@@ -474,6 +474,18 @@ def test_triton_backend_choice_and_errors(monkeypatch):
     assert not FlowConfig(backend="torch").use_triton("cuda")
     assert FlowConfig(backend="auto").use_triton("cuda") == (registration_triton.triton
                                                              is not None)
+    # caps beyond one program's registers run the tensor registration
+    assert registration_triton.fits(64, 48) and not registration_triton.fits(1000, 48)
+    group, seq, ordinal, flow, n_groups = _random_registration_input(0)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the Triton kernel must not run for caps above MAX_CAP")
+
+    monkeypatch.setattr(registration_triton, "solve_groups", refuse)
+    big = registration_triton.MAX_CAP + 1
+    a = register_groups(group, seq, ordinal, flow, n_groups, big, 9, 0.05, 10_000)
+    b = register_groups(group, seq, ordinal, flow, n_groups, big, 9, 0.05, 10_000, triton=True)
+    assert torch.equal(torch.nan_to_num(a.full_flow, 1e30), torch.nan_to_num(b.full_flow, 1e30))
     monkeypatch.setattr(registration_triton, "triton", None)
     assert not FlowConfig(backend="auto").use_triton("cuda")  # falls back to the tensor code
     with pytest.raises(ConfigError, match="needs triton"):
