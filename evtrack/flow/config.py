@@ -148,7 +148,7 @@ class FlowConfig:
             ``"compiled"``: always the kernels (an error where they cannot run: without
             numba on CPU, without Triton on CUDA). All give the same candidates, the same
             RoIs with the same Eq. 3 solutions, costs and inlier counts, bit for bit; the
-            refined flows agree to float rounding. On 2 CPU cores the kernels were 4-10x
+            refined flows agree to float rounding. On 2 CPU cores the kernels were 4-11x
             faster (``benchmarks/bench_flow_speed.py``).
     """
 

@@ -62,7 +62,7 @@ def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
     """``(lo, span)`` of int64 ``values`` when a dense table over them is small, else None."""
     if values.numel() == 0:
         return None
-    lo, hi = (int(v) for v in torch.aminmax(values))  # one pass; on CUDA, one sync
+    lo, hi = torch.stack(torch.aminmax(values)).tolist()  # one pass, one transfer
     span = hi - lo + 1
     return (lo, span) if span <= _DENSE_SLACK * count + 65_536 else None
 
