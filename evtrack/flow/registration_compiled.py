@@ -232,47 +232,29 @@ def _lane_costs(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q, 
 
 
 @_njit()
-def _nearest(c_x, c_y, i0, i1, fx, fy, cost_scale, q_max):
-    """The first candidate of ``i0..i1`` (``i0 < i1``) with the smallest rounded distance to
-    ``(fx, fy)``, and its float32 squared distance.
+def _not_parallel(c_x, c_y, i, ax, ay, a2, eps2):
+    """Whether candidate ``b = c[i]`` is not parallel to ``a``: ``cross(b, a)^2 > eps2 |b|^2
+    |a|^2`` in float64 (products of float32 values are exact there)."""
+    bx, by = np.float64(c_x[i]), np.float64(c_y[i])
+    cross = bx * ay - by * ax
+    return cross * cross > eps2 * (bx * bx + by * by) * a2
+
+
+@_njit()
+def _nearest(c_x, c_y, i0, i1, fx, fy, cost_scale, q_max, nonparallel_to_a=False, ax=0.0,
+             ay=0.0, eps2=0.0):
+    """The first candidate of ``i0..i1`` with the smallest rounded distance to ``(fx, fy)``,
+    and its float32 squared distance; ``(-1, nan)`` if there is none. With
+    ``nonparallel_to_a``, only the candidates not parallel to ``a = (ax, ay)`` count.
 
     The smallest squared distance gives that rounded distance ``q`` (the rounding is
     monotone); only candidates with ``d2 * COST_SCALE^2 <= (q + 0.5)^2`` can round to it too,
     and only those are rounded."""
-    best = np.float32(np.inf)
-    for i in range(i0, i1):
-        dx = c_x[i] - fx
-        dy = c_y[i] - fy
-        d2 = dx * dx
-        d2 = d2 + dy * dy
-        if d2 < best:
-            best = d2
-    q_min = _rounded_distance(best, cost_scale, q_max)
-    edge = (np.float64(q_min) + 0.5) * (np.float64(q_min) + 0.5)
-    cs2 = cost_scale * cost_scale
-    for i in range(i0, i1):
-        dx = c_x[i] - fx
-        dy = c_y[i] - fy
-        d2 = dx * dx
-        d2 = d2 + dy * dy
-        if q_min < q_max and np.float64(d2) * cs2 > edge:
-            continue  # rounds above q_min
-        if _rounded_distance(d2, cost_scale, q_max) == q_min:
-            return i, d2
-    return -1, np.float32(np.nan)  # not reached: the smallest d2 rounds to q_min
-
-
-@_njit()
-def _nearest_nonparallel(c_x, c_y, i0, i1, fx, fy, ax, ay, eps2, cost_scale, q_max):
-    """As :func:`_nearest` among the candidates ``b`` of ``i0..i1`` not parallel to
-    ``a = (ax, ay)`` (float64: ``cross(b, a)^2 > eps2 |b|^2 |a|^2``); -1 if there is none."""
     a2 = ax * ax + ay * ay
     best = np.float32(np.inf)
     found = False
     for i in range(i0, i1):
-        bx, by = np.float64(c_x[i]), np.float64(c_y[i])
-        cross = bx * ay - by * ax
-        if cross * cross <= eps2 * (bx * bx + by * by) * a2:
+        if nonparallel_to_a and not _not_parallel(c_x, c_y, i, ax, ay, a2, eps2):
             continue
         dx = c_x[i] - fx
         dy = c_y[i] - fy
@@ -282,24 +264,22 @@ def _nearest_nonparallel(c_x, c_y, i0, i1, fx, fy, ax, ay, eps2, cost_scale, q_m
         if d2 < best:
             best = d2
     if not found:
-        return -1
+        return -1, np.float32(np.nan)
     q_min = _rounded_distance(best, cost_scale, q_max)
     edge = (np.float64(q_min) + 0.5) * (np.float64(q_min) + 0.5)
     cs2 = cost_scale * cost_scale
     for i in range(i0, i1):
-        bx, by = np.float64(c_x[i]), np.float64(c_y[i])
-        cross = bx * ay - by * ax
-        if cross * cross <= eps2 * (bx * bx + by * by) * a2:
+        if nonparallel_to_a and not _not_parallel(c_x, c_y, i, ax, ay, a2, eps2):
             continue
         dx = c_x[i] - fx
         dy = c_y[i] - fy
         d2 = dx * dx
         d2 = d2 + dy * dy
         if q_min < q_max and np.float64(d2) * cs2 > edge:
-            continue
+            continue  # rounds above q_min
         if _rounded_distance(d2, cost_scale, q_max) == q_min:
-            return i
-    return -1  # not reached
+            return i, d2
+    return -1, np.float32(np.nan)  # not reached: the smallest d2 rounds to q_min
 
 
 @_njit(parallel=True)
@@ -407,8 +387,7 @@ def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
             inliers[g] += 1
             ax, ay = np.float64(c_x[i1]), np.float64(c_y[i1])
             # the nearest not parallel to the first (the first itself is parallel)
-            i2 = _nearest_nonparallel(c_x, c_y, e0, e1, fx, fy, ax, ay, eps2, cost_scale,
-                                      q_max)
+            i2, _ = _nearest(c_x, c_y, e0, e1, fx, fy, cost_scale, q_max, True, ax, ay, eps2)
             if i2 >= 0:
                 tx = ax - np.float64(c_x[i2])
                 ty = ay - np.float64(c_y[i2])

@@ -406,8 +406,7 @@ def test_nearest_candidate_is_the_first_of_the_smallest_rounded_distance(seed):
     eps2 = 1e-3 * 1e-3
     bx, by = cx.astype(np.float64), cy.astype(np.float64)
     nonpar = (bx * ay - by * ax) ** 2 > eps2 * (bx * bx + by * by) * (ax * ax + ay * ay)
-    i2 = rc._nearest_nonparallel(cx, cy, 0, n, fx, fy, ax, ay, eps2, COST_SCALE,
-                                 float(1 << 25))
+    i2, _ = rc._nearest(cx, cy, 0, n, fx, fy, COST_SCALE, float(1 << 25), True, ax, ay, eps2)
     assert i2 == _first_nearest(cx, cy, fx, fy, nonpar)
 
 
