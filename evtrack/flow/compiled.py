@@ -81,6 +81,16 @@ def _njit(**kwargs):
 
 
 @_njit()
+def _filled(shape, value, dtype):
+    """``np.full(shape, value, dtype)`` compiled on its own. Written inside a
+    ``parallel=True`` kernel, an array constructor (``np.zeros``, ``np.full``, a copy) becomes
+    a parallel loop of its own, one thread-pool launch per array, which costs more than
+    filling the few thousand entries of a tracker's call; through this helper it stays a
+    plain loop."""
+    return np.full(shape, value, dtype)
+
+
+@_njit()
 def _pixel_index(yy, xx, lo, hi, r2, width, halo_pix):
     """Index into ``last`` of pixel ``(xx, yy)``: the shared rows ``[lo, hi)`` of the strip's
     own part of the sensor, or the strip's private copy of the ``r2`` rows above / below."""
@@ -256,7 +266,7 @@ def _merge_strips(n, seq0, seg_start, seg_len, i_event, i_off, i_aj, i_ai, i_sj,
                   i_flow, o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow):
     """Interleave the strips' rows (each in stream order, events disjoint) into stream order:
     an event's rows go where the sequential loop would have written them."""
-    first_row = np.zeros(n + 1, np.int64)
+    first_row = _filled(n + 1, 0, np.int64)
     for s in _prange(seg_start.shape[0]):  # an event belongs to one strip: no write races
         for j in range(seg_start[s], seg_start[s] + seg_len[s]):
             first_row[i_event[j] - seq0 + 1] += 1

@@ -39,7 +39,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.flow.compiled import _njit, _prange, _rounded_distance, numba, torch_thread_count
+from evtrack.flow.compiled import (
+    _filled,
+    _njit,
+    _prange,
+    _rounded_distance,
+    numba,
+    torch_thread_count,
+)
 
 __all__ = ["register_groups_compiled"]
 
@@ -56,11 +63,33 @@ def _hash32(value):
     return ((value & 0x7FFFFFFF) * _GOLDEN) & 0xFFFFFFFF
 
 
+@_njit()
+def _insert_smallest(buf, filled, cap, key):
+    """Add ``key`` to ``buf[:filled]`` (ascending, at most ``cap`` keys), keeping the ``cap``
+    smallest; returns the new fill. Keys are distinct (they carry their position)."""
+    if filled == cap:
+        if key >= buf[cap - 1]:
+            return filled
+        j = cap - 1
+    else:
+        j = filled
+        filled += 1
+    while j > 0 and buf[j - 1] > key:
+        buf[j] = buf[j - 1]
+        j -= 1
+    buf[j] = key
+    return filled
+
+
 @_njit(parallel=True)
-def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypotheses,
-                    n_ordinals):
+def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypotheses, n_ordinals):
     """Step 1 of the module docstring. Candidates of one event are consecutive in the input
-    and events come in stream order. The per-group work runs in parallel over the groups."""
+    and events come in stream order. The per-group loops are ``prange`` loops: parallel in
+    :data:`_arrange_kernel`, plain loops in :data:`_arrange_serial`.
+
+    Both selections (the events of the data-term cap, the hypotheses) keep the smallest
+    ``(hash << 31) | position`` keys by insertion into a short sorted buffer: the same keys
+    as a sort (they are distinct), without sorting the rest."""
     m = group.shape[0]
     # events (runs of equal stream index)
     n_runs = 0
@@ -75,50 +104,68 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
             r += 1
     run_first[n_runs] = m
     # the events of each group, in stream order
-    runs_per_group = np.zeros(n_groups, np.int64)
+    runs_per_group = _filled(n_groups, 0, np.int64)
     for r in range(n_runs):
         runs_per_group[group[run_first[r]]] += 1
-    group_run_start = np.zeros(n_groups + 1, np.int64)
+    group_run_start = _filled(n_groups + 1, 0, np.int64)
     for g in range(n_groups):
         group_run_start[g + 1] = group_run_start[g] + runs_per_group[g]
-    fill = group_run_start[:n_groups].copy()
+    fill = np.empty(n_groups, np.int64)
+    for g in range(n_groups):
+        fill[g] = group_run_start[g]
     runs_by_group = np.empty(n_runs, np.int64)
     for r in range(n_runs):
         g = group[run_first[r]]
         runs_by_group[fill[g]] = r
         fill[g] += 1
-    # data-term cap, then the kept candidates by group
-    keep = np.ones(n_runs, np.bool_)
-    ev_per_group = np.zeros(n_groups, np.int64)
-    counts = np.zeros(n_groups, np.int64)
+    # data-term cap (the max_events smallest keys of each group's events), then the counts
+    keep = _filled(n_runs, True, np.bool_)
+    ev_per_group = _filled(n_groups, 0, np.int64)
+    counts = _filled(n_groups, 0, np.int64)
     for g in _prange(n_groups):
         r0, r1 = group_run_start[g], group_run_start[g + 1]
         k = r1 - r0
         if k > max_events:
-            keys = np.empty(k, np.int64)
+            kept = np.empty(max_events, np.int64)
+            filled = 0
             for j in range(k):
-                keys[j] = (_hash32(seq[run_first[runs_by_group[r0 + j]]]) << _POS_BITS) | j
-            # the keys are distinct and carry their position: the k - max_events largest
-            # (those a full sort puts last) without sorting the rest
-            dropped = np.partition(keys, max_events - 1)[max_events:]
-            for j in range(k - max_events):
-                keep[runs_by_group[r0 + (dropped[j] & _POS_MASK)]] = False
+                key = (_hash32(seq[run_first[runs_by_group[r0 + j]]]) << _POS_BITS) | j
+                filled = _insert_smallest(kept, filled, max_events, key)
+            for j in range(r0, r1):
+                keep[runs_by_group[j]] = False
+            for j in range(max_events):
+                keep[runs_by_group[r0 + (kept[j] & _POS_MASK)]] = True
         for j in range(r0, r1):
             rr = runs_by_group[j]
             if keep[rr]:
                 ev_per_group[g] += 1
                 counts[g] += run_first[rr + 1] - run_first[rr]
-    c_start = np.zeros(n_groups, np.int64)
+    c_start = _filled(n_groups, 0, np.int64)
     for g in range(1, n_groups):
         c_start[g] = c_start[g - 1] + counts[g - 1]
     n_kept = c_start[n_groups - 1] + counts[n_groups - 1] if n_groups else 0
+    h_count = np.empty(n_groups, np.int64)
+    for g in range(n_groups):
+        h_count[g] = min(counts[g], max_hypotheses)
+    h_start = _filled(n_groups, 0, np.int64)
+    for g in range(1, n_groups):
+        h_start[g] = h_start[g - 1] + h_count[g - 1]
+    n_h = h_start[n_groups - 1] + h_count[n_groups - 1] if n_groups else 0
     c_x = np.empty(n_kept, np.float32)
     c_y = np.empty(n_kept, np.float32)
     c_event = np.empty(n_kept, np.int64)
-    h_key = np.empty(n_kept, np.int64)
+    h_cand = np.empty(n_h, np.int64)
+    # the kept candidates by group, events in stream order; the hypotheses: per group the
+    # smallest (hash, position), in that order (the rank order)
     for g in _prange(n_groups):
-        c = c_start[g]
+        h = h_count[g]
+        if h == 0:
+            continue
+        c0 = c_start[g]
+        c = c0
         e = 0
+        first = np.empty(h, np.int64)
+        filled = 0
         for j in range(group_run_start[g], group_run_start[g + 1]):
             rr = runs_by_group[j]
             if not keep[rr]:
@@ -127,32 +174,14 @@ def _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothe
                 c_x[c] = flow[i, 0]
                 c_y[c] = flow[i, 1]
                 c_event[c] = e
-                h_key[c] = _hash32(seq[i] * n_ordinals + ordinal[i])
+                key = (_hash32(seq[i] * n_ordinals + ordinal[i]) << _POS_BITS) | (c - c0)
+                filled = _insert_smallest(first, filled, h, key)
                 c += 1
             e += 1
-    # hypotheses: per group the smallest (hash, position), in that order (the rank order)
-    h_count = np.zeros(n_groups, np.int64)
-    for g in range(n_groups):
-        h_count[g] = min(counts[g], max_hypotheses)
-    h_start = np.zeros(n_groups, np.int64)
-    for g in range(1, n_groups):
-        h_start[g] = h_start[g - 1] + h_count[g - 1]
-    n_h = h_start[n_groups - 1] + h_count[n_groups - 1] if n_groups else 0
-    h_cand = np.empty(n_h, np.int64)
-    for g in _prange(n_groups):
-        k = counts[g]
-        if k == 0:
-            continue
-        keys = np.empty(k, np.int64)
-        for j in range(k):
-            keys[j] = (h_key[c_start[g] + j] << _POS_BITS) | j
-        h = h_count[g]
-        if h < k:  # the h smallest (distinct) keys, then only those sorted
-            keys = np.partition(keys, h - 1)[:h]
-        first = np.sort(keys)
         for j in range(h):
-            h_cand[h_start[g] + j] = c_start[g] + (first[j] & _POS_MASK)
+            h_cand[h_start[g] + j] = c0 + (first[j] & _POS_MASK)
     return c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start, h_count
+
 
 
 @_njit()
@@ -293,19 +322,19 @@ def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
     arg-min and its cost are those of the full evaluation.
     """
     n_groups = counts.shape[0]
-    full = np.full((n_groups, 2), np.nan, np.float32)
-    has = np.zeros(n_groups, np.bool_)
-    best_cost = np.zeros(n_groups, np.int64)
-    inliers = np.zeros(n_groups, np.int64)
-    lines = np.zeros(n_groups, np.int64)
-    fit_flow = np.zeros((n_groups, 2), np.float64)
-    ratio = np.ones(n_groups, np.float64)
-    major = np.zeros((n_groups, 2), np.float64)
-    major[:, 0] = 1.0  # the tensor path's direction where there are no lines (theta = 0)
-    normal_speed = np.zeros(n_groups, np.float64)
+    full = _filled((n_groups, 2), np.nan, np.float32)
+    has = _filled(n_groups, False, np.bool_)
+    best_cost = _filled(n_groups, 0, np.int64)
+    inliers = _filled(n_groups, 0, np.int64)
+    lines = _filled(n_groups, 0, np.int64)
+    fit_flow = _filled((n_groups, 2), 0.0, np.float64)
+    ratio = _filled(n_groups, 1.0, np.float64)
+    major = _filled((n_groups, 2), 0.0, np.float64)
+    normal_speed = _filled(n_groups, 0.0, np.float64)
     gate2 = line_gate * line_gate
     eps2 = parallel_eps * parallel_eps
     for g in _prange(n_groups):
+        major[g, 0] = 1.0  # the tensor path's direction without lines (theta = 0)
         if h_count[g] == 0:
             continue
         # arg-min of (cost, rank). The hypothesis nearest the median flow goes first (it is

@@ -365,6 +365,26 @@ def test_lane_rounding_equals_the_scalar_rounding():
     assert np.array_equal(out, [_exact_rounded(float(v)) for v in d2])
 
 
+@pytest.mark.parametrize("order", ["random", "ascending", "descending"])
+@pytest.mark.parametrize("cap", [1, 5, 16])
+def test_insertion_selection_keeps_the_smallest_keys_sorted(order, cap):
+    """The registration's selections (the data-term cap, the hypotheses) keep the ``cap``
+    smallest distinct keys, ascending, as sorting all and taking the first ``cap`` would."""
+    from evtrack.flow import registration_compiled as rc
+
+    rng = np.random.default_rng(cap)
+    for n in (0, 1, cap - 1, cap, cap + 1, 200):
+        keys = rng.choice(1 << 40, size=max(n, 0), replace=False).astype(np.int64)
+        if order != "random":
+            keys = np.sort(keys)[::1 if order == "ascending" else -1]
+        buf = np.full(cap, -7, np.int64)
+        filled = 0
+        for key in keys:
+            filled = rc._insert_smallest(buf, filled, cap, key)
+        assert filled == min(n, cap)
+        assert np.array_equal(buf[:filled], np.sort(keys)[:cap])
+
+
 def _first_nearest(cx, cy, fx, fy, allowed):
     """Brute force: the first allowed candidate with the smallest rounded distance."""
     best, arg = None, -1
