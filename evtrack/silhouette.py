@@ -23,6 +23,7 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 from evtrack.filters.scalar_lie import rotation_matrix
+from evtrack.jit import available as jit_available
 from evtrack.jit import njit
 
 __all__ = ["Silhouette", "SilhouettePolygon", "hull_vertices", "pixels_in_polygon",
@@ -165,17 +166,21 @@ def pixels_in_polygon(polygon: np.ndarray, x: np.ndarray, y: np.ndarray, margin:
     normals, offsets = _half_planes(poly)
     nx, ny = normals[:, 0], normals[:, 1]
     rows = np.arange(h, dtype=np.float64)
-    # per row and edge: n_x * col <= margin + o - n_y * row
-    rhs = (margin + offsets)[None, :] - rows[:, None] * ny[None, :]  # (H, K)
     # an edge gives each row's span end to within a pixel unless |n_x| is tiny against the
     # magnitudes it is computed from; such "flat" edges are tested at the row's two ends
     scale = abs(margin) + np.abs(offsets) + w + h
     steep = np.abs(nx) > 2.0 * _ROUNDING * scale
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = rhs[:, steep] / nx[steep]
-    right = nx[steep] > 0
-    hi = np.floor(bound[:, right]).min(axis=1, initial=w - 1.0)
-    lo = np.ceil(bound[:, ~right]).max(axis=1, initial=0.0)
+    if jit_available():
+        lo, hi = np.empty(h), np.empty(h)
+        _steep_spans(nx, ny, offsets, steep, float(margin), w, h, lo, hi)
+    else:
+        # per row and edge: n_x * col <= margin + o - n_y * row
+        rhs = (margin + offsets)[None, :] - rows[:, None] * ny[None, :]  # (H, K)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = rhs[:, steep] / nx[steep]
+        right = nx[steep] > 0
+        hi = np.floor(bound[:, right]).min(axis=1, initial=w - 1.0)
+        lo = np.ceil(bound[:, ~right]).max(axis=1, initial=0.0)
     # flat edges: the exact test at both ends of the row (monotone in x in between)
     flat = ~steep
     empty = np.zeros(h, bool)
@@ -186,16 +191,62 @@ def pixels_in_polygon(polygon: np.ndarray, x: np.ndarray, y: np.ndarray, margin:
                 for c in (0.0, w - 1.0)]
         empty = (~ends[0] & ~ends[1]).any(axis=1)
         unsure = (ends[0] != ends[1]).any(axis=1) & ~empty
-    xf = x.astype(np.float64)
-    lo_e, hi_e = lo[y], hi[y]
-    sure_row = ~unsure[y]
-    inside = sure_row & ~empty[y] & (xf >= lo_e + 2) & (xf <= hi_e - 2)
-    outside = sure_row & (empty[y] | (xf < lo_e - 2) | (xf > hi_e + 2))
-    check = ~(inside | outside)
+    if jit_available():
+        inside = np.empty(len(x), bool)
+        check = np.empty(len(x), bool)
+        _classify_by_spans(x, y, lo, hi, empty, unsure, inside, check)
+    else:  # the same rule in NumPy (a dozen passes over the events)
+        xf = x.astype(np.float64)
+        lo_e, hi_e = lo[y], hi[y]
+        sure_row = ~unsure[y]
+        inside = sure_row & ~empty[y] & (xf >= lo_e + 2) & (xf <= hi_e - 2)
+        outside = sure_row & (empty[y] | (xf < lo_e - 2) | (xf > hi_e + 2))
+        check = ~(inside | outside)
     if check.any():
-        inside[check] = _outside_distance(normals, offsets, xf[check],
+        inside[check] = _outside_distance(normals, offsets, x[check].astype(np.float64),
                                           y[check].astype(np.float64)) <= margin
     return inside
+
+
+@njit
+def _steep_spans(nx, ny, offsets, steep, margin, w, h, lo, hi):
+    """Per row ``r < h``, the columns ``[lo[r], hi[r]]`` that the steep edges allow
+    (``n_x * col <= margin + o - n_y * r``, rounded inwards; ``[0, w - 1]`` without such an
+    edge): the NumPy form's (H, K) passes of :func:`pixels_in_polygon` in one loop nest."""
+    for r in range(h):
+        row = np.float64(r)
+        lo_r, hi_r = 0.0, w - 1.0
+        for k in range(nx.shape[0]):
+            if steep[k]:
+                bound = ((margin + offsets[k]) - row * ny[k]) / nx[k]
+                if nx[k] > 0:
+                    hi_r = min(hi_r, np.floor(bound))
+                else:
+                    lo_r = max(lo_r, np.ceil(bound))
+        lo[r] = lo_r
+        hi[r] = hi_r
+
+
+@njit
+def _classify_by_spans(x, y, lo, hi, empty, unsure, inside, check):
+    """Per pixel ``i`` (row ``y[i]``): ``inside[i]`` when it lies more than 2 columns inside
+    its row's span ``[lo, hi]`` (a sure row that is not empty), ``check[i]`` when it is
+    neither that nor more than 2 columns outside (or its row is unsure): the rule of
+    :func:`pixels_in_polygon` in one pass."""
+    for i in range(x.shape[0]):
+        r = y[i]
+        xf = np.float64(x[i])
+        if unsure[r]:
+            inside[i] = False
+            check[i] = True
+        elif empty[r]:
+            inside[i] = False
+            check[i] = False
+        else:
+            within = xf >= lo[r] + 2 and xf <= hi[r] - 2
+            out = xf < lo[r] - 2 or xf > hi[r] + 2
+            inside[i] = within
+            check[i] = not (within or out)
 
 
 class Silhouette:

@@ -51,6 +51,27 @@ def test_slicing_and_masks():
     assert int(ev[-1].t[0]) == ev.t_end
 
 
+def test_masks_and_index_tensors_select_as_torch_indexing():
+    """Boolean masks and index tensors (torch or NumPy; CPU events take NumPy's gather) give
+    the events torch's indexing gives, in order, with the same dtypes; bad indices raise."""
+    ev = make_events(300, seed=5)
+    g = np.random.default_rng(6)
+    mask = torch.from_numpy(g.random(300) < 0.4)
+    index = torch.from_numpy(g.integers(-300, 300, 120))
+    for sel in (mask, index, mask.numpy(), index.numpy(), torch.zeros(300, dtype=torch.bool),
+                torch.zeros(0, dtype=torch.int64)):
+        got = ev[sel]
+        want = torch.as_tensor(sel)
+        for k in ("x", "y", "t", "p"):
+            ref = getattr(ev, k)[want]
+            assert torch.equal(getattr(got, k), ref) and getattr(got, k).dtype == ref.dtype
+        assert got.sensor_size == ev.sensor_size
+    with pytest.raises(IndexError):
+        ev[torch.ones(299, dtype=torch.bool)]
+    with pytest.raises(IndexError):
+        ev[torch.tensor([0, 300])]
+
+
 def test_between_matches_brute_force():
     ev = make_events(500, seed=1)
     for t0, t1 in [(0, 10), (100_000, 300_000), (999_999, 2_000_000), (5, 5)]:

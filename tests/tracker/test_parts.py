@@ -55,9 +55,16 @@ def _random_polygon(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
     return cv2.convexHull(pts.astype(np.float32))[:, 0].astype(np.float64)
 
 
-def test_pixels_in_polygon_equals_the_point_test_bit_for_bit() -> None:
+@pytest.mark.parametrize("compiled", [True, False])
+def test_pixels_in_polygon_equals_the_point_test_bit_for_bit(compiled, monkeypatch) -> None:
     """The row-span test answers exactly as the half-plane test on every pixel of the image
-    (vertices on pixels, margins that put span ends on pixels, flat and huge polygons)."""
+    (vertices on pixels, margins that put span ends on pixels, flat and huge polygons), in
+    its compiled and its NumPy form."""
+    import evtrack.silhouette as silhouette_module
+
+    if compiled and not silhouette_module.jit_available():
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(silhouette_module, "jit_available", lambda: compiled)
     rng = np.random.default_rng(5)
     checked = 0
     for _ in range(600):
