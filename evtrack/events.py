@@ -14,6 +14,8 @@ import torch
 from torch import Tensor
 
 from evtrack.errors import EventsError
+from evtrack.jit import available as jit_available
+from evtrack.jit import njit
 
 __all__ = ["Events", "EventsValidationReport", "concatenate"]
 
@@ -296,6 +298,12 @@ class Events:
         # numpy on CPU (zero-copy views, ~10x faster than torch's int16/int8 kernels there)
         x, y, t, p = (self.numpy()[k] for k in "xytp") if self.device.type == "cpu" else (
             self.x, self.y, self.t, self.p)
+        if n and self.device.type == "cpu" and jit_available():
+            # the counts below in one compiled pass (a dozen NumPy passes otherwise)
+            w, h = self.sensor_size if self.sensor_size is not None else (-1, -1)
+            counts = _count_problems(x, y, t, p, w, h)
+            if not any(counts[::2]):
+                return EventsValidationReport(n, 0, -1, 0, -1, 0, -1, ())
         if n > 1:
             dec = t[1:] < t[:-1]
             unsorted = int(dec.sum())
@@ -335,6 +343,30 @@ class Events:
         if not report.ok:
             raise EventsError(f"{source}: {report}")
         return self
+
+
+@njit
+def _count_problems(x, y, t, p, width, height):
+    """``(unsorted, first, outside, first, bad polarity, first)`` of (N,) CPU event arrays in
+    one pass, as :meth:`Events.validate` counts them (``width < 0``: sensor size unknown,
+    coordinates checked for negativity only); a first index is -1 where the count is 0."""
+    unsorted = outside = bad = 0
+    first_unsorted = first_outside = first_bad = -1
+    for i in range(x.shape[0]):
+        if i and t[i] < t[i - 1]:
+            unsorted += 1
+            if first_unsorted < 0:
+                first_unsorted = i
+        xi, yi = x[i], y[i]
+        if xi < 0 or yi < 0 or (width >= 0 and (xi >= width or yi >= height)):
+            outside += 1
+            if first_outside < 0:
+                first_outside = i
+        if p[i] != 1 and p[i] != -1:
+            bad += 1
+            if first_bad < 0:
+                first_bad = i
+    return unsorted, first_unsorted, outside, first_outside, bad, first_bad
 
 
 def concatenate(chunks: Sequence[Events]) -> Events:

@@ -132,6 +132,31 @@ def test_validate_reports_counts_and_first_index():
         ev.check("my.file")
 
 
+@pytest.mark.parametrize("sensor", [(64, 48), None])
+def test_compiled_problem_count_equals_the_report(sensor):
+    """The one-pass count that lets ``validate`` return early on good events agrees with the
+    report's NumPy counts and first indices, on events with every kind of problem."""
+    from evtrack.events import _count_problems
+
+    g = np.random.default_rng(7)
+    for trial in range(30):
+        n = int(g.integers(1, 400))
+        x = g.integers(-3, 70, n).astype(np.int16)
+        y = g.integers(-3, 52, n).astype(np.int16)
+        t = np.sort(g.integers(0, 10_000, n))
+        if trial % 3 == 0:  # some go backwards
+            t[g.integers(0, n, max(1, n // 20))] -= 50
+        p = g.choice([-1, 1, 0, 2] if trial % 2 else [-1, 1], n).astype(np.int8)
+        if trial % 5 == 0:  # all good
+            x, y = np.clip(x, 0, 47), np.clip(y, 0, 47)
+        ev = Events(x, y, t, p, sensor_size=sensor)
+        rep = ev.validate()
+        w, h = sensor if sensor is not None else (-1, -1)
+        assert _count_problems(x, y, t, p, w, h) == (
+            rep.unsorted, rep.first_unsorted, rep.outside, rep.first_outside,
+            rep.bad_polarity, rep.first_bad_polarity), trial
+
+
 def test_validate_ok():
     assert make_events(100).validate().ok
 
