@@ -112,6 +112,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lookups", default="passes,sorted",
                         help="comma-separated FlowConfig.lookup values measured for the torch "
                              "backend, side by side (default passes,sorted)")
+    parser.add_argument("--backends", default="torch,compiled",
+                        help="comma-separated CPU backends to measure (default torch,compiled; "
+                             "'compiled' alone skips the slow torch rows)")
     parser.add_argument("--config", type=Path, action="append", default=[],
                         help="a YAML flow config to measure besides the defaults (repeatable; "
                              "e.g. configs/flow_fast.yaml)")
@@ -191,8 +194,9 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
 
     devices = {d.strip() for d in args.devices.split(",")}
     lookups = [v.strip() for v in args.lookups.split(",")]
+    wanted = {v.strip() for v in args.backends.split(",")}
     runs = ([(torch.device("cpu"), n, b, lk) for n in thread_counts for b in _cpu_backends()
-             for lk in (lookups if b == "torch" else ["-"])]
+             if b in wanted for lk in (lookups if b == "torch" else ["-"])]
             if "cpu" in devices else [])
     if torch.cuda.is_available() and not args.no_cuda and "cuda" in devices:
         # the tensor registration and, where Triton is installed, the Triton kernel

@@ -215,18 +215,22 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
 
 
 @_njit(parallel=True)
-def _copy_halos(lo_s, hi_s, r2, width, height, last, hist, hist_s, halo_pix0, halo_cell0):
+def _copy_halos(lo_s, hi_s, r2, width, height, x_min, x_max, last, hist, hist_s, halo_pix0,
+                halo_cell0):
     """Copy, for every strip, the ``r2`` rows above and below it from the shared state into
     its private rows (run before any strip searches: the copies are the state at the start
-    of the batch)."""
+    of the batch). Only columns ``x_min - r2 .. x_max + r2`` (the batch's events' columns and
+    the cells their searches read): the batch reads no other private cell, and the next batch
+    copies its own columns afresh."""
     pixels = width * height
     strip_pix = 2 * r2 * width
+    x0, x1 = max(0, x_min - r2), min(width, x_max + r2 + 1)
     for s in _prange(lo_s.shape[0]):
         for row in range(2 * r2):
             yy = lo_s[s] - r2 + row if row < r2 else hi_s[s] + row - r2
             if yy < 0 or yy >= height:
                 continue  # never read: no event lies there and searches stay inside
-            for xx in range(width):
+            for xx in range(x0, x1):
                 src = yy * width + xx
                 dst = halo_pix0 + s * strip_pix + row * width + xx
                 last[dst] = last[src]
@@ -492,8 +496,9 @@ class CompiledSearch:
         self._make_room(count)
         pixels = self.width * self.height
         with torch_thread_count():
-            _copy_halos(lo_s, hi_s, self._r2, self.width, self.height, self.last, self.hist,
-                        self.hist_s, pixels, 2 * pixels)
+            x = arrays[0]
+            _copy_halos(lo_s, hi_s, self._r2, self.width, self.height, int(x.min()),
+                        int(x.max()), self.last, self.hist, self.hist_s, pixels, 2 * pixels)
             capacity = self._capacity(int(own.max()))
             starts = np.zeros(count, np.int64)
             rounds = []  # (outputs, rows written per strip) of each pass

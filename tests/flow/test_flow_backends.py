@@ -142,6 +142,29 @@ def test_strips_equal_the_reference_on_a_textured_scene(strips, tight):
     assert torch.equal(flow, whole)
 
 
+@pytest.mark.parametrize("strips", [2, 3])
+def test_strips_on_a_narrow_sweep_equal_the_reference(strips):
+    """A vertical edge sweeps right and each batch holds a column or two of it: its triplets
+    reach back to columns no event of the batch lies on, in the rows copied around the strip
+    cuts (only the batch's columns and their search reach are copied)."""
+    rng = np.random.default_rng(8)
+    w, h = 40, 30
+    xs, ys, ts = [], [], []
+    for col in range(w):  # the edge reaches column col at 500 µs per column, +- 20 µs
+        for row in range(h):
+            xs.append(col)
+            ys.append(row)
+            ts.append(500 * col + int(rng.integers(-20, 21)))
+    order = np.argsort(ts, kind="stable")
+    x, y, t = (torch.as_tensor(np.asarray(v)[order]) for v in (xs, ys, ts))
+    p = torch.ones_like(t)
+    cfg = FlowConfig(sensor_size=(w, h), history=2)
+    cuts = list(range(25, len(t), 25))  # about one column per batch
+    rows, _ = _search_in_chunks(cfg, x, y, t, p, cuts, strips)
+    ref = _reference_rows(x, y, t, p, cfg)
+    assert len(ref) > 1000 and rows == [r[:7] for r in ref]
+
+
 def test_strips_are_chosen_by_thread_count_and_balanced():
     ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
     cfg = FlowConfig(sensor_size=(64, 48))
