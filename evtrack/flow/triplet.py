@@ -27,6 +27,8 @@ from evtrack.flow.registration import (
     select_smallest,
 )
 from evtrack.flow.result import FlowResult
+from evtrack.jit import available as jit_available
+from evtrack.jit import njit
 
 __all__ = ["TripletFlow"]
 
@@ -54,8 +56,34 @@ dense table instead of sorting / binary search: a batch's keys cover a few windo
 
 
 _NUMPY_ON_CPU = True
-"""The dense-table helpers below and the candidates' group keys work in NumPy on CPU tensors
-(False: torch everywhere, as on CUDA; the tests run both)."""
+"""The dense-table helpers below work in NumPy on CPU tensors, and the events' and
+candidates' group keys in the compiled loops below (in NumPy without numba); False: torch
+everywhere, as on CUDA (the tests run every form)."""
+
+
+@njit
+def _event_group_keys(x, y, t, window_us, roi_size, cols, rows, out):
+    """``out[i]``: event ``i``'s group key ``window * (cols * rows) + roi`` (floor divisions,
+    as the torch form's)."""
+    for i in range(t.shape[0]):
+        out[i] = (t[i] // window_us) * (cols * rows) + (y[i] // roi_size) * cols \
+            + x[i] // roi_size
+
+
+@njit
+def _candidate_group_keys(event, offset, age_j, age_i, seq0, gkey, history, c_g, ordinal,
+                          supported):
+    """Per candidate its event's group key and its ordinal; ``supported``: the group key of
+    each event with candidates (its first candidate's), in order. Returns their count."""
+    n_sup = 0
+    for c in range(event.shape[0]):
+        g = gkey[event[c] - seq0]
+        c_g[c] = g
+        ordinal[c] = (offset[c] * history + age_j[c]) * history + age_i[c]
+        if c == 0 or event[c] != event[c - 1]:
+            supported[n_sup] = g
+            n_sup += 1
+    return n_sup
 
 
 def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
@@ -286,6 +314,11 @@ class TripletFlow(nn.Module):
     def _group_keys(self, x: Tensor, y: Tensor, t: Tensor) -> Tensor:
         cols, rows = self.num_rois
         s = self.config.roi_size
+        if t.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
+            out = np.empty(t.shape[0], np.int64)
+            _event_group_keys(x.numpy(), y.numpy(), t.numpy(), self.config.window_us, s, cols,
+                              rows, out)
+            return torch.from_numpy(out)
         window = torch.div(t, self.config.window_us, rounding_mode="floor")
         roi = torch.div(y, s, rounding_mode="floor") * cols + torch.div(x, s,
                                                                        rounding_mode="floor")
@@ -337,6 +370,15 @@ class TripletFlow(nn.Module):
         that has candidates (its first candidate's); in NumPy on the CPU (as the table
         helpers: the same int64 values)."""
         k = self.config.history
+        if self.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
+            m = len(cands)
+            c_g_np, ordinal_np = np.empty(m, np.int64), np.empty(m, np.int64)
+            supported_np = np.empty(m, np.int64)
+            n_sup = _candidate_group_keys(
+                cands.event.numpy(), cands.offset.numpy(), cands.age_j.numpy(),
+                cands.age_i.numpy(), seq0, gkey.numpy(), k, c_g_np, ordinal_np, supported_np)
+            return (torch.from_numpy(c_g_np), torch.from_numpy(ordinal_np),
+                    torch.from_numpy(supported_np[:n_sup]))
         if self.device.type == "cpu" and _NUMPY_ON_CPU:
             event = cands.event.numpy()
             c_g_np = gkey.numpy()[event - seq0]

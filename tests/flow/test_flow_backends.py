@@ -552,9 +552,40 @@ def test_group_key_helpers_equal_torch(spread, numpy_on_cpu, monkeypatch):
         assert torch.equal(_positions(keys, picked), torch.searchsorted(keys, picked))
 
 
+def test_compiled_group_keys_equal_the_torch_formula():
+    """The compiled group keys divide with the floor, as torch's ``rounding_mode="floor"``
+    (negative timestamps included), and the candidates' keys, ordinals and supported groups
+    follow their events."""
+    from evtrack.flow import triplet
+
+    rng = np.random.default_rng(11)
+    n, cols, rows, s, w_us = 500, 7, 5, 16, 2_000
+    x = rng.integers(0, cols * s, n)
+    y = rng.integers(0, rows * s, n)
+    t = np.sort(rng.integers(-50_000, 50_000, n))
+    out = np.empty(n, np.int64)
+    triplet._event_group_keys(x, y, t, w_us, s, cols, rows, out)
+    tx, ty, tt = (torch.from_numpy(v) for v in (x, y, t))
+    expected = (torch.div(tt, w_us, rounding_mode="floor") * (cols * rows)
+                + torch.div(ty, s, rounding_mode="floor") * cols
+                + torch.div(tx, s, rounding_mode="floor"))
+    assert torch.equal(torch.from_numpy(out), expected)
+    seq0, k = 1000, 3
+    event = np.sort(rng.integers(seq0, seq0 + n, 2000))
+    offset, aj, ai = rng.integers(0, 48, 2000), rng.integers(0, k, 2000), rng.integers(0, k, 2000)
+    c_g, ordinal, supported = (np.empty(2000, np.int64) for _ in range(3))
+    n_sup = triplet._candidate_group_keys(event, offset, aj, ai, seq0, out, k, c_g, ordinal,
+                                          supported)
+    assert np.array_equal(c_g, out[event - seq0])
+    assert np.array_equal(ordinal, (offset * k + aj) * k + ai)
+    first = np.concatenate([[True], event[1:] != event[:-1]])
+    assert n_sup == first.sum() and np.array_equal(supported[:n_sup], c_g[first])
+
+
 @pytest.mark.parametrize("backend", ["compiled", "torch"])
 def test_numpy_bookkeeping_on_cpu_gives_the_torch_flow(backend, monkeypatch):
-    """The flow's CPU bookkeeping in NumPy (candidate groups and ordinals, the dense tables;
+    """The flow's CPU bookkeeping (the events' and candidates' group keys and ordinals in
+    compiled loops, or in NumPy without numba; the dense tables in NumPy;
     ``triplet._NUMPY_ON_CPU``) gives the same RoI flows and per-event flows as the torch
     bookkeeping that CUDA runs, streamed in uneven batches."""
     from evtrack.flow import triplet
@@ -562,13 +593,15 @@ def test_numpy_bookkeeping_on_cpu_gives_the_torch_flow(backend, monkeypatch):
     ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
     cfg = FlowConfig(sensor_size=(64, 48), roi_size=16, window_us=2_000, backend=backend)
     out = []
-    for numpy_on_cpu in (True, False):
+    for numpy_on_cpu, compiled_keys in ((False, False), (True, True), (True, False)):
         monkeypatch.setattr(triplet, "_NUMPY_ON_CPU", numpy_on_cpu)
+        monkeypatch.setattr(triplet, "jit_available", lambda c=compiled_keys: c)
         flow = TripletFlow(cfg, return_event_flow=True)
         parts = [flow.update(ev[a:b]) for a, b in ((0, 700), (700, 3001), (3001, len(ev)))]
         out.append(FlowResult.cat([*parts, flow.flush()]))
-    a, b = out
-    assert len(a) > 20
-    for name in ("flow", "full_flow", "cost", "support", "roi", "window", "event_flow"):
-        assert torch.equal(torch.nan_to_num(getattr(a, name).float(), 1e30),
-                           torch.nan_to_num(getattr(b, name).float(), 1e30)), name
+    reference = out[0]
+    assert len(reference) > 20
+    for other in out[1:]:
+        for name in ("flow", "full_flow", "cost", "support", "roi", "window", "event_flow"):
+            assert torch.equal(torch.nan_to_num(getattr(reference, name).float(), 1e30),
+                               torch.nan_to_num(getattr(other, name).float(), 1e30)), name
