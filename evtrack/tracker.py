@@ -204,6 +204,16 @@ class _Miss:
     t_us: int
 
 
+@dataclass
+class _PoseCall:
+    """A pose-source call on the frame at ``t_us`` running in the tracker's worker thread;
+    its result is taken when it becomes available to the filter (see
+    ``TrackerConfig.pose_async``)."""
+
+    t_us: int
+    result: Future
+
+
 @dataclasses.dataclass
 class _DepthFrame:
     """A sensor depth frame (event camera, metres) waiting for the range measurement."""
@@ -399,6 +409,8 @@ class Tracker:
                                       and self.method in ("full", "velocity"))
         self.timeline = PoseTimeline(filt, int(round(cfg.history_ms * 1e3)))
         self._zero_twist = torch.zeros(1, 6, dtype=torch.float64, device=self.device)
+        self._pose_pool: ThreadPoolExecutor | None = None  # see TrackerConfig.pose_async
+        self._async_poses = False  # inside track() with pose_async
         self.reset()
 
     def _make_depth_source(self, cam: PinholeCamera, vertices: np.ndarray) -> DepthSource:
@@ -556,6 +568,27 @@ class Tracker:
         with self._blas:
             self._advance(self._horizon, whole_groups=False)
             self._frames_due(self._horizon + 1)
+        self._settle_pose_calls()
+
+    def _settle_pose_calls(self) -> None:
+        """Wait for the worker's pose-source calls that are not due yet and leave their
+        results pending as the synchronous path would have (poses and misses counted, the
+        pose or the miss scheduled for its time): the end of a stream then leaves the same
+        state and statistics either way."""
+        calls = [entry for entry in self._pending if isinstance(entry[2], _PoseCall)]
+        if not calls:
+            return
+        self._pending = [entry for entry in self._pending if not isinstance(entry[2], _PoseCall)]
+        for available, seq, call in calls:
+            with _Timer(self.stats.time_s, "pose_wait"):
+                m = call.result.result()
+            if m is not None and m.confidence >= self.config.pose_min_confidence:
+                self.stats.poses += 1
+                self._pending.append((max(m.t_us, available), seq, m))
+            else:
+                self.stats.pose_misses += 1
+                self._pending.append((available, seq, _Miss(call.t_us)))
+        heapq.heapify(self._pending)
 
     def push_frame(self, t_us: int, rgb: FrameInput = None, depth: FrameInput = None) -> None:
         """Add the RGB-D frame taken at ``t_us`` (after the events before ``t_us``).
@@ -616,19 +649,57 @@ class Tracker:
             self.ge.set_frame(t_us, image, self.pose(t_us) if self.initialized else None)
         if self._wants_pose(t_us):
             self.stats.pose_calls += 1
-            image = image if image is not None else get_rgb()
-            if depth_map is None and depth is not None and self._source_uses_depth:
-                depth_map = depth() if callable(depth) else depth
-            with _Timer(self.stats.time_s, "pose_source"):
-                m = self.pose_source(t_us, image,
-                                     depth_map if self._source_uses_depth else None)
             available = t_us + self.config.pose_latency_us
+            uses_depth = self._source_uses_depth
+            if depth_map is None and depth is not None and uses_depth:
+                depth_map = depth() if callable(depth) else depth
+            depth_in = depth_map if uses_depth else None
+            if self._async_poses and available > self._t:
+                # computed in the worker (the RGB frame read there too), taken at
+                # `available`: the same result at the same moment for the filter
+                self._schedule(available, _PoseCall(t_us, self._pose_worker().submit(
+                    self._call_pose_source, t_us, image if image is not None else get_rgb,
+                    depth_in)))
+                return
+            m = self._call_pose_source(t_us, image if image is not None else get_rgb(),
+                                       depth_in)
             if m is not None and m.confidence >= self.config.pose_min_confidence:
                 self.push_pose(m, available_us=available)
             else:
                 self.stats.pose_misses += 1
                 self._schedule(max(available, self._t), _Miss(t_us))
                 self._apply_due(self._t)
+
+    def _call_pose_source(self, t_us: int, image: np.ndarray | Callable[[], np.ndarray],
+                          depth: np.ndarray | None) -> PoseMeasurement | None:
+        """The pose source on one frame (``image`` may be a reader, called here), timed."""
+        with _Timer(self.stats.time_s, "pose_source"):
+            return self.pose_source(t_us, image() if callable(image) else image, depth)
+
+    def _take_pose_call(self, call: _PoseCall, available: int, t_now: int) -> None:
+        """A worker's pose-source result, due at ``available`` (<= ``t_now``): handled as the
+        synchronous path's pose or miss, scheduled for ``available`` at the frame's turn,
+        would be now."""
+        with _Timer(self.stats.time_s, "pose_wait"):
+            m = call.result.result()  # a pose source's exception is raised here
+        if m is not None and m.confidence >= self.config.pose_min_confidence:
+            self.stats.poses += 1
+            due = max(m.t_us, available)
+            if due <= t_now:
+                self._fuse_pose(m)
+            else:  # a measurement time after the frame's (not from the built-in sources)
+                self._schedule(due, m)
+        else:
+            self.stats.pose_misses += 1
+            self._on_miss(t_now)
+
+    def _pose_worker(self) -> ThreadPoolExecutor:
+        """The one thread that runs the pose source in :meth:`track` with ``pose_async``
+        (calls in frame order)."""
+        if self._pose_pool is None:
+            self._pose_pool = ThreadPoolExecutor(max_workers=1,
+                                                 thread_name_prefix="evtrack-pose")
+        return self._pose_pool
 
     def push_pose(self, measurement: PoseMeasurement, available_us: int | None = None) -> None:
         """Add a pose measurement (e.g. from a pose network running in another thread).
@@ -888,13 +959,15 @@ class Tracker:
     # ------------------------------------------------------------------ measurements
     def _apply_due(self, t_now: int) -> None:
         while self._pending and self._pending[0][0] <= t_now:
-            _, _, item = heapq.heappop(self._pending)
+            available, _, item = heapq.heappop(self._pending)
             if isinstance(item, PoseMeasurement):
                 self._fuse_pose(item)
             elif isinstance(item, _DepthFrame):
                 self._fuse_range(item)
             elif isinstance(item, _Miss):
                 self._on_miss(t_now)
+            elif isinstance(item, _PoseCall):
+                self._take_pose_call(item, available, t_now)
             else:
                 self._fuse_twist(*item)
 
@@ -1167,10 +1240,12 @@ class Tracker:
         threads = torch.get_num_threads()
         if self.config.torch_threads > 0:
             torch.set_num_threads(threads_per_job(self.config.torch_threads))
+        self._async_poses = self.config.pose_async
         try:
-            with self._blas:
+            with self._blas:  # the worker's pose calls all end inside (flush settles them)
                 return self._track(sequence, progress)
         finally:
+            self._async_poses = False
             torch.set_num_threads(threads)
 
     def _track(self, sequence, progress: bool) -> Trajectory:

@@ -274,6 +274,18 @@ class TrackerConfig:
             rate).
         pose_min_confidence: detections below this confidence are ignored (they count as
             misses, see ``lost_after_misses``).
+        pose_async: in :meth:`~evtrack.tracker.Tracker.track` (offline), run the pose source
+            in a worker thread of the tracker (one, so calls keep the frames' order) and take
+            its result when it becomes available to the filter (``pose_latency_ms`` after the
+            frame): the same trajectory and statistics as calling it at the frame (the tests
+            compare both), while the network's time and the RGB frame's decoding overlap the
+            event tracking (a pose-network call on a CPU takes 20-40 ms; the tracking runs
+            mostly on one core). The pose source is then called from that thread, within
+            ``track``'s BLAS limit where the library's limit is process-wide (OpenBLAS, as in
+            numpy's wheels); its exception surfaces from ``track``. A result due at once
+            (``pose_latency_ms`` 0) is computed at once. The streaming calls always run the
+            pose source in the caller's thread: a live application runs its network where it
+            likes and hands the poses to :meth:`~evtrack.tracker.Tracker.push_pose`.
         reinit_on_agreement: when a pose is rejected by the pose filter's gate right after
             another rejected pose and the two agree with each other (the second within
             ``reinit_agree_m + reinit_agree_m_per_s * dt`` metres and ``reinit_agree_deg +
@@ -329,6 +341,7 @@ class TrackerConfig:
     pose_rate_hz: float = 5.0
     pose_latency_ms: float = 200.0
     pose_min_confidence: float = 0.0
+    pose_async: bool = True
     reinit_on_agreement: bool = True
     reinit_agree_m: float = 0.05
     reinit_agree_m_per_s: float = 1.0

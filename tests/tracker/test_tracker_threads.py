@@ -1,11 +1,15 @@
 """Tracker.track sets torch's thread count from its config, within the free cores, and puts
-the caller's count back."""
+the caller's count back; the pose source may run in a worker thread of the tracker."""
 
 from __future__ import annotations
 
+import dataclasses
+import threading
+
+import numpy as np
 import pytest
 import torch
-from tracker_helpers import make_tracker
+from tracker_helpers import make_tracker, stream
 
 from evtrack import utils
 
@@ -68,3 +72,70 @@ def test_blas_runs_on_the_configured_threads_while_tracking(static_sequence, str
             tracker.track(static_sequence)
         assert blas() == {2}
     assert seen and all(s == {1} for s in seen)
+
+
+def _same_track(a, b) -> None:
+    assert torch.equal(a.t_us, b.t_us)
+    assert torch.equal(torch.nan_to_num(a.poses, 1e9), torch.nan_to_num(b.poses, 1e9))
+    assert torch.equal(a.twists, b.twists)
+
+
+@pytest.mark.parametrize("method", ["full", "pose"])
+def test_pose_source_in_a_worker_gives_the_same_track(fast_sequence, method) -> None:
+    """``pose_async``: in ``track`` the pose source runs in the tracker's worker thread and
+    its results are taken when due; the trajectory and the statistics are those of the calls
+    in the caller's thread, with outliers, dropped detections and low-confidence poses
+    (misses) among them. The streaming calls keep the caller's thread."""
+    oracle = {"std_translation": 0.01, "std_rotation": 0.03, "outlier_rate": 0.2,
+              "dropout_rate": 0.2}
+    out = {}
+    for pose_async in (False, True):
+        tracker, source = make_tracker(fast_sequence, oracle=oracle, method=method,
+                                       pose_async=pose_async, pose_min_confidence=0.5,
+                                       pose_rate_hz=30.0)
+        inner = source.__call__
+        threads: set[str] = set()
+
+        def low_confidence_every_third(t_us, rgb, depth=None, inner=inner, threads=threads):
+            threads.add(threading.current_thread().name)
+            if 250_000 <= t_us < 400_000:  # misses in a row: the object is lost
+                return None
+            m = inner(t_us, rgb, depth)
+            if m is not None and (t_us // 1000) % 3 == 0:
+                m = dataclasses.replace(m, confidence=0.1)
+            return m
+
+        tracker.pose_source = low_confidence_every_third
+        traj = tracker.track(fast_sequence)
+        stats = {k: v for k, v in tracker.stats.to_dict().items() if k != "time_s"}
+        out[pose_async] = (traj, stats, set(threads))
+    (sync, sync_stats, sync_threads), (asyn, async_stats, async_threads) = out[False], out[True]
+    assert sync_stats["pose_misses"] >= 6 and sync_stats["poses"] >= 4
+    assert sync_stats["lost"] >= 1
+    assert async_stats == sync_stats
+    _same_track(sync, asyn)
+    assert sync_threads == {threading.main_thread().name}
+    assert async_threads and all(name.startswith("evtrack-pose") for name in async_threads)
+    streamed, source = make_tracker(fast_sequence, oracle=oracle, method=method,
+                                    pose_async=True)
+    streaming_threads: set[str] = set()
+    inner = source.__call__
+
+    def recording(t_us, rgb, depth=None):
+        streaming_threads.add(threading.current_thread().name)
+        return inner(t_us, rgb, depth)
+
+    streamed.pose_source = recording
+    stream(streamed, fast_sequence, np.random.default_rng(2), t_end_us=300_000)
+    assert streaming_threads == {threading.main_thread().name}
+
+
+def test_pose_source_errors_surface_from_the_worker(fast_sequence) -> None:
+    tracker, _ = make_tracker(fast_sequence, method="pose", pose_async=True)
+
+    def broken(t_us, rgb, depth=None):
+        raise RuntimeError("pose network failed")
+
+    tracker.pose_source = broken
+    with pytest.raises(RuntimeError, match="pose network failed"):
+        tracker.track(fast_sequence)
