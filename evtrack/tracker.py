@@ -10,6 +10,9 @@ Data flow of the ``full`` method (DESIGN.md), once per velocity step (1 ms by de
     RGB frames at pose_rate_hz ──► pose source ──► pose available at t + pose_latency
         ──► PoseUKF.update at the frame's time t (the filter rolls back and replays)
 
+In :meth:`Tracker.track` the pose source runs in a worker thread meanwhile (``pose_async``):
+its result is only taken when it becomes available, so the trajectory is the same.
+
 The methods (``TrackerConfig.method``) share this code:
 
 * ``full``: as above (the paper).
