@@ -200,9 +200,24 @@ class SensorDepth(DepthSource):
         Raises:
             ValueError: a frame whose size is not the RGB-D camera's.
         """
+        self.set_prepared(t_us, self.prepare(t_us, depth))
+
+    def prepare(self, t_us: int, depth: np.ndarray) -> np.ndarray:
+        """The (H, W) float32 event-camera map :meth:`set_frame` would keep for a frame
+        (checked, missing depths NaN, carried into the event camera), without keeping it: it
+        reads no state, so a reader thread can prepare the next frame
+        (:meth:`set_prepared` takes it).
+
+        Raises:
+            ValueError: as :meth:`set_frame`.
+        """
         d = self.check_frame(t_us, depth)
         d = np.where(np.isfinite(d) & (d > 0), d, np.nan).astype(np.float32)
-        self.map = d if self.same_camera else self._to_event_camera(d)
+        return d if self.same_camera else self._to_event_camera(d)
+
+    def set_prepared(self, t_us: int, event_map: np.ndarray) -> None:
+        """Take a map made by :meth:`prepare` as the depth frame at ``t_us``."""
+        self.map = event_map
         self.t_us = int(t_us)
 
     def _to_event_camera(self, d: np.ndarray) -> np.ndarray:

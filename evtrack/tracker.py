@@ -217,6 +217,15 @@ class _PoseCall:
     result: Future
 
 
+@dataclass
+class _PreparedDepth:
+    """A sensor depth frame as read (for a pose source that uses depth) and its event-camera
+    map, made by :meth:`SensorDepth.prepare` in :meth:`Tracker.track`'s reader thread."""
+
+    raw: np.ndarray
+    event_map: np.ndarray
+
+
 @dataclasses.dataclass
 class _DepthFrame:
     """A sensor depth frame (event camera, metres) waiting for the range measurement."""
@@ -636,7 +645,11 @@ class Tracker:
         depth_map: np.ndarray | None = None
         if depth is not None and isinstance(self.depth, SensorDepth):
             depth_map = depth() if callable(depth) else depth
-            self.depth.set_frame(t_us, depth_map)
+            if isinstance(depth_map, _PreparedDepth):  # from track(): prepared ahead
+                self.depth.set_prepared(t_us, depth_map.event_map)
+                depth_map = depth_map.raw
+            else:
+                self.depth.set_frame(t_us, depth_map)
             if self.depth_range is not None:
                 self._schedule(t_us, _DepthFrame(t_us, self.depth.map))
                 self._apply_due(self._t)
@@ -1251,6 +1264,12 @@ class Tracker:
             self._async_poses = False
             torch.set_num_threads(threads)
 
+    def _read_prepared(self, sequence, depth_times: list[int], index: int) -> _PreparedDepth:
+        """Depth frame ``index`` of ``sequence`` and its event-camera map (run in the reader
+        thread: :meth:`SensorDepth.prepare` reads no state)."""
+        raw = sequence.depth(index)
+        return _PreparedDepth(raw, self.depth.prepare(depth_times[index], raw))
+
     def _track(self, sequence, progress: bool) -> Trajectory:
         self.reset()
         rgb_t = sequence.rgb_times_us.tolist()
@@ -1283,9 +1302,10 @@ class Tracker:
                     carry = chunk[k:]
                     return
 
-        # the sensor depth is read at every depth frame: decode the next one in a worker thread
-        # while this one is used (same frames, read sooner)
-        read_depth = (_Prefetched(sequence.depth, len(depth_t))
+        # the sensor depth is read at every depth frame: decode and prepare the next one in a
+        # worker thread while this one is used (same frames and maps, made sooner)
+        read_depth = (_Prefetched(lambda i: self._read_prepared(sequence, depth_t, i),
+                                  len(depth_t))
                       if isinstance(self.depth, SensorDepth) and len(depth_t) > 1
                       else sequence.depth)
         try:

@@ -139,3 +139,51 @@ def test_pose_source_errors_surface_from_the_worker(fast_sequence) -> None:
     tracker.pose_source = broken
     with pytest.raises(RuntimeError, match="pose network failed"):
         tracker.track(fast_sequence)
+
+
+def test_depth_maps_prepared_in_the_reader_thread_equal_set_frame(fast_sequence,
+                                                                  monkeypatch) -> None:
+    """``track`` prepares each sensor depth frame's event-camera map in its reader thread;
+    the maps the depth source takes are those ``set_frame`` makes from the same frames."""
+    from evtrack.depth_sources import SensorDepth
+
+    tracker, _ = make_tracker(fast_sequence, method="full")
+    assert isinstance(tracker.depth, SensorDepth)
+    taken: list[tuple[int, np.ndarray, str]] = []
+    inner = SensorDepth.set_prepared
+
+    def spy(self, t_us, event_map):
+        taken.append((t_us, event_map, threading.current_thread().name))
+        inner(self, t_us, event_map)
+
+    prepared_in: set[str] = set()
+    prepare = SensorDepth.prepare
+
+    def prepare_spy(self, t_us, depth):
+        prepared_in.add(threading.current_thread().name)
+        return prepare(self, t_us, depth)
+
+    class WithHoles:  # the sequence, with a corner of missing depth (0) in every frame
+        def __getattr__(self, name):
+            return getattr(fast_sequence, name)
+
+        def depth(self, index):
+            frame = fast_sequence.depth(index).copy()
+            frame[:8, :8] = 0.0
+            return frame
+
+    monkeypatch.setattr(SensorDepth, "set_prepared", spy)
+    monkeypatch.setattr(SensorDepth, "prepare", prepare_spy)
+    seq = WithHoles()
+    tracker.track(seq)
+    times = fast_sequence.depth_times_us.tolist()
+    assert len(taken) == len(times)
+    reference = SensorDepth(tracker.camera, tracker.rgb_camera, tracker.T_event_rgb)
+    differs_from_raw = 0
+    for t_us, event_map, _ in taken:
+        raw = seq.depth(times.index(t_us))
+        inner(reference, t_us, prepare(reference, t_us, raw))
+        assert np.array_equal(event_map, reference.map, equal_nan=True)
+        differs_from_raw += not np.array_equal(event_map, raw, equal_nan=True)
+    assert differs_from_raw == len(taken)  # missing depth (0) became NaN: a map, not the raw
+    assert any(name.startswith("evtrack-frames") for name in prepared_in)
