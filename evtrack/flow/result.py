@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -74,13 +75,20 @@ class FlowResult:
         """Join consecutive results of one stream (per-event flows are contiguous)."""
         if not parts:
             return FlowResult.empty()
-        kw = {name: torch.cat([getattr(p, name) for p in parts]) for name in _ROI_FIELDS}
         ev = [p.event_flow for p in parts]
         has = [e is not None for e in ev]
         if any(has) and not all(has):
             raise ValueError("cannot join results with and without per-event flows")
+        # parts without rows add nothing (a streaming update has several): one part with rows
+        # is the result itself, with the first part's event start
+        full = [p for p in parts if len(p) or (p.event_flow is not None and len(p.event_flow))]
+        if len(full) <= 1:
+            return dataclasses.replace(full[0] if full else parts[0],
+                                       event_start=parts[0].event_start)
+        kw = {name: torch.cat([getattr(p, name) for p in full]) for name in _ROI_FIELDS}
         return FlowResult(**kw, event_start=parts[0].event_start,
-                          event_flow=torch.cat(ev) if all(has) else None)
+                          event_flow=torch.cat([p.event_flow for p in full]) if all(has)
+                          else None)
 
     def to(self, device: str | torch.device) -> FlowResult:
         kw = {f.name: getattr(self, f.name) for f in fields(self)}

@@ -86,6 +86,53 @@ def _candidate_group_keys(event, offset, age_j, age_i, seq0, gkey, history, c_g,
     return n_sup
 
 
+@njit
+def _merge_group_counts(old_keys, old_events, old_support, event_keys, supported_keys, slack,
+                        floor):
+    """The pending groups after adding events: the sorted union of ``old_keys`` (sorted,
+    distinct) with the new events' keys, with the old counts plus one per new event
+    (``events``) and one per new event with candidates (``support``, keys in
+    ``supported_keys``). Through a table over the keys' range, as :func:`_unique_inverse`;
+    ``None`` when that range exceeds ``slack * count + floor`` (the caller sorts then)."""
+    n = old_keys.shape[0] + event_keys.shape[0] + supported_keys.shape[0]
+    if n == 0:
+        return None
+    lo, hi = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+    for keys in (old_keys, event_keys, supported_keys):
+        for k in keys:
+            lo = min(lo, k)
+            hi = max(hi, k)
+    span = hi - lo + 1
+    if span > slack * n + floor:
+        return None
+    present = np.zeros(span, np.bool_)
+    events = np.zeros(span, np.int64)
+    support = np.zeros(span, np.int64)
+    for i in range(old_keys.shape[0]):
+        k = old_keys[i] - lo
+        present[k] = True
+        events[k] += old_events[i]
+        support[k] += old_support[i]
+    for k in event_keys:
+        present[k - lo] = True
+        events[k - lo] += 1
+    for k in supported_keys:
+        present[k - lo] = True
+        support[k - lo] += 1
+    m = 0
+    for k in range(span):
+        m += present[k]
+    out_keys = np.empty(m, np.int64)
+    out_events = np.empty(m, np.int64)
+    out_support = np.empty(m, np.int64)
+    j = 0
+    for k in range(span):
+        if present[k]:
+            out_keys[j], out_events[j], out_support[j] = k + lo, events[k], support[k]
+            j += 1
+    return out_keys, out_events, out_support
+
+
 def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
     """``(lo, span)`` of int64 ``values`` when a dense table over them is small, else None."""
     if values.numel() == 0:
@@ -398,13 +445,22 @@ class TripletFlow(nn.Module):
     def _add_pending(self, gkey: Tensor, cands: Candidates, seq0: int) -> None:
         p = self._pending
         c_g, ordinal, supported = self._candidate_groups(gkey, cands, seq0)
-        keys, inv = _unique_inverse(torch.cat([p.g_keys, gkey, supported]))
-        n_old, n_new = p.g_keys.numel(), gkey.numel()
-        # per group: the pending counts, + 1 per new event, + 1 per new event with candidates
-        g_events = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_events)
-        g_events.index_add_(0, inv[n_old:n_old + n_new], torch.ones_like(gkey))
-        g_support = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_support)
-        g_support.index_add_(0, inv[n_old + n_new:], torch.ones_like(supported))
+        merged = None
+        if gkey.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
+            merged = _merge_group_counts(p.g_keys.numpy(), p.g_events.numpy(),
+                                         p.g_support.numpy(), gkey.numpy(), supported.numpy(),
+                                         _DENSE_SLACK, 65_536)
+        if merged is not None:
+            keys, g_events, g_support = (torch.from_numpy(a) for a in merged)
+        else:
+            keys, inv = _unique_inverse(torch.cat([p.g_keys, gkey, supported]))
+            n_old, n_new = p.g_keys.numel(), gkey.numel()
+            # per group: the pending counts, + 1 per new event, + 1 per new event with
+            # candidates
+            g_events = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_events)
+            g_events.index_add_(0, inv[n_old:n_old + n_new], torch.ones_like(gkey))
+            g_support = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_support)
+            g_support.index_add_(0, inv[n_old + n_new:], torch.ones_like(supported))
         self._pending = _Pending(
             gkey=torch.cat([p.gkey, c_g]), seq=torch.cat([p.seq, cands.event]),
             ordinal=torch.cat([p.ordinal, ordinal]), flow=torch.cat([p.flow, cands.flow]),

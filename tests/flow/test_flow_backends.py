@@ -582,6 +582,38 @@ def test_compiled_group_keys_equal_the_torch_formula():
     assert n_sup == first.sum() and np.array_equal(supported[:n_sup], c_g[first])
 
 
+@pytest.mark.parametrize("spread", [40, 10**9])
+def test_compiled_group_count_merge_equals_the_torch_merge(spread):
+    """The pending groups' union and counts (compiled, through a table over the keys'
+    range) equal the sort-based torch form; a range too wide for a table gives None."""
+    from evtrack.flow import triplet
+
+    rng = np.random.default_rng(spread % 13)
+    tables = 0
+    for n_old, n_new in ((0, 0), (0, 5), (6, 0), (30, 200), (1, 1)):
+        old = np.unique(rng.integers(0, spread, n_old)).astype(np.int64)
+        old_events = rng.integers(1, 9, old.shape[0]).astype(np.int64)
+        old_support = rng.integers(0, 5, old.shape[0]).astype(np.int64)
+        new = rng.integers(0, spread, n_new).astype(np.int64)
+        supported = new[rng.random(n_new) < 0.6]
+        got = triplet._merge_group_counts(old, old_events, old_support, new, supported,
+                                          triplet._DENSE_SLACK, 65_536)
+        every = np.concatenate([old, new, supported])
+        if not len(every) or np.ptp(every) + 1 > triplet._DENSE_SLACK * len(every) + 65_536:
+            assert got is None  # the caller sorts instead
+            continue
+        keys, inv = torch.unique(torch.from_numpy(every), return_inverse=True)
+        events = torch.zeros_like(keys).index_add_(0, inv[:len(old)], torch.from_numpy(
+            old_events)).index_add_(0, inv[len(old):len(old) + n_new],
+                                    torch.ones(n_new, dtype=torch.int64))
+        support = torch.zeros_like(keys).index_add_(0, inv[:len(old)], torch.from_numpy(
+            old_support)).index_add_(0, inv[len(old) + n_new:],
+                                     torch.ones(len(supported), dtype=torch.int64))
+        assert [a.tolist() for a in got] == [keys.tolist(), events.tolist(), support.tolist()]
+        tables += 1
+    assert tables == (4 if spread < 1000 else 0)
+
+
 @pytest.mark.parametrize("backend", ["compiled", "torch"])
 def test_numpy_bookkeeping_on_cpu_gives_the_torch_flow(backend, monkeypatch):
     """The flow's CPU bookkeeping (the events' and candidates' group keys and ordinals in

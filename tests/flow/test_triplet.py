@@ -102,6 +102,43 @@ def test_streaming_equals_one_call(texture):
     assert whole.event_flow.shape == (len(ev), 2) and joined.event_start == 0
 
 
+@pytest.mark.parametrize("with_events", [False, True])
+def test_joining_results_skips_empty_parts(with_events):
+    """``FlowResult.cat`` equals field-by-field concatenation, with the first part's event
+    start, whichever parts are empty (a single non-empty part is returned as it is)."""
+    g = torch.Generator().manual_seed(0)
+
+    def part(rows: int, events: int, start: int) -> FlowResult:
+        r = FlowResult.empty(event_start=start, with_events=with_events)
+        kw = {name: torch.rand((rows, *getattr(r, name).shape[1:]), generator=g).to(
+            getattr(r, name).dtype) for name in ("xy", "t", "flow", "support", "cost",
+                                                  "normal", "normal_dir", "full_flow",
+                                                  "n_events", "roi", "window")}
+        flows = torch.rand(events, 2, generator=g) if with_events else None
+        return FlowResult(**kw, event_start=start, event_flow=flows)
+
+    layouts = [[(0, 0)], [(0, 0), (3, 2)], [(0, 0), (3, 2), (0, 0)], [(2, 0), (0, 4), (5, 1)],
+               [(0, 0), (0, 0)], [(0, 3), (0, 0)]]
+    for layout in layouts:
+        start, parts = 7, []
+        for rows, events in layout:
+            events = events if with_events else 0
+            parts.append(part(rows, events, start))
+            start += events
+        joined = FlowResult.cat(parts)
+        assert joined.event_start == 7
+        for name in ("xy", "t", "flow", "support", "cost", "normal", "normal_dir",
+                     "full_flow", "n_events", "roi", "window"):
+            assert torch.equal(getattr(joined, name),
+                               torch.cat([getattr(p, name) for p in parts])), (layout, name)
+        if with_events:
+            assert torch.equal(joined.event_flow, torch.cat([p.event_flow for p in parts]))
+        else:
+            assert joined.event_flow is None
+    with pytest.raises(ValueError, match="per-event"):
+        FlowResult.cat([FlowResult.empty(), FlowResult.empty(with_events=True)])
+
+
 @pytest.mark.parametrize("backend", ["torch", "auto"])
 def test_long_open_windows_keep_memory_bounded_and_the_same_flow(texture, backend):
     """One window spans the whole stream, given in many small calls: its pending candidates
