@@ -232,16 +232,15 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     dev = flow.device
     g_count = n_groups
     nan2 = torch.full((g_count, 2), float("nan"), dtype=torch.float32, device=dev)
-    out = Registration(flow=nan2.clone(), full_flow=nan2.clone(),
-                       cost=torch.full((g_count,), float("nan"), device=dev),
-                       used_events=torch.zeros(g_count, dtype=torch.int64, device=dev),
-                       ratio=torch.ones(g_count, device=dev),
-                       normal=torch.zeros(g_count, dtype=torch.bool, device=dev),
-                       normal_dir=nan2.clone(),
-                       lines=torch.zeros(g_count, dtype=torch.int64, device=dev),
-                       inliers=torch.zeros(g_count, dtype=torch.int64, device=dev))
     if group.numel() == 0 or g_count == 0:
-        return out
+        return Registration(flow=nan2.clone(), full_flow=nan2.clone(),
+                            cost=torch.full((g_count,), float("nan"), device=dev),
+                            used_events=torch.zeros(g_count, dtype=torch.int64, device=dev),
+                            ratio=torch.ones(g_count, device=dev),
+                            normal=torch.zeros(g_count, dtype=torch.bool, device=dev),
+                            normal_dir=nan2.clone(),
+                            lines=torch.zeros(g_count, dtype=torch.int64, device=dev),
+                            inliers=torch.zeros(g_count, dtype=torch.int64, device=dev))
     if ordinal.numel() and int(ordinal.max()) >= n_ordinals:
         raise ValueError(f"candidate ordinals must be < n_ordinals ({n_ordinals})")
     if compiled:
@@ -251,7 +250,7 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                                        max_hypotheses, n_ordinals, line_gate, refine_iters,
                                        COST_SCALE, _Q_MAX, _PARALLEL_EPS, _IRLS_DELTA)
         has, full, best_cost = res["has"], res["full"], res["best_cost"]
-        ev_per_group, out.inliers, count = res["used_events"], res["inliers"], res["lines"]
+        ev_per_group, inliers, count = res["used_events"], res["inliers"], res["lines"]
         fit = {"flow": res["fit_flow"].to(torch.float32), "ratio": res["ratio"],
                "count": count, "major": res["major"].to(torch.float32),
                "normal_speed": res["normal_speed"].to(torch.float32)}
@@ -263,25 +262,23 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
         has, full, best_cost, ev_per_group, inliers, fit = _solve_tensor(
             group, seq, ordinal, flow, g_count, max_events, max_hypotheses, pair_budget,
             line_gate, refine_iters, n_ordinals, triton)
-        out.inliers = inliers
-    out.used_events = ev_per_group
-    out.full_flow = full
-    out.cost = torch.where(has, best_cost.to(torch.float64) / COST_SCALE
-                           / ev_per_group.clamp_min(1), torch.nan).to(torch.float32)
+    cost = torch.where(has, best_cost.to(torch.float64) / COST_SCALE
+                       / ev_per_group.clamp_min(1), torch.nan).to(torch.float32)
     # --- aperture test and refinement
     ratio = fit["ratio"]
-    normal = has & (fit["count"] >= 2) & (ratio < aperture_ratio)
+    fitted = has & (fit["count"] >= 2)
+    normal = fitted & (ratio < aperture_ratio)
     n_dir = fit["major"]
-    refined = torch.where((has & (fit["count"] >= 2))[:, None], fit["flow"], full) \
-        if refine else full
-    proj = (refined * n_dir).sum(1, keepdim=True) * n_dir
-    normal_speed = fit["normal_speed"][:, None] * n_dir
-    out.ratio = ratio.to(torch.float32)
-    out.lines = fit["count"]
-    out.normal = normal
-    out.normal_dir = torch.where(normal[:, None], n_dir, nan2)
-    out.flow = torch.where(normal[:, None], normal_speed if refine else proj, refined)
-    return out
+    if refine:
+        refined = torch.where(fitted[:, None], fit["flow"], full)
+        along = fit["normal_speed"][:, None] * n_dir  # the lines' own normal speed
+    else:
+        refined = full
+        along = (refined * n_dir).sum(1, keepdim=True) * n_dir  # F projected on the normal
+    return Registration(flow=torch.where(normal[:, None], along, refined), full_flow=full,
+                        cost=cost, used_events=ev_per_group, ratio=ratio.to(torch.float32),
+                        normal=normal, normal_dir=torch.where(normal[:, None], n_dir, nan2),
+                        lines=fit["count"], inliers=inliers)
 
 
 def _solve_tensor(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, g_count: int,

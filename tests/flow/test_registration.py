@@ -148,6 +148,15 @@ def test_a_single_edge_is_flagged_as_normal_flow():
     direction = reg.normal_dir[0].numpy()
     assert abs(abs(float(direction @ n)) - 1.0) < 1e-4
     assert np.allclose(reg.flow[0].numpy(), 700.0 * n, rtol=1e-3)
+    # without the refinement: F itself, projected on the edge's normal
+    for compiled in (False, True):
+        plain = register_groups(group, seq, ordinal, flow, 1, 100, 400, 0.05, 10**6,
+                                refine=False, compiled=compiled)
+        f = plain.full_flow[0].numpy().astype(np.float64)
+        d = plain.normal_dir[0].numpy().astype(np.float64)
+        assert bool(plain.normal[0])
+        assert np.allclose(plain.flow[0].numpy(), (f @ d) * d, rtol=1e-5, atol=1e-3)
+        assert abs(float(plain.flow[0].numpy() @ n) - 700.0) < 0.1 * 700.0
 
 
 def test_inliers_count_the_events_near_the_solution_like_brute_force():
