@@ -204,7 +204,8 @@ class Events:
             index = torch.as_tensor(index)
         if isinstance(index, Tensor):
             index = index.to(self.device)
-            if self.device.type == "cpu" and index.ndim == 1:
+            if self.device.type == "cpu" and index.ndim == 1 and index.dtype in (
+                    torch.bool, torch.int64, torch.int32):  # (torch reads uint8 as a mask)
                 # NumPy's gather: 5-6x faster than torch's boolean indexing of small CPU
                 # tensors (the tracker masks every step group); the same values and errors
                 idx = index.numpy()
