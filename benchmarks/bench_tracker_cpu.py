@@ -26,7 +26,9 @@ The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
 step group, the view test on the bounding box, the timeline's shared snapshot copies, one
 pass of checks per velocity predict + update) was made cheaper along the way and is in every
-variant.
+variant, as are the later small-call savings of the flow (registration kernels without hidden
+parallel loops, compiled group keys and counts), the NumPy gather of the event mask and the
+compiled row spans, and the pose source in ``track``'s worker thread (``pose_async``).
 
 All but ``groups`` and ``eq3`` give the same trajectory as the variant before up to float
 rounding (the
