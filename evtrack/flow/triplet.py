@@ -98,10 +98,12 @@ def _merge_group_counts(old_keys, old_events, old_support, event_keys, supported
     if n == 0:
         return None
     lo, hi = np.iinfo(np.int64).max, np.iinfo(np.int64).min
-    for keys in (old_keys, event_keys, supported_keys):
-        for k in keys:
-            lo = min(lo, k)
-            hi = max(hi, k)
+    for k in old_keys:  # (three loops: the arrays' layouts may differ)
+        lo, hi = min(lo, k), max(hi, k)
+    for k in event_keys:
+        lo, hi = min(lo, k), max(hi, k)
+    for k in supported_keys:
+        lo, hi = min(lo, k), max(hi, k)
     span = hi - lo + 1
     if span > slack * n + floor:
         return None
