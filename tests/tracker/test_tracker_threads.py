@@ -80,7 +80,7 @@ def _same_track(a, b) -> None:
     assert torch.equal(a.twists, b.twists)
 
 
-@pytest.mark.parametrize("method", ["full", "pose"])
+@pytest.mark.parametrize("method", ["full", "pose", "velocity", "ge", "frame-flow"])
 def test_pose_source_in_a_worker_gives_the_same_track(fast_sequence, method) -> None:
     """``pose_async``: in ``track`` the pose source runs in the tracker's worker thread and
     its results are taken when due; the trajectory and the statistics are those of the calls
@@ -110,8 +110,11 @@ def test_pose_source_in_a_worker_gives_the_same_track(fast_sequence, method) -> 
         stats = {k: v for k, v in tracker.stats.to_dict().items() if k != "time_s"}
         out[pose_async] = (traj, stats, set(threads))
     (sync, sync_stats, sync_threads), (asyn, async_stats, async_threads) = out[False], out[True]
-    assert sync_stats["pose_misses"] >= 6 and sync_stats["poses"] >= 4
-    assert sync_stats["lost"] >= 1
+    if method == "velocity":  # poses only until the first one initialises the track
+        assert sync_stats["poses"] >= 1
+    else:
+        assert sync_stats["pose_misses"] >= 6 and sync_stats["poses"] >= 4
+        assert sync_stats["lost"] >= 1
     assert async_stats == sync_stats
     _same_track(sync, asyn)
     assert sync_threads == {threading.main_thread().name}
