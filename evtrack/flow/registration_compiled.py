@@ -270,6 +270,18 @@ def _not_parallel(c_x, c_y, i, ax, ay, a2, eps2):
 
 
 @_njit()
+def _filtered_distance2(c_x, c_y, i, fx, fy, nonparallel_to_a, ax, ay, a2, eps2):
+    """Candidate ``i``'s float32 squared distance to ``(fx, fy)`` (separate IEEE
+    operations), or -1 when ``nonparallel_to_a`` and it is parallel to ``a``."""
+    if nonparallel_to_a and not _not_parallel(c_x, c_y, i, ax, ay, a2, eps2):
+        return np.float32(-1.0)
+    dx = c_x[i] - fx
+    dy = c_y[i] - fy
+    d2 = dx * dx
+    return d2 + dy * dy
+
+
+@_njit()
 def _nearest(c_x, c_y, i0, i1, fx, fy, cost_scale, q_max, nonparallel_to_a=False, ax=0.0,
              ay=0.0, eps2=0.0):
     """The first candidate of ``i0..i1`` with the smallest rounded distance to ``(fx, fy)``,
@@ -283,12 +295,9 @@ def _nearest(c_x, c_y, i0, i1, fx, fy, cost_scale, q_max, nonparallel_to_a=False
     best = np.float32(np.inf)
     found = False
     for i in range(i0, i1):
-        if nonparallel_to_a and not _not_parallel(c_x, c_y, i, ax, ay, a2, eps2):
+        d2 = _filtered_distance2(c_x, c_y, i, fx, fy, nonparallel_to_a, ax, ay, a2, eps2)
+        if d2 < 0:
             continue
-        dx = c_x[i] - fx
-        dy = c_y[i] - fy
-        d2 = dx * dx
-        d2 = d2 + dy * dy
         found = True
         if d2 < best:
             best = d2
@@ -298,12 +307,9 @@ def _nearest(c_x, c_y, i0, i1, fx, fy, cost_scale, q_max, nonparallel_to_a=False
     edge = (np.float64(q_min) + 0.5) * (np.float64(q_min) + 0.5)
     cs2 = cost_scale * cost_scale
     for i in range(i0, i1):
-        if nonparallel_to_a and not _not_parallel(c_x, c_y, i, ax, ay, a2, eps2):
+        d2 = _filtered_distance2(c_x, c_y, i, fx, fy, nonparallel_to_a, ax, ay, a2, eps2)
+        if d2 < 0:
             continue
-        dx = c_x[i] - fx
-        dy = c_y[i] - fy
-        d2 = dx * dx
-        d2 = d2 + dy * dy
         if q_min < q_max and np.float64(d2) * cs2 > edge:
             continue  # rounds above q_min
         if _rounded_distance(d2, cost_scale, q_max) == q_min:
