@@ -350,23 +350,36 @@ class Events:
 def _count_problems(x, y, t, p, width, height):
     """``(unsorted, first, outside, first, bad polarity, first)`` of (N,) CPU event arrays in
     one pass, as :meth:`Events.validate` counts them (``width < 0``: sensor size unknown,
-    coordinates checked for negativity only); a first index is -1 where the count is 0."""
+    coordinates checked for negativity only); a first index is -1 where the count is 0.
+
+    The counting loop has no branch (it vectorises); the first indices are looked for only
+    where a count is not 0."""
+    n = x.shape[0]
+    w_lim = width if width >= 0 else np.int64(1) << 62
+    h_lim = height if width >= 0 else np.int64(1) << 62
     unsorted = outside = bad = 0
+    for i in range(1, n):
+        unsorted += t[i] < t[i - 1]
+    for i in range(n):
+        xi, yi, pi = x[i], y[i], p[i]
+        outside += (xi < 0) | (yi < 0) | (xi >= w_lim) | (yi >= h_lim)
+        bad += (pi != 1) & (pi != -1)
     first_unsorted = first_outside = first_bad = -1
-    for i in range(x.shape[0]):
-        if i and t[i] < t[i - 1]:
-            unsorted += 1
-            if first_unsorted < 0:
+    if unsorted:
+        for i in range(1, n):
+            if t[i] < t[i - 1]:
                 first_unsorted = i
-        xi, yi = x[i], y[i]
-        if xi < 0 or yi < 0 or (width >= 0 and (xi >= width or yi >= height)):
-            outside += 1
-            if first_outside < 0:
+                break
+    if outside:
+        for i in range(n):
+            if x[i] < 0 or y[i] < 0 or x[i] >= w_lim or y[i] >= h_lim:
                 first_outside = i
-        if p[i] != 1 and p[i] != -1:
-            bad += 1
-            if first_bad < 0:
+                break
+    if bad:
+        for i in range(n):
+            if p[i] != 1 and p[i] != -1:
                 first_bad = i
+                break
     return unsorted, first_unsorted, outside, first_outside, bad, first_bad
 
 

@@ -214,7 +214,7 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
     return k, n_out
 
 
-@_njit(parallel=True)
+@_njit()
 def _copy_halos(lo_s, hi_s, r2, width, height, x_min, x_max, last, hist, hist_s, halo_pix0,
                 halo_cell0):
     """Copy, for every strip, the ``r2`` rows above and below it from the shared state into
@@ -225,7 +225,7 @@ def _copy_halos(lo_s, hi_s, r2, width, height, x_min, x_max, last, hist, hist_s,
     pixels = width * height
     strip_pix = 2 * r2 * width
     x0, x1 = max(0, x_min - r2), min(width, x_max + r2 + 1)
-    for s in _prange(lo_s.shape[0]):
+    for s in range(lo_s.shape[0]):
         for row in range(2 * r2):
             yy = lo_s[s] - r2 + row if row < r2 else hi_s[s] + row - r2
             if yy < 0 or yy >= height:
@@ -265,18 +265,18 @@ def _search_strips(x, y, t, p, starts, seq0, width, height, off_x, off_y, dt_lo,
         n_outs[s] = m
 
 
-@_njit(parallel=True)
+@_njit()
 def _merge_strips(n, seq0, seg_start, seg_len, i_event, i_off, i_aj, i_ai, i_sj, i_si, i_dt,
                   i_flow, o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow):
     """Interleave the strips' rows (each in stream order, events disjoint) into stream order:
     an event's rows go where the sequential loop would have written them."""
     first_row = _filled(n + 1, 0, np.int64)
-    for s in _prange(seg_start.shape[0]):  # an event belongs to one strip: no write races
+    for s in range(seg_start.shape[0]):
         for j in range(seg_start[s], seg_start[s] + seg_len[s]):
             first_row[i_event[j] - seq0 + 1] += 1
     for e in range(n):
         first_row[e + 1] += first_row[e]
-    for s in _prange(seg_start.shape[0]):
+    for s in range(seg_start.shape[0]):
         prev = -1
         pos = 0
         for j in range(seg_start[s], seg_start[s] + seg_len[s]):
@@ -294,6 +294,41 @@ def _merge_strips(n, seq0, seg_start, seg_len, i_event, i_off, i_aj, i_ai, i_sj,
             o_flow[pos, 0] = i_flow[j, 0]
             o_flow[pos, 1] = i_flow[j, 1]
             pos += 1
+
+
+@_njit()
+def _strip_cuts(y, height, count):
+    """``count`` strips of consecutive rows with about ``len(y) / count`` of the events
+    each: ``(first rows, end rows, events per strip)``. Each cut is the row boundary nearest
+    to its share of the cumulative row counts; cuts that fall together merge (fewer strips,
+    none empty of rows)."""
+    n = y.shape[0]
+    cum = _filled(height, 0, np.int64)
+    for i in range(n):
+        cum[y[i]] += 1
+    for r in range(1, height):
+        cum[r] += cum[r - 1]
+    cuts = np.empty(count, np.int64)
+    for k in range(1, count):
+        target = k * (n / count)
+        row = np.searchsorted(cum, target)  # first row whose cumulative count reaches it
+        below = cum[row - 1] if row > 0 else 0
+        cut = row if target - below < cum[row] - target else row + 1  # the nearer boundary
+        cuts[k - 1] = min(max(cut, 1), height)
+    cuts[count - 1] = height
+    cuts.sort()
+    m = 0
+    for k in range(count):
+        if m == 0 or cuts[k] != cuts[m - 1]:
+            cuts[m] = cuts[k]
+            m += 1
+    ends = cuts[:m].copy()
+    lo = np.empty(m, np.int64)
+    own = np.empty(m, np.int64)
+    for k in range(m):
+        lo[k] = ends[k - 1] if k else 0
+        own[k] = cum[ends[k] - 1] - (cum[lo[k] - 1] if lo[k] else 0)
+    return lo, ends, own
 
 
 class CompiledSearch:
@@ -401,14 +436,7 @@ class CompiledSearch:
         if count == 1:
             return (np.zeros(1, np.int64), np.full(1, self.height, np.int64),
                     np.full(1, n, np.int64))
-        cum = np.cumsum(np.bincount(y, minlength=self.height))
-        target = np.arange(1, count) * (n / count)
-        row = np.searchsorted(cum, target)  # first row whose cumulative count reaches it
-        below = np.where(row > 0, cum[np.maximum(row - 1, 0)], 0)
-        cuts = np.where(target - below < cum[row] - target, row, row + 1)  # nearer cut
-        ends = np.unique(np.clip(np.append(cuts, self.height), 1, self.height)).astype(np.int64)
-        own = np.diff(np.concatenate([[0], cum[ends - 1]]))
-        return np.concatenate([[0], ends[:-1]]).astype(np.int64), ends, own.astype(np.int64)
+        return _strip_cuts(y, self.height, count)
 
     def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Candidates:
         """Search the candidates of the next events of the stream and add them to the history.

@@ -462,6 +462,34 @@ def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
     return full, has, best_cost, inliers, lines, fit_flow, ratio, major, normal_speed
 
 
+_RESULT_NAMES = ("full", "has", "best_cost", "inliers", "lines", "fit_flow", "ratio", "major",
+                 "normal_speed")
+
+
+def register_groups_compiled_arrays(group: np.ndarray, seq: np.ndarray, ordinal: np.ndarray,
+                                    flow: np.ndarray, n_groups: int, max_events: int,
+                                    max_hypotheses: int, n_ordinals: int, line_gate: float,
+                                    refine_iters: int, cost_scale: float, q_max: int,
+                                    parallel_eps: float, irls_delta: float
+                                    ) -> dict[str, np.ndarray]:
+    """:func:`register_groups_compiled` on NumPy arrays (int64 ``group``, ``seq``,
+    ``ordinal``; (M, 2) float32 ``flow``), returning NumPy arrays."""
+    if numba is None:
+        raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
+    with torch_thread_count():
+        as64 = [np.ascontiguousarray(v, dtype=np.int64) for v in (group, seq, ordinal)]
+        f = np.ascontiguousarray(flow, dtype=np.float32)
+        (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
+         h_count) = _arrange_kernel(*as64, f, n_groups, max_events, max_hypotheses,
+                                    n_ordinals)
+        out = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
+                            ev_per_group, float(cost_scale), float(q_max), float(parallel_eps),
+                            float(line_gate), float(irls_delta), int(refine_iters))
+    res = dict(zip(_RESULT_NAMES, out, strict=True))
+    res["used_events"] = ev_per_group
+    return res
+
+
 def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor,
                              n_groups: int, max_events: int, max_hypotheses: int,
                              n_ordinals: int, line_gate: float, refine_iters: int,
@@ -479,20 +507,8 @@ def register_groups_compiled(group: Tensor, seq: Tensor, ordinal: Tensor, flow: 
         ``fit_flow`` (float64 IRLS intersection), ``ratio``, ``major`` (float64 unit
         dominant normal), ``normal_speed``.
     """
-    if numba is None:
-        raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
-    with torch_thread_count():
-        as64 = [np.ascontiguousarray(v.detach().cpu().numpy(), dtype=np.int64)
-                for v in (group, seq, ordinal)]
-        f = np.ascontiguousarray(flow.detach().cpu().numpy(), dtype=np.float32)
-        (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
-         h_count) = _arrange_kernel(*as64, f, n_groups, max_events, max_hypotheses,
-                                    n_ordinals)
-        out = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
-                            ev_per_group, float(cost_scale), float(q_max), float(parallel_eps),
-                            float(line_gate), float(irls_delta), int(refine_iters))
-    names = ("full", "has", "best_cost", "inliers", "lines", "fit_flow", "ratio", "major",
-             "normal_speed")
-    res = {k: torch.from_numpy(v) for k, v in zip(names, out, strict=True)}
-    res["used_events"] = torch.from_numpy(ev_per_group)
-    return res
+    res = register_groups_compiled_arrays(
+        *(v.detach().cpu().numpy() for v in (group, seq, ordinal, flow)), n_groups,
+        max_events, max_hypotheses, n_ordinals, line_gate, refine_iters, cost_scale, q_max,
+        parallel_eps, irls_delta)
+    return {k: torch.from_numpy(v) for k, v in res.items()}

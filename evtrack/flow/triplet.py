@@ -21,11 +21,15 @@ from evtrack.flow.candidates import Candidates, CandidateSearch
 from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.config import FlowConfig, search_offsets
 from evtrack.flow.registration import (
+    _IRLS_DELTA,
+    _PARALLEL_EPS,
+    _Q_MAX,
     COST_SCALE,
     hash32,
     register_groups,
     select_smallest,
 )
+from evtrack.flow.registration_compiled import register_groups_compiled_arrays
 from evtrack.flow.result import FlowResult
 from evtrack.jit import available as jit_available
 from evtrack.jit import njit
@@ -62,12 +66,23 @@ everywhere, as on CUDA (the tests run every form)."""
 
 
 @njit
-def _event_group_keys(x, y, t, window_us, roi_size, cols, rows, out):
-    """``out[i]``: event ``i``'s group key ``window * (cols * rows) + roi`` (floor divisions,
-    as the torch form's)."""
+def _event_group_keys(x, y, t, window_us, roi_of_x, roi_of_y, n_roi, out):
+    """``out[i]``: event ``i``'s group key ``window * n_roi + roi``, ``window`` the floor of
+    ``t / window_us``, ``roi = roi_of_y[y] + roi_of_x[x]`` (tables of the RoI column
+    ``x // roi_size`` and the row offset ``(y // roi_size) * cols``).
+
+    Without a division per event: the window is divided out only when an event leaves the
+    previous event's window (every event in a time-sorted batch of a few windows; any order
+    gives the same keys)."""
+    lo = hi = np.int64(0)
+    w = np.int64(0)
     for i in range(t.shape[0]):
-        out[i] = (t[i] // window_us) * (cols * rows) + (y[i] // roi_size) * cols \
-            + x[i] // roi_size
+        ti = t[i]
+        if i == 0 or ti < lo or ti >= hi:
+            w = ti // window_us
+            lo = w * window_us
+            hi = lo + window_us
+        out[i] = w * n_roi + roi_of_y[y[i]] + roi_of_x[x[i]]
 
 
 @njit
@@ -133,6 +148,66 @@ def _merge_group_counts(old_keys, old_events, old_support, event_keys, supported
             out_keys[j], out_events[j], out_support[j] = k + lo, events[k], support[k]
             j += 1
     return out_keys, out_events, out_support
+
+
+@njit
+def _report_rows(keys, support, n_events, has, full, best_cost, used_events, inliers, lines,
+                 fit_flow, ratio, major, normal_speed, n_roi, window_us, centres, cost_scale,
+                 aperture_ratio, min_support, min_inlier_fraction):
+    """The reported rows of registered groups (CPU, compiled): what
+    :func:`~evtrack.flow.registration.register_groups` (with ``refine``) makes of the compiled
+    registration's outputs, the report test of ``TripletFlow._finalise`` and the rows of
+    ``TripletFlow._rows``, in one pass and with the same float32 / float64 operations.
+
+    Returns ``reported`` (G,) and the rows' ``xy, t, flow, support, cost, normal, normal_dir,
+    full_flow, n_events, roi, window``."""
+    n_groups = keys.shape[0]
+    reported = np.empty(n_groups, np.bool_)
+    n_rows = 0
+    for g in range(n_groups):
+        agree = np.float64(inliers[g]) >= min_inlier_fraction * np.float64(used_events[g])
+        reported[g] = support[g] >= min_support and not np.isnan(full[g, 0]) and agree
+        n_rows += reported[g]
+    xy = np.empty((n_rows, 2), np.float32)
+    t = np.empty(n_rows, np.int64)
+    flow = np.empty((n_rows, 2), np.float32)
+    sup = np.empty(n_rows, np.int64)
+    cost = np.empty(n_rows, np.float32)
+    normal = np.empty(n_rows, np.bool_)
+    normal_dir = np.empty((n_rows, 2), np.float32)
+    full_flow = np.empty((n_rows, 2), np.float32)
+    n_ev = np.empty(n_rows, np.int64)
+    roi = np.empty(n_rows, np.int64)
+    window = np.empty(n_rows, np.int64)
+    r = 0
+    for g in range(n_groups):
+        if not reported[g]:
+            continue
+        w = keys[g] // n_roi
+        roi[r] = keys[g] - w * n_roi
+        window[r] = w
+        xy[r, 0], xy[r, 1] = centres[roi[r], 0], centres[roi[r], 1]
+        t[r] = w * window_us + window_us // 2
+        sup[r] = support[g]
+        n_ev[r] = n_events[g]
+        full_flow[r, 0], full_flow[r, 1] = full[g, 0], full[g, 1]
+        cost[r] = (np.float32(np.float64(best_cost[g]) / cost_scale
+                              / np.float64(max(used_events[g], 1))) if has[g] else np.nan)
+        fitted = has[g] and lines[g] >= 2
+        normal[r] = fitted and ratio[g] < aperture_ratio
+        nx, ny = np.float32(major[g, 0]), np.float32(major[g, 1])
+        if normal[r]:
+            speed = np.float32(normal_speed[g])
+            flow[r, 0], flow[r, 1] = speed * nx, speed * ny
+            normal_dir[r, 0], normal_dir[r, 1] = nx, ny
+        else:
+            if fitted:
+                flow[r, 0], flow[r, 1] = np.float32(fit_flow[g, 0]), np.float32(fit_flow[g, 1])
+            else:
+                flow[r, 0], flow[r, 1] = full[g, 0], full[g, 1]
+            normal_dir[r, 0] = normal_dir[r, 1] = np.nan
+        r += 1
+    return reported, xy, t, flow, sup, cost, normal, normal_dir, full_flow, n_ev, roi, window
 
 
 def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
@@ -365,13 +440,27 @@ class TripletFlow(nn.Module):
         s = self.config.roi_size
         if t.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
             out = np.empty(t.shape[0], np.int64)
-            _event_group_keys(x.numpy(), y.numpy(), t.numpy(), self.config.window_us, s, cols,
-                              rows, out)
+            roi_of_x, roi_of_y = self._roi_tables()
+            _event_group_keys(x.numpy(), y.numpy(), t.numpy(), self.config.window_us, roi_of_x,
+                              roi_of_y, cols * rows, out)
             return torch.from_numpy(out)
         window = torch.div(t, self.config.window_us, rounding_mode="floor")
         roi = torch.div(y, s, rounding_mode="floor") * cols + torch.div(x, s,
                                                                        rounding_mode="floor")
         return window * (cols * rows) + roi
+
+    def _roi_tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """(W,) RoI column of each pixel column and (H,) first RoI index of each pixel row's
+        RoI row, int64 (kept between calls; made again when the sensor or RoI size changed)."""
+        key = (self._sensor, self.config.roi_size)
+        cached = getattr(self, "_roi_lut", None)
+        if cached is None or cached[0] != key:
+            s = self.config.roi_size
+            cols, _ = self.num_rois
+            w, h = self._sensor
+            self._roi_lut = (key, np.arange(w, dtype=np.int64) // s,
+                             np.arange(h, dtype=np.int64) // s * cols)
+        return self._roi_lut[1], self._roi_lut[2]
 
     def _searched(self, pieces: list[Events]):
         """The searched pieces, in order. With the compiled search and several pieces, the
@@ -487,21 +576,28 @@ class TripletFlow(nn.Module):
         keys = p.g_keys[:n_g]
         n_done_events = int((p.ev_gkey < open_key).sum()) if self.return_event_flow else 0
         c_local = _positions(keys, p.gkey[:n_c])
-        reg = register_groups(c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c],
-                              keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
-                              cfg.aperture_ratio, cfg.pair_budget, cfg.refine, cfg.line_gate,
-                              cfg.refine_iters, compiled=cfg.use_compiled(self.device.type),
-                              n_ordinals=self._n_ordinals,
-                              triton=cfg.use_triton(self.device.type))
         support = p.g_support[:n_g]
-        agree = reg.inliers.to(torch.float64) >= (float(cfg.min_inlier_fraction)
-                                                  * reg.used_events.to(torch.float64))
-        reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0]) & agree
-        result = self._rows(keys, reported, reg, support, p.g_events[:n_g])
+        if self._compiled_report() and n_c:
+            result, reported, full_flow = self._register_compiled(
+                keys, c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c], support,
+                p.g_events[:n_g])
+        else:
+            reg = register_groups(c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c],
+                                  keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
+                                  cfg.aperture_ratio, cfg.pair_budget, cfg.refine,
+                                  cfg.line_gate, cfg.refine_iters,
+                                  compiled=cfg.use_compiled(self.device.type),
+                                  n_ordinals=self._n_ordinals,
+                                  triton=cfg.use_triton(self.device.type))
+            agree = reg.inliers.to(torch.float64) >= (float(cfg.min_inlier_fraction)
+                                                      * reg.used_events.to(torch.float64))
+            reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0]) & agree
+            result = self._rows(keys, reported, reg, support, p.g_events[:n_g])
+            full_flow = reg.full_flow
         if self.return_event_flow:
             result.event_flow = self._event_flows(
                 c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c],
-                torch.where(reported[:, None], reg.full_flow, torch.nan), n_done_events)
+                torch.where(reported[:, None], full_flow, torch.nan), n_done_events)
         result.event_start = self._emitted
         self._emitted += n_done_events
         g, s = p.gkey[n_c:], p.seq[n_c:]
@@ -525,6 +621,40 @@ class TripletFlow(nn.Module):
             g_keys=p.g_keys[n_g:], g_events=p.g_events[n_g:], g_support=p.g_support[n_g:],
             ev_gkey=p.ev_gkey[n_done_events:])
         return result
+
+    def _compiled_report(self) -> bool:
+        """Whether ``_finalise`` registers and reports in compiled form
+        (:meth:`_register_compiled`): CPU, the compiled backend, numba, the NumPy bookkeeping
+        and the refined flow (the form that :func:`_report_rows` reproduces)."""
+        return (self.device.type == "cpu" and _NUMPY_ON_CPU and jit_available()
+                and self.config.refine and self.config.use_compiled("cpu"))
+
+    def _register_compiled(self, keys: Tensor, c_local: Tensor, seq: Tensor, ordinal: Tensor,
+                           flow: Tensor, support: Tensor, n_events: Tensor
+                           ) -> tuple[FlowResult, Tensor, Tensor]:
+        """The registration of the closed groups and their reported rows, compiled: the same
+        rows as :func:`register_groups` (compiled) and :meth:`_rows`, without their two dozen
+        small tensor operations. Returns the rows, ``reported`` (G,) and ``full_flow``
+        (G, 2)."""
+        cfg = self.config
+        if int(ordinal.max()) >= self._n_ordinals:
+            raise ValueError(f"candidate ordinals must be < n_ordinals ({self._n_ordinals})")
+        reg = register_groups_compiled_arrays(
+            c_local.numpy(), seq.numpy(), ordinal.numpy(), flow.numpy(), keys.numel(),
+            cfg.max_events_per_roi, cfg.max_hypotheses, self._n_ordinals, cfg.line_gate,
+            cfg.refine_iters, COST_SCALE, _Q_MAX, _PARALLEL_EPS, _IRLS_DELTA)
+        cols, rows = self.num_rois
+        out = _report_rows(
+            keys.numpy(), support.numpy(), n_events.numpy(), reg["has"], reg["full"],
+            reg["best_cost"], reg["used_events"], reg["inliers"], reg["lines"],
+            reg["fit_flow"], reg["ratio"], reg["major"], reg["normal_speed"], cols * rows,
+            cfg.window_us, self._device_centres().numpy(), float(COST_SCALE),
+            float(cfg.aperture_ratio), int(cfg.min_support), float(cfg.min_inlier_fraction))
+        reported, *columns = (torch.from_numpy(a) for a in out)
+        names = ("xy", "t", "flow", "support", "cost", "normal", "normal_dir", "full_flow",
+                 "n_events", "roi", "window")
+        result = FlowResult(**dict(zip(names, columns, strict=True)))
+        return result, reported, torch.from_numpy(reg["full"])
 
     def _rows(self, keys: Tensor, reported: Tensor, reg, support: Tensor,
               n_events: Tensor) -> FlowResult:

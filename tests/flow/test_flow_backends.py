@@ -193,6 +193,37 @@ def test_strips_are_chosen_by_thread_count_and_balanced():
         compiled.CompiledSearch(cfg, strips=0)
 
 
+def _numpy_strip_cuts(y, height, count):
+    """The strips' cuts in plain NumPy (bincount, cumsum, searchsorted)."""
+    n = y.shape[0]
+    cum = np.cumsum(np.bincount(y, minlength=height))
+    target = np.arange(1, count) * (n / count)
+    row = np.searchsorted(cum, target)
+    below = np.where(row > 0, cum[np.maximum(row - 1, 0)], 0)
+    cuts = np.where(target - below < cum[row] - target, row, row + 1)
+    ends = np.unique(np.clip(np.append(cuts, height), 1, height))
+    own = np.diff(np.concatenate([[0], cum[ends - 1]]))
+    return np.concatenate([[0], ends[:-1]]), ends, own
+
+
+def test_compiled_strip_cuts_equal_numpy():
+    """The compiled cuts equal the NumPy formula: spread, clustered and one-row events, more
+    strips than rows, empty rows at either end."""
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        height = int(rng.integers(1, 40))
+        n = int(rng.integers(1, 300))
+        kind = trial % 3
+        y = (rng.integers(0, height, n) if kind == 0 else
+             np.clip(rng.normal(height / 2, 2, n).round(), 0, height - 1) if kind == 1 else
+             np.full(n, rng.integers(0, height)))
+        y = np.sort(y.astype(np.int64)) if trial % 2 else y.astype(np.int64)
+        count = int(rng.integers(2, 9))
+        got = compiled._strip_cuts(y, height, count)
+        for a, b in zip(got, _numpy_strip_cuts(y, height, count), strict=True):
+            assert a.tolist() == b.tolist(), (trial, height, count)
+
+
 def test_automatic_strips_give_the_flow_of_one_strip():
     """``TripletFlow`` on the compiled backend splits large batches into strips on its own:
     the same flow as the sequential search."""
@@ -562,14 +593,17 @@ def test_compiled_group_keys_equal_the_torch_formula():
     n, cols, rows, s, w_us = 500, 7, 5, 16, 2_000
     x = rng.integers(0, cols * s, n)
     y = rng.integers(0, rows * s, n)
-    t = np.sort(rng.integers(-50_000, 50_000, n))
-    out = np.empty(n, np.int64)
-    triplet._event_group_keys(x, y, t, w_us, s, cols, rows, out)
-    tx, ty, tt = (torch.from_numpy(v) for v in (x, y, t))
-    expected = (torch.div(tt, w_us, rounding_mode="floor") * (cols * rows)
-                + torch.div(ty, s, rounding_mode="floor") * cols
-                + torch.div(tx, s, rounding_mode="floor"))
-    assert torch.equal(torch.from_numpy(out), expected)
+    roi_of_x = np.arange(cols * s) // s
+    roi_of_y = np.arange(rows * s) // s * cols
+    # sorted (windows change between events, gaps of several windows), then in any order
+    for t in (np.sort(rng.integers(-50_000, 50_000, n)), rng.integers(-50_000, 50_000, n)):
+        out = np.empty(n, np.int64)
+        triplet._event_group_keys(x, y, t, w_us, roi_of_x, roi_of_y, cols * rows, out)
+        tx, ty, tt = (torch.from_numpy(v) for v in (x, y, t))
+        expected = (torch.div(tt, w_us, rounding_mode="floor") * (cols * rows)
+                    + torch.div(ty, s, rounding_mode="floor") * cols
+                    + torch.div(tx, s, rounding_mode="floor"))
+        assert torch.equal(torch.from_numpy(out), expected)
     seq0, k = 1000, 3
     event = np.sort(rng.integers(seq0, seq0 + n, 2000))
     offset, aj, ai = rng.integers(0, 48, 2000), rng.integers(0, k, 2000), rng.integers(0, k, 2000)
@@ -634,6 +668,9 @@ def test_numpy_bookkeeping_on_cpu_gives_the_torch_flow(backend, monkeypatch):
     reference = out[0]
     assert len(reference) > 20
     for other in out[1:]:
-        for name in ("flow", "full_flow", "cost", "support", "roi", "window", "event_flow"):
-            assert torch.equal(torch.nan_to_num(getattr(reference, name).float(), 1e30),
-                               torch.nan_to_num(getattr(other, name).float(), 1e30)), name
+        for name in ("flow", "full_flow", "cost", "support", "roi", "window", "event_flow",
+                     "xy", "t", "normal", "normal_dir", "n_events"):
+            a, b = getattr(reference, name), getattr(other, name)
+            assert a.dtype == b.dtype and a.shape == b.shape, name
+            assert torch.equal(torch.nan_to_num(a.double(), 1e30),
+                               torch.nan_to_num(b.double(), 1e30)), name
