@@ -331,6 +331,64 @@ def _strip_cuts(y, height, count):
     return lo, ends, own
 
 
+@_njit(parallel=True)
+def _search_strips_merged(x, y, t, p, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+                          num_x, num_y, history, refractory, tol_abs, permille, last, hist,
+                          hist_s, lo_s, hi_s, r2, halo_pix0, halo_cell0, cap):
+    """The first pass of a batch in strips, in one call: the private rows' copy
+    (:func:`_copy_halos`), every strip's search in parallel into outputs of ``cap`` rows each
+    (:func:`_search_strips`) and, when no strip stopped early, the merge into stream order
+    (:func:`_merge_strips`).
+
+    Returns ``(complete, starts, n_outs, strip outputs (8), merged outputs (8))``; without
+    ``complete`` the merged outputs are empty and the caller goes on from ``starts``."""
+    n = x.shape[0]
+    count = lo_s.shape[0]
+    x_min, x_max = width, -1
+    for i in range(n):
+        x_min = min(x_min, x[i])
+        x_max = max(x_max, x[i])
+    _copy_halos(lo_s, hi_s, r2, width, height, x_min, x_max, last, hist, hist_s, halo_pix0,
+                halo_cell0)
+    rows = count * cap
+    o_event, o_off, o_aj, o_ai = (np.empty(rows, np.int64), np.empty(rows, np.int64),
+                                  np.empty(rows, np.int64), np.empty(rows, np.int64))
+    o_sj, o_si, o_dt = np.empty(rows, np.int64), np.empty(rows, np.int64), np.empty(rows, np.int64)
+    o_flow = np.empty((rows, 2), np.float32)
+    starts = _filled(count, 0, np.int64)
+    n_outs = _filled(count, 0, np.int64)
+    strip_pix = 2 * r2 * width
+    for s in _prange(count):
+        a, b = s * cap, (s + 1) * cap
+        k, m = _search_kernel(
+            x, y, t, p, 0, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j, num_x,
+            num_y, history, refractory, tol_abs, permille, last, hist, hist_s, o_event[a:b],
+            o_off[a:b], o_aj[a:b], o_ai[a:b], o_sj[a:b], o_si[a:b], o_dt[a:b], o_flow[a:b],
+            0, lo_s[s], hi_s[s], r2, halo_pix0 + s * strip_pix, halo_cell0 + s * 2 * strip_pix)
+        starts[s] = k
+        n_outs[s] = m
+    complete = True
+    total = 0
+    for s in range(count):
+        complete = complete and starts[s] >= n
+        total += n_outs[s]
+    if not complete:
+        total = 0
+    d_event, d_off, d_aj, d_ai = (np.empty(total, np.int64), np.empty(total, np.int64),
+                                  np.empty(total, np.int64), np.empty(total, np.int64))
+    d_sj, d_si, d_dt = (np.empty(total, np.int64), np.empty(total, np.int64),
+                        np.empty(total, np.int64))
+    d_flow = np.empty((total, 2), np.float32)
+    if complete:
+        seg_start = np.empty(count, np.int64)
+        for s in range(count):
+            seg_start[s] = s * cap
+        _merge_strips(n, seq0, seg_start, n_outs, o_event, o_off, o_aj, o_ai, o_sj, o_si,
+                      o_dt, o_flow, d_event, d_off, d_aj, d_ai, d_sj, d_si, d_dt, d_flow)
+    return (complete, starts, n_outs, o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow,
+            d_event, d_off, d_aj, d_ai, d_sj, d_si, d_dt, d_flow)
+
+
 class CompiledSearch:
     """The candidate search as one compiled event loop (CPU only; see the module docstring).
 
@@ -399,7 +457,11 @@ class CompiledSearch:
 
     def reset(self) -> None:
         """Forget every event seen."""
-        self._allocate(0)
+        # private rows for the strips the thread count allows now (more are added when
+        # needed): growing them later copies the whole state
+        strips = self.strips if self.strips is not None else min(
+            torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+        self._allocate(strips if strips > 1 else 0)
         self.next_seq = 0
         self.t_base: int | None = None
         """The base (µs) of the state's relative times; ``None`` before the first event."""
@@ -524,13 +586,18 @@ class CompiledSearch:
         self._make_room(count)
         pixels = self.width * self.height
         with torch_thread_count():
-            x = arrays[0]
-            _copy_halos(lo_s, hi_s, self._r2, self.width, self.height, int(x.min()),
-                        int(x.max()), self.last, self.hist, self.hist_s, pixels, 2 * pixels)
             capacity = self._capacity(int(own.max()))
-            starts = np.zeros(count, np.int64)
-            rounds = []  # (outputs, rows written per strip) of each pass
+            complete, starts, n_outs, *out, flow, d_event, d_off, d_aj, d_ai, d_sj, d_si, \
+                d_dt, d_flow = _search_strips_merged(
+                    *arrays, self.next_seq, *self._params(), lo_s, hi_s, self._r2, pixels,
+                    2 * pixels, capacity)
+            if complete:  # the usual case: one pass, merged in the same call
+                return [Candidates(*(torch.from_numpy(a) for a in (
+                    d_event, d_off, d_aj, d_ai, d_sj, d_si, d_dt)),
+                    flow=torch.from_numpy(d_flow))]
+            rounds = [(out, flow, n_outs, capacity)]  # (outputs, rows per strip) of each pass
             while True:
+                capacity *= 2  # a strip's output was nearly full: it goes on in a larger one
                 out = [np.empty(count * capacity, np.int64) for _ in range(7)]
                 flow = np.empty((count * capacity, 2), np.float32)
                 n_outs = np.zeros(count, np.int64)
@@ -539,7 +606,6 @@ class CompiledSearch:
                 rounds.append((out, flow, n_outs, capacity))
                 if bool((starts >= n).all()):
                     break
-                capacity *= 2  # a strip's output was nearly full: it goes on in a larger one
             seg_start, seg_len, src, src_flow = _strip_segments(rounds, count)
             total = int(seg_len.sum())
             dst = [np.empty(total, np.int64) for _ in range(7)]
