@@ -47,8 +47,9 @@ from evtrack.flow.compiled import (
     numba,
     torch_thread_count,
 )
+from evtrack.flow.registration import _IRLS_DELTA, _PARALLEL_EPS, _Q_MAX, COST_SCALE
 
-__all__ = ["register_groups_compiled"]
+__all__ = ["register_closed_groups", "register_groups_compiled"]
 
 _GOLDEN = 2654435761
 _NO_BOUND = np.int64(1) << 62
@@ -460,6 +461,169 @@ def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                 vy = (a * r1 - b * r0) / det
         fit_flow[g, 0], fit_flow[g, 1] = vx, vy
     return full, has, best_cost, inliers, lines, fit_flow, ratio, major, normal_speed
+
+
+@_njit()
+def _report_rows(keys, support, n_events, has, full, best_cost, used_events, inliers, lines,
+                 fit_flow, ratio, major, normal_speed, n_roi, window_us, centres, cost_scale,
+                 aperture_ratio, min_support, min_inlier_fraction):
+    """The reported rows of registered groups (CPU, compiled): what
+    :func:`~evtrack.flow.registration.register_groups` (with ``refine``) makes of the compiled
+    registration's outputs, the report test of ``TripletFlow._finalise`` and the rows of
+    ``TripletFlow._rows``, in one pass and with the same float32 / float64 operations.
+    ``centres``: (R, 2) float32 RoI centres; ``n_roi`` RoIs per window.
+
+    Returns ``reported`` (G,) and the rows' ``xy, t, flow, support, cost, normal, normal_dir,
+    full_flow, n_events, roi, window``."""
+    n_groups = keys.shape[0]
+    reported = np.empty(n_groups, np.bool_)
+    n_rows = 0
+    for g in range(n_groups):
+        agree = np.float64(inliers[g]) >= min_inlier_fraction * np.float64(used_events[g])
+        reported[g] = support[g] >= min_support and not np.isnan(full[g, 0]) and agree
+        n_rows += reported[g]
+    xy = np.empty((n_rows, 2), np.float32)
+    t = np.empty(n_rows, np.int64)
+    flow = np.empty((n_rows, 2), np.float32)
+    sup = np.empty(n_rows, np.int64)
+    cost = np.empty(n_rows, np.float32)
+    normal = np.empty(n_rows, np.bool_)
+    normal_dir = np.empty((n_rows, 2), np.float32)
+    full_flow = np.empty((n_rows, 2), np.float32)
+    n_ev = np.empty(n_rows, np.int64)
+    roi = np.empty(n_rows, np.int64)
+    window = np.empty(n_rows, np.int64)
+    r = 0
+    for g in range(n_groups):
+        if not reported[g]:
+            continue
+        w = keys[g] // n_roi
+        roi[r] = keys[g] - w * n_roi
+        window[r] = w
+        xy[r, 0], xy[r, 1] = centres[roi[r], 0], centres[roi[r], 1]
+        t[r] = w * window_us + window_us // 2
+        sup[r] = support[g]
+        n_ev[r] = n_events[g]
+        full_flow[r, 0], full_flow[r, 1] = full[g, 0], full[g, 1]
+        cost[r] = (np.float32(np.float64(best_cost[g]) / cost_scale
+                              / np.float64(max(used_events[g], 1))) if has[g] else np.nan)
+        fitted = has[g] and lines[g] >= 2
+        normal[r] = fitted and ratio[g] < aperture_ratio
+        nx, ny = np.float32(major[g, 0]), np.float32(major[g, 1])
+        if normal[r]:
+            speed = np.float32(normal_speed[g])
+            flow[r, 0], flow[r, 1] = speed * nx, speed * ny
+            normal_dir[r, 0], normal_dir[r, 1] = nx, ny
+        else:
+            if fitted:
+                flow[r, 0], flow[r, 1] = np.float32(fit_flow[g, 0]), np.float32(fit_flow[g, 1])
+            else:
+                flow[r, 0], flow[r, 1] = full[g, 0], full[g, 1]
+            normal_dir[r, 0] = normal_dir[r, 1] = np.nan
+        r += 1
+    return reported, xy, t, flow, sup, cost, normal, normal_dir, full_flow, n_ev, roi, window
+
+
+@_njit()
+def _group_positions(keys, gkey, slack, floor):
+    """Position of each ``gkey`` in the sorted, distinct ``keys`` (every value occurs there):
+    through a table over the keys' range when it spans at most ``slack * count + floor``,
+    else by binary search."""
+    n_k, m = keys.shape[0], gkey.shape[0]
+    out = np.empty(m, np.int64)
+    if n_k == 0 or m == 0:
+        return out
+    lo = keys[0]
+    span = keys[n_k - 1] - lo + 1
+    if span > slack * (n_k + m) + floor:
+        for i in range(m):
+            out[i] = np.searchsorted(keys, gkey[i])
+        return out
+    table = np.empty(span, np.int64)
+    for j in range(n_k):
+        table[keys[j] - lo] = j
+    for i in range(m):
+        out[i] = table[gkey[i] - lo]
+    return out
+
+
+@_njit()
+def _register_closed_kernel(keys, gkey, seq, ordinal, flow, support, n_events, centres, n_roi,
+                            window_us, max_events, max_hypotheses, n_ordinals, line_gate,
+                            refine_iters, aperture_ratio, min_support, min_inlier_fraction,
+                            cost_scale, q_max, parallel_eps, irls_delta, slack, floor):
+    group = _group_positions(keys, gkey, slack, floor)
+    n_groups = keys.shape[0]
+    (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
+     h_count) = _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events,
+                                max_hypotheses, n_ordinals)
+    (full, has, best_cost, inliers, lines, fit_flow, ratio, major,
+     normal_speed) = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts,
+                                   c_start, ev_per_group, cost_scale, q_max, parallel_eps,
+                                   line_gate, irls_delta, refine_iters)
+    (reported, xy, t, flow_out, sup, cost, normal, normal_dir, full_flow, n_ev, roi,
+     window) = _report_rows(keys, support, n_events, has, full, best_cost, ev_per_group,
+                            inliers, lines, fit_flow, ratio, major, normal_speed, n_roi,
+                            window_us, centres, cost_scale, aperture_ratio, min_support,
+                            min_inlier_fraction)
+    return (group, reported, full, xy, t, flow_out, sup, cost, normal, normal_dir, full_flow,
+            n_ev, roi, window)
+
+
+def register_closed_groups(keys: np.ndarray, gkey: np.ndarray, seq: np.ndarray,
+                           ordinal: np.ndarray, flow: np.ndarray, support: np.ndarray,
+                           n_events: np.ndarray, centres: np.ndarray, n_roi: int,
+                           window_us: int, max_events: int, max_hypotheses: int,
+                           n_ordinals: int, line_gate: float, refine_iters: int,
+                           aperture_ratio: float, min_support: int,
+                           min_inlier_fraction: float) -> tuple[np.ndarray, ...]:
+    """Register the closed RoI windows of the flow and make their reported rows, in one
+    compiled call (CPU): the group position of each candidate, the caps and Eq. 3
+    (:func:`_arrange_kernel`, :func:`_solve_kernel`), the line fit and the rows
+    (:func:`_report_rows`, with the refined flow).
+
+    Args:
+        keys: (G,) sorted distinct group keys ``window * n_roi + roi`` of the closed windows.
+        gkey: (M,) int64 group key of each candidate (each in ``keys``); candidates of one
+            event consecutive, events in stream order.
+        seq, ordinal: (M,) int64 stream index of the candidate's event, its ordinal
+            (``< n_ordinals``).
+        flow: (M, 2) float32 candidate flows, px/s.
+        support, n_events: (G,) int64 events with candidates, all events, per group.
+        centres: (n_roi, 2) float32 RoI centres, px.
+        n_roi, window_us: RoIs per window, window length (µs).
+        max_events, max_hypotheses, n_ordinals, line_gate, refine_iters: as
+            :func:`evtrack.flow.registration.register_groups`.
+        aperture_ratio, min_support, min_inlier_fraction: the flow config's report rules.
+
+    Returns:
+        ``(position (M,), reported (G,), full (G, 2), xy, t, flow, support, cost, normal,
+        normal_dir, full_flow, n_events, roi, window)``, the last eleven over the reported
+        rows (the :class:`~evtrack.flow.result.FlowResult` columns).
+
+    Raises:
+        ValueError: an ordinal ``>= n_ordinals``.
+    """
+    if numba is None:
+        raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
+    if ordinal.shape[0] and int(ordinal.max()) >= n_ordinals:
+        raise ValueError(f"candidate ordinals must be < n_ordinals ({n_ordinals})")
+    as64 = [np.ascontiguousarray(v, dtype=np.int64)
+            for v in (keys, gkey, seq, ordinal, support, n_events)]
+    with torch_thread_count():
+        return _register_closed_kernel(
+            *as64[:4], np.ascontiguousarray(flow, dtype=np.float32), *as64[4:],
+            np.ascontiguousarray(centres, dtype=np.float32), int(n_roi), int(window_us),
+            int(max_events), int(max_hypotheses), int(n_ordinals), float(line_gate),
+            int(refine_iters), float(aperture_ratio), int(min_support),
+            float(min_inlier_fraction), float(COST_SCALE), float(_Q_MAX),
+            float(_PARALLEL_EPS), float(_IRLS_DELTA), _POSITION_SLACK, _POSITION_FLOOR)
+
+
+_POSITION_SLACK = 8
+_POSITION_FLOOR = 65_536
+"""Key ranges up to ``_POSITION_SLACK * count + _POSITION_FLOOR`` get a dense position table
+(as ``triplet._positions``)."""
 
 
 _RESULT_NAMES = ("full", "has", "best_cost", "inliers", "lines", "fit_flow", "ratio", "major",

@@ -21,15 +21,12 @@ from evtrack.flow.candidates import Candidates, CandidateSearch
 from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.config import FlowConfig, search_offsets
 from evtrack.flow.registration import (
-    _IRLS_DELTA,
-    _PARALLEL_EPS,
-    _Q_MAX,
     COST_SCALE,
     hash32,
     register_groups,
     select_smallest,
 )
-from evtrack.flow.registration_compiled import register_groups_compiled_arrays
+from evtrack.flow.registration_compiled import register_closed_groups
 from evtrack.flow.result import FlowResult
 from evtrack.jit import available as jit_available
 from evtrack.jit import njit
@@ -148,66 +145,6 @@ def _merge_group_counts(old_keys, old_events, old_support, event_keys, supported
             out_keys[j], out_events[j], out_support[j] = k + lo, events[k], support[k]
             j += 1
     return out_keys, out_events, out_support
-
-
-@njit
-def _report_rows(keys, support, n_events, has, full, best_cost, used_events, inliers, lines,
-                 fit_flow, ratio, major, normal_speed, n_roi, window_us, centres, cost_scale,
-                 aperture_ratio, min_support, min_inlier_fraction):
-    """The reported rows of registered groups (CPU, compiled): what
-    :func:`~evtrack.flow.registration.register_groups` (with ``refine``) makes of the compiled
-    registration's outputs, the report test of ``TripletFlow._finalise`` and the rows of
-    ``TripletFlow._rows``, in one pass and with the same float32 / float64 operations.
-
-    Returns ``reported`` (G,) and the rows' ``xy, t, flow, support, cost, normal, normal_dir,
-    full_flow, n_events, roi, window``."""
-    n_groups = keys.shape[0]
-    reported = np.empty(n_groups, np.bool_)
-    n_rows = 0
-    for g in range(n_groups):
-        agree = np.float64(inliers[g]) >= min_inlier_fraction * np.float64(used_events[g])
-        reported[g] = support[g] >= min_support and not np.isnan(full[g, 0]) and agree
-        n_rows += reported[g]
-    xy = np.empty((n_rows, 2), np.float32)
-    t = np.empty(n_rows, np.int64)
-    flow = np.empty((n_rows, 2), np.float32)
-    sup = np.empty(n_rows, np.int64)
-    cost = np.empty(n_rows, np.float32)
-    normal = np.empty(n_rows, np.bool_)
-    normal_dir = np.empty((n_rows, 2), np.float32)
-    full_flow = np.empty((n_rows, 2), np.float32)
-    n_ev = np.empty(n_rows, np.int64)
-    roi = np.empty(n_rows, np.int64)
-    window = np.empty(n_rows, np.int64)
-    r = 0
-    for g in range(n_groups):
-        if not reported[g]:
-            continue
-        w = keys[g] // n_roi
-        roi[r] = keys[g] - w * n_roi
-        window[r] = w
-        xy[r, 0], xy[r, 1] = centres[roi[r], 0], centres[roi[r], 1]
-        t[r] = w * window_us + window_us // 2
-        sup[r] = support[g]
-        n_ev[r] = n_events[g]
-        full_flow[r, 0], full_flow[r, 1] = full[g, 0], full[g, 1]
-        cost[r] = (np.float32(np.float64(best_cost[g]) / cost_scale
-                              / np.float64(max(used_events[g], 1))) if has[g] else np.nan)
-        fitted = has[g] and lines[g] >= 2
-        normal[r] = fitted and ratio[g] < aperture_ratio
-        nx, ny = np.float32(major[g, 0]), np.float32(major[g, 1])
-        if normal[r]:
-            speed = np.float32(normal_speed[g])
-            flow[r, 0], flow[r, 1] = speed * nx, speed * ny
-            normal_dir[r, 0], normal_dir[r, 1] = nx, ny
-        else:
-            if fitted:
-                flow[r, 0], flow[r, 1] = np.float32(fit_flow[g, 0]), np.float32(fit_flow[g, 1])
-            else:
-                flow[r, 0], flow[r, 1] = full[g, 0], full[g, 1]
-            normal_dir[r, 0] = normal_dir[r, 1] = np.nan
-        r += 1
-    return reported, xy, t, flow, sup, cost, normal, normal_dir, full_flow, n_ev, roi, window
 
 
 def _dense_range(values: Tensor, count: int) -> tuple[int, int] | None:
@@ -575,13 +512,13 @@ class TripletFlow(nn.Module):
         n_c = int((p.gkey < open_key).sum())
         keys = p.g_keys[:n_g]
         n_done_events = int((p.ev_gkey < open_key).sum()) if self.return_event_flow else 0
-        c_local = _positions(keys, p.gkey[:n_c])
         support = p.g_support[:n_g]
         if self._compiled_report() and n_c:
-            result, reported, full_flow = self._register_compiled(
-                keys, c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c], support,
+            result, reported, full_flow, c_local = self._register_compiled(
+                keys, p.gkey[:n_c], p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c], support,
                 p.g_events[:n_g])
         else:
+            c_local = _positions(keys, p.gkey[:n_c])
             reg = register_groups(c_local, p.seq[:n_c], p.ordinal[:n_c], p.flow[:n_c],
                                   keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
                                   cfg.aperture_ratio, cfg.pair_budget, cfg.refine,
@@ -629,32 +566,27 @@ class TripletFlow(nn.Module):
         return (self.device.type == "cpu" and _NUMPY_ON_CPU and jit_available()
                 and self.config.refine and self.config.use_compiled("cpu"))
 
-    def _register_compiled(self, keys: Tensor, c_local: Tensor, seq: Tensor, ordinal: Tensor,
+    def _register_compiled(self, keys: Tensor, gkey: Tensor, seq: Tensor, ordinal: Tensor,
                            flow: Tensor, support: Tensor, n_events: Tensor
-                           ) -> tuple[FlowResult, Tensor, Tensor]:
-        """The registration of the closed groups and their reported rows, compiled: the same
-        rows as :func:`register_groups` (compiled) and :meth:`_rows`, without their two dozen
-        small tensor operations. Returns the rows, ``reported`` (G,) and ``full_flow``
-        (G, 2)."""
+                           ) -> tuple[FlowResult, Tensor, Tensor, Tensor]:
+        """The registration of the closed groups ``keys`` and their reported rows in one
+        compiled call (:func:`~evtrack.flow.registration_compiled.register_closed_groups`):
+        the same rows as :func:`register_groups` (compiled) and :meth:`_rows`, without their
+        two dozen small tensor operations. Returns the rows, ``reported`` (G,),
+        ``full_flow`` (G, 2) and each candidate's group position (M,)."""
         cfg = self.config
-        if int(ordinal.max()) >= self._n_ordinals:
-            raise ValueError(f"candidate ordinals must be < n_ordinals ({self._n_ordinals})")
-        reg = register_groups_compiled_arrays(
-            c_local.numpy(), seq.numpy(), ordinal.numpy(), flow.numpy(), keys.numel(),
-            cfg.max_events_per_roi, cfg.max_hypotheses, self._n_ordinals, cfg.line_gate,
-            cfg.refine_iters, COST_SCALE, _Q_MAX, _PARALLEL_EPS, _IRLS_DELTA)
         cols, rows = self.num_rois
-        out = _report_rows(
-            keys.numpy(), support.numpy(), n_events.numpy(), reg["has"], reg["full"],
-            reg["best_cost"], reg["used_events"], reg["inliers"], reg["lines"],
-            reg["fit_flow"], reg["ratio"], reg["major"], reg["normal_speed"], cols * rows,
-            cfg.window_us, self._device_centres().numpy(), float(COST_SCALE),
-            float(cfg.aperture_ratio), int(cfg.min_support), float(cfg.min_inlier_fraction))
-        reported, *columns = (torch.from_numpy(a) for a in out)
+        out = register_closed_groups(
+            keys.numpy(), gkey.numpy(), seq.numpy(), ordinal.numpy(), flow.numpy(),
+            support.numpy(), n_events.numpy(), self._device_centres().numpy(), cols * rows,
+            cfg.window_us, cfg.max_events_per_roi, cfg.max_hypotheses, self._n_ordinals,
+            cfg.line_gate, cfg.refine_iters, cfg.aperture_ratio, cfg.min_support,
+            cfg.min_inlier_fraction)
+        position, reported, full, *columns = (torch.from_numpy(a) for a in out)
         names = ("xy", "t", "flow", "support", "cost", "normal", "normal_dir", "full_flow",
                  "n_events", "roi", "window")
         result = FlowResult(**dict(zip(names, columns, strict=True)))
-        return result, reported, torch.from_numpy(reg["full"])
+        return result, reported, full, position
 
     def _rows(self, keys: Tensor, reported: Tensor, reg, support: Tensor,
               n_events: Tensor) -> FlowResult:

@@ -583,6 +583,21 @@ def test_group_key_helpers_equal_torch(spread, numpy_on_cpu, monkeypatch):
         assert torch.equal(_positions(keys, picked), torch.searchsorted(keys, picked))
 
 
+@pytest.mark.parametrize("spread", [40, 10**9])
+def test_compiled_group_positions_equal_searchsorted(spread):
+    """The registration's compiled group positions (a dense table over a small key range,
+    binary search over a wide one) equal ``torch.searchsorted``."""
+    from evtrack.flow.registration_compiled import _group_positions
+
+    rng = np.random.default_rng(spread % 89)
+    for n in (0, 1, 7, 5000):
+        keys = np.unique(rng.integers(-spread, spread, max(n // 3, 1)))
+        values = keys[rng.integers(0, keys.shape[0], n)]
+        got = _group_positions(keys, values, 8, 0 if spread > 100 else 65_536)
+        assert got.tolist() == torch.searchsorted(torch.from_numpy(keys),
+                                                  torch.from_numpy(values)).tolist()
+
+
 def test_compiled_group_keys_equal_the_torch_formula():
     """The compiled group keys divide with the floor, as torch's ``rounding_mode="floor"``
     (negative timestamps included), and the candidates' keys, ordinals and supported groups
