@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from evtrack.errors import EventsError, EvtrackError
-from evtrack.events import Events
+from evtrack.events import Events, _count_problems
 from evtrack.flow.candidates import Candidates, CandidateSearch
 from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.config import FlowConfig, search_offsets
@@ -96,6 +96,34 @@ def _candidate_group_keys(event, offset, age_j, age_i, seq0, gkey, history, c_g,
             supported[n_sup] = g
             n_sup += 1
     return n_sup
+
+
+@njit
+def _ingest(x, y, t, window_us, roi_of_x, roi_of_y, n_roi, c_event, c_offset, c_age_j,
+            c_age_i, c_flow, seq0, history, old_gkey, old_seq, old_ordinal, old_flow):
+    """The CPU bookkeeping of a searched batch in one pass: each event's group key (as
+    :func:`_event_group_keys`), each candidate's group key and ordinal (as
+    :func:`_candidate_group_keys`) appended to the pending candidates' ``gkey, seq,
+    ordinal, flow``, and the groups of the events with candidates.
+
+    Returns ``(event keys (n,), gkey, seq, ordinal, flow (old + new), supported keys)``."""
+    n, m, m_old = t.shape[0], c_event.shape[0], old_gkey.shape[0]
+    ev_key = np.empty(n, np.int64)
+    _event_group_keys(x, y, t, window_us, roi_of_x, roi_of_y, n_roi, ev_key)
+    gkey = np.empty(m_old + m, np.int64)
+    seq = np.empty(m_old + m, np.int64)
+    ordinal = np.empty(m_old + m, np.int64)
+    flow = np.empty((m_old + m, 2), np.float32)
+    for i in range(m_old):
+        gkey[i], seq[i], ordinal[i] = old_gkey[i], old_seq[i], old_ordinal[i]
+        flow[i, 0], flow[i, 1] = old_flow[i, 0], old_flow[i, 1]
+    supported = np.empty(m, np.int64)
+    n_sup = _candidate_group_keys(c_event, c_offset, c_age_j, c_age_i, seq0, ev_key, history,
+                                  gkey[m_old:], ordinal[m_old:], supported)
+    for c in range(m):
+        seq[m_old + c] = c_event[c]
+        flow[m_old + c, 0], flow[m_old + c, 1] = c_flow[c, 0], c_flow[c, 1]
+    return ev_key, gkey, seq, ordinal, flow, supported[:n_sup]
 
 
 @njit
@@ -364,9 +392,16 @@ class TripletFlow(nn.Module):
                               f"for {tuple(self._sensor)}")
         if not len(events):
             return
-        report = Events(events.x, events.y, events.t, events.p, self._sensor).validate()
-        if not report.ok:
-            raise EventsError(f"flow input: {report}")
+        if events.device.type == "cpu" and jit_available():  # one compiled pass when good
+            counts = _count_problems(events.x.numpy(), events.y.numpy(), events.t.numpy(),
+                                     events.p.numpy(), *self._sensor)
+            problem = any(counts[::2])
+        else:
+            problem = True
+        if problem:
+            report = Events(events.x, events.y, events.t, events.p, self._sensor).validate()
+            if not report.ok:
+                raise EventsError(f"flow input: {report}")
         if self._last_t is not None and events.t_start < self._last_t:
             raise EventsError(f"flow input: events start at t={events.t_start} µs, before the "
                               f"last event of the previous batch (t={self._last_t} µs)")
@@ -430,8 +465,10 @@ class TripletFlow(nn.Module):
                         seq0: int, finalise: bool = True) -> FlowResult:
         """Add searched events to the pending windows; register the windows they close
         (unless ``finalise`` is false: the caller registers them)."""
-        gkey = self._group_keys(x, y, t)
-        self._add_pending(gkey, cands, seq0)
+        if t.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
+            self._ingest(x, y, t, cands, seq0)
+        else:
+            self._add_pending(self._group_keys(x, y, t), cands, seq0)
         if not finalise:
             return FlowResult.empty(self.device, event_start=self._emitted,
                                     with_events=self.return_event_flow)
@@ -470,6 +507,45 @@ class TripletFlow(nn.Module):
             first_of_event[1:] = cands.event[1:] != cands.event[:-1]
         return c_g, ordinal, c_g[first_of_event]
 
+    def _ingest(self, x: Tensor, y: Tensor, t: Tensor, cands: Candidates, seq0: int) -> None:
+        """:meth:`_add_pending` of a batch's events and candidates on CPU with numba: the
+        group keys, the candidates' bookkeeping and the pending arrays in one compiled pass
+        (:func:`_ingest`), then the group counts (:func:`_merge_group_counts`)."""
+        p = self._pending
+        cols, rows = self.num_rois
+        roi_of_x, roi_of_y = self._roi_tables()
+        ev_key, gkey, seq, ordinal, flow, supported = _ingest(
+            x.numpy(), y.numpy(), t.numpy(), self.config.window_us, roi_of_x, roi_of_y,
+            cols * rows, cands.event.numpy(), cands.offset.numpy(), cands.age_j.numpy(),
+            cands.age_i.numpy(), cands.flow.numpy(), seq0, self.config.history,
+            p.gkey.numpy(), p.seq.numpy(), p.ordinal.numpy(), p.flow.numpy())
+        merged = _merge_group_counts(p.g_keys.numpy(), p.g_events.numpy(), p.g_support.numpy(),
+                                     ev_key, supported, _DENSE_SLACK, 65_536)
+        if merged is None:  # keys too spread for a table: the sort-based merge
+            keys, g_events, g_support = self._merged_counts(torch.from_numpy(ev_key),
+                                                            torch.from_numpy(supported))
+        else:
+            keys, g_events, g_support = (torch.from_numpy(a) for a in merged)
+        self._pending = _Pending(
+            gkey=torch.from_numpy(gkey), seq=torch.from_numpy(seq),
+            ordinal=torch.from_numpy(ordinal), flow=torch.from_numpy(flow), g_keys=keys,
+            g_events=g_events, g_support=g_support,
+            ev_gkey=(torch.cat([p.ev_gkey, torch.from_numpy(ev_key)])
+                     if self.return_event_flow else p.ev_gkey))
+
+    def _merged_counts(self, gkey: Tensor, supported: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The pending groups' keys and counts after adding events with keys ``gkey`` (those
+        with candidates: ``supported``), by sorting."""
+        p = self._pending
+        keys, inv = _unique_inverse(torch.cat([p.g_keys, gkey, supported]))
+        n_old, n_new = p.g_keys.numel(), gkey.numel()
+        # per group: the pending counts, + 1 per new event, + 1 per new event with candidates
+        g_events = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_events)
+        g_events.index_add_(0, inv[n_old:n_old + n_new], torch.ones_like(gkey))
+        g_support = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_support)
+        g_support.index_add_(0, inv[n_old + n_new:], torch.ones_like(supported))
+        return keys, g_events, g_support
+
     def _add_pending(self, gkey: Tensor, cands: Candidates, seq0: int) -> None:
         p = self._pending
         c_g, ordinal, supported = self._candidate_groups(gkey, cands, seq0)
@@ -481,14 +557,7 @@ class TripletFlow(nn.Module):
         if merged is not None:
             keys, g_events, g_support = (torch.from_numpy(a) for a in merged)
         else:
-            keys, inv = _unique_inverse(torch.cat([p.g_keys, gkey, supported]))
-            n_old, n_new = p.g_keys.numel(), gkey.numel()
-            # per group: the pending counts, + 1 per new event, + 1 per new event with
-            # candidates
-            g_events = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_events)
-            g_events.index_add_(0, inv[n_old:n_old + n_new], torch.ones_like(gkey))
-            g_support = torch.zeros_like(keys).index_add_(0, inv[:n_old], p.g_support)
-            g_support.index_add_(0, inv[n_old + n_new:], torch.ones_like(supported))
+            keys, g_events, g_support = self._merged_counts(gkey, supported)
         self._pending = _Pending(
             gkey=torch.cat([p.gkey, c_g]), seq=torch.cat([p.seq, cands.event]),
             ordinal=torch.cat([p.ordinal, ordinal]), flow=torch.cat([p.flow, cands.flow]),
@@ -508,8 +577,12 @@ class TripletFlow(nn.Module):
         # pending candidates are in stream order, so their windows never decrease and the
         # closed ones (key < open_key <=> window < the open window) are a prefix; g_keys are
         # sorted, so the closed groups are a prefix too
-        n_g = int(torch.searchsorted(p.g_keys, open_key))
-        n_c = int((p.gkey < open_key).sum())
+        if self.device.type == "cpu":  # (bisection finds the prefix's end too)
+            n_g = int(np.searchsorted(p.g_keys.numpy(), open_key))
+            n_c = int(np.searchsorted(p.gkey.numpy(), open_key))
+        else:
+            n_g = int(torch.searchsorted(p.g_keys, open_key))
+            n_c = int((p.gkey < open_key).sum())
         keys = p.g_keys[:n_g]
         n_done_events = int((p.ev_gkey < open_key).sum()) if self.return_event_flow else 0
         support = p.g_support[:n_g]
