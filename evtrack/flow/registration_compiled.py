@@ -21,7 +21,8 @@ runs group by group in compiled loops:
    lane's per-event minimum, a loop over the lanes that the compiler turns into SIMD
    instructions, and the rounding of those minima is branch-free per lane. A lane is
    abandoned against the bound of the best cost when its block starts, which is never below
-   the bound the one-by-one order would give it, so the arg-min is unchanged. The events'
+   the bound the one-by-one order would give it, so the arg-min is unchanged; an abandoned
+   lane leaves the SIMD loop at once (the active lanes stay packed). The events'
    nearest candidate to ``F`` is found from the smallest float32 squared distance, rounding
    only the candidates that can round to the same value (:func:`_nearest`).
 
@@ -236,29 +237,50 @@ def _lane_costs(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q, 
     """:func:`_hypothesis_cost` of ``n_lanes`` hypotheses at once.
 
     Events ``e < n_ev`` hold the candidates ``ev_ptr[e]..ev_ptr[e + 1]``. On return
-    ``total[l]`` is lane ``l``'s exact cost, or a value ``>= bound[l]`` (the evaluation stops
-    once every lane has reached its bound)."""
+    ``total[l]`` is lane ``l``'s exact cost, or a value ``>= bound[l]``: a lane whose partial
+    sum reaches its bound is dropped from the lanes still evaluated (the active lanes are
+    kept packed at the front, so the SIMD loop runs over those only), and the evaluation
+    stops once every lane has reached its bound."""
+    act = np.empty(n_lanes, np.int64)  # original lane of each active slot
+    ax = np.empty(n_lanes, np.float32)
+    ay = np.empty(n_lanes, np.float32)
+    a_bound = np.empty(n_lanes, np.int64)
+    a_total = np.empty(n_lanes, np.int64)
     for lane in range(n_lanes):
-        total[lane] = 0
+        act[lane], ax[lane], ay[lane] = lane, hx[lane], hy[lane]
+        a_bound[lane], a_total[lane] = bound[lane], 0
+    n_act = n_lanes
     for e in range(n_ev):
-        for lane in range(n_lanes):
-            mins[lane] = np.float32(np.inf)
+        for j in range(n_act):
+            mins[j] = np.float32(np.inf)
         for c in range(ev_ptr[e], ev_ptr[e + 1]):
             cx = c_x[c]
             cy = c_y[c]
-            for lane in range(n_lanes):  # SIMD over the lanes
-                dx = hx[lane] - cx
-                dy = hy[lane] - cy
+            for j in range(n_act):  # SIMD over the active lanes
+                dx = ax[j] - cx
+                dy = ay[j] - cy
                 d2 = dx * dx
                 d2 = d2 + dy * dy
-                mins[lane] = d2 if d2 < mins[lane] else mins[lane]
-        _rounded_lanes(mins, q, n_lanes, cost_scale, q_max)
+                mins[j] = d2 if d2 < mins[j] else mins[j]
+        _rounded_lanes(mins, q, n_act, cost_scale, q_max)
         done = 0
-        for lane in range(n_lanes):
-            total[lane] += q[lane]
-            done += 1 if total[lane] >= bound[lane] else 0
-        if done == n_lanes:
-            return
+        for j in range(n_act):
+            a_total[j] += q[j]
+            done += 1 if a_total[j] >= a_bound[j] else 0
+        if done:  # drop the lanes that reached their bound (their totals are final)
+            k = 0
+            for j in range(n_act):
+                if a_total[j] >= a_bound[j]:
+                    total[act[j]] = a_total[j]
+                else:
+                    act[k], ax[k], ay[k] = act[j], ax[j], ay[j]
+                    a_bound[k], a_total[k] = a_bound[j], a_total[j]
+                    k += 1
+            n_act = k
+            if n_act == 0:
+                return
+    for j in range(n_act):
+        total[act[j]] = a_total[j]
 
 
 @_njit()
