@@ -236,18 +236,25 @@ def _rounded_lanes(mins, out, n_lanes, cost_scale, q_max):
 @_njit()
 def _lane_costs(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q, cost_scale,
                 q_max):
+    """:func:`_lane_costs_into` with scratch arrays of its own."""
+    _lane_costs_into(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
+                     cost_scale, q_max, np.empty(n_lanes, np.int64),
+                     np.empty(n_lanes, np.float32), np.empty(n_lanes, np.float32),
+                     np.empty(n_lanes, np.int64), np.empty(n_lanes, np.int64))
+
+
+@_njit()
+def _lane_costs_into(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
+                     cost_scale, q_max, act, ax, ay, a_bound, a_total):
     """:func:`_hypothesis_cost` of ``n_lanes`` hypotheses at once.
 
     Events ``e < n_ev`` hold the candidates ``ev_ptr[e]..ev_ptr[e + 1]``. On return
     ``total[l]`` is lane ``l``'s exact cost, or a value ``>= bound[l]``: a lane whose partial
     sum reaches its bound is dropped from the lanes still evaluated (the active lanes are
     kept packed at the front, so the SIMD loop runs over those only), and the evaluation
-    stops once every lane has reached its bound."""
-    act = np.empty(n_lanes, np.int64)  # original lane of each active slot
-    ax = np.empty(n_lanes, np.float32)
-    ay = np.empty(n_lanes, np.float32)
-    a_bound = np.empty(n_lanes, np.int64)
-    a_total = np.empty(n_lanes, np.int64)
+    stops once every lane has reached its bound. ``act, ax, ay, a_bound, a_total``: scratch of
+    at least ``n_lanes`` (the original lane of each active slot, its hypothesis, bound and
+    partial sum)."""
     for lane in range(n_lanes):
         act[lane], ax[lane], ay[lane] = lane, hx[lane], hy[lane]
         a_bound[lane], a_total[lane] = bound[lane], 0
@@ -342,11 +349,130 @@ def _nearest(c_x, c_y, i0, i1, fx, fy, cost_scale, q_max, nonparallel_to_a=False
     return -1, np.float32(np.nan)  # not reached: the smallest d2 rounds to q_min
 
 
+@_njit()
+def _solve_group(g, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start, ev_per_group,
+                 cost_scale, q_max, gate2, eps2, irls_delta, refine_iters, full, has, best_cost,
+                 inliers, lines, fit_flow, ratio, major, normal_speed, hx, hy, ev_ptr, lx, ly,
+                 l_rank, l_bound, l_total, l_min, l_q, s_act, s_x, s_y, s_bound, s_total, ln_x,
+                 ln_y, ln_s):
+    """Group ``g`` of :func:`_solve_kernel`, its results written into the outputs; the
+    arrays after ``normal_speed`` are scratch of at least the group's hypotheses (``ev_ptr``:
+    its events + 1; ``ln_*``: its events)."""
+    major[g, 0] = 1.0  # the tensor path's direction without lines (theta = 0)
+    if h_count[g] == 0:
+        return
+    # arg-min of (cost, rank). The hypothesis nearest the median flow goes first (it is
+    # usually the winner or close, so the bound cuts the others short); then the others
+    # in rank order. A tie goes to the smaller rank.
+    c0, c1 = c_start[g], c_start[g] + counts[g]
+    h0, nh = h_start[g], h_count[g]
+    for j in range(nh):
+        hx[j], hy[j] = c_x[h_cand[h0 + j]], c_y[h_cand[h0 + j]]
+    mx, my = np.median(hx[:nh]), np.median(hy[:nh])
+    first = 0
+    for j in range(1, nh):
+        if abs(hx[j] - mx) + abs(hy[j] - my) < abs(hx[first] - mx) + abs(hy[first] - my):
+            first = j
+    g_best = _hypothesis_cost(hx[first], hy[first], c_x, c_y, c_event, c0, c1, _NO_BOUND,
+                              cost_scale, q_max)
+    best_rank = first
+    # the group's events: candidates ev_ptr[e]..ev_ptr[e + 1]
+    n_ev = ev_per_group[g]
+    e = 0
+    for c in range(c0, c1):
+        if c > c0 and c_event[c] != c_event[c - 1]:
+            e += 1
+            ev_ptr[e] = c
+    ev_ptr[0], ev_ptr[n_ev] = c0, c1
+    # the others in rank order, in blocks of lanes of about equal size. A lane's bound
+    # is taken when its block starts: the best only improves during the block, so that
+    # bound is never below the one-by-one bound and a lane abandoned against it could not
+    # have won; the lanes are then compared in rank order with the one-by-one rule.
+    n_blocks = (nh - 2 + _MAX_LANES) // _MAX_LANES
+    per_block = (nh - 2 + n_blocks) // n_blocks if n_blocks else 1
+    j = 0
+    while j < nh:
+        n_lanes = 0
+        while j < nh and n_lanes < per_block:
+            if j != first:
+                lx[n_lanes], ly[n_lanes], l_rank[n_lanes] = hx[j], hy[j], j
+                # an earlier rank also wins a tie: it must reach best + 1 to lose
+                l_bound[n_lanes] = g_best + 1 if j < best_rank else g_best
+                n_lanes += 1
+            j += 1
+        if n_lanes == 0:
+            continue
+        _lane_costs_into(lx, ly, n_lanes, c_x, c_y, ev_ptr, n_ev, l_bound, l_total, l_min,
+                     l_q, cost_scale, q_max, s_act, s_x, s_y, s_bound, s_total)
+        for lane in range(n_lanes):
+            rank = l_rank[lane]
+            bound = g_best + 1 if rank < best_rank else g_best
+            if l_total[lane] < l_bound[lane] and l_total[lane] < bound:
+                g_best, best_rank = l_total[lane], rank
+    chosen = h_cand[h0 + best_rank]
+    has[g] = True
+    best_cost[g] = g_best
+    fx, fy = c_x[chosen], c_y[chosen]
+    full[g, 0], full[g, 1] = fx, fy
+    f2 = fx * fx
+    f2 = f2 + fy * fy
+    lim2 = gate2 * max(np.float64(f2), 1.0)
+    # one constraint line per kept event that agrees with F
+    n_lines = 0
+    for e in range(n_ev):
+        e0, e1 = ev_ptr[e], ev_ptr[e + 1]
+        i1, d2_1 = _nearest(c_x, c_y, e0, e1, fx, fy, cost_scale, q_max)
+        if np.float64(d2_1) > lim2:
+            continue  # disagrees with F: neither an inlier nor a line
+        inliers[g] += 1
+        ax, ay = np.float64(c_x[i1]), np.float64(c_y[i1])
+        # the nearest not parallel to the first (the first itself is parallel)
+        i2, _ = _nearest(c_x, c_y, e0, e1, fx, fy, cost_scale, q_max, True, ax, ay, eps2)
+        if i2 >= 0:
+            tx = ax - np.float64(c_x[i2])
+            ty = ay - np.float64(c_y[i2])
+            length = max(np.sqrt(tx * tx + ty * ty), 1e-30)
+            nx, ny = -ty / length, tx / length
+            s = nx * ax + ny * ay
+            if s < 0:
+                nx, ny, s = -nx, -ny, -s
+            ln_x[n_lines], ln_y[n_lines], ln_s[n_lines] = nx, ny, s
+            n_lines += 1
+    lines[g] = n_lines
+    # IRLS intersection of the lines, from the Eq. 3 solution
+    vx, vy = np.float64(fx), np.float64(fy)
+    delta = irls_delta * max(np.sqrt(vx * vx + vy * vy), 1.0)
+    for _ in range(max(1, refine_iters)):
+        a = b = cc = r0 = r1 = 0.0
+        for i in range(n_lines):
+            nx, ny, s = ln_x[i], ln_y[i], ln_s[i]
+            w = 1.0 / max(abs(nx * vx + ny * vy - s), delta)
+            a += w * (nx * nx)
+            b += w * (nx * ny)
+            cc += w * (ny * ny)
+            r0 += (w * s) * nx
+            r1 += (w * s) * ny
+        half_tr = 0.5 * (a + cc)
+        rad = np.sqrt((0.5 * (a - cc)) ** 2 + b * b)
+        l_max, l_min = half_tr + rad, half_tr - rad
+        ratio[g] = max(l_min / max(l_max, 1e-300), 0.0) if l_max > 0 else 1.0
+        theta = 0.5 * np.arctan2(2 * b, a - cc)
+        major[g, 0], major[g, 1] = np.cos(theta), np.sin(theta)
+        normal_speed[g] = (major[g, 0] * r0 + major[g, 1] * r1) / max(l_max, 1e-300)
+        det = a * cc - b * b
+        if n_lines >= 2 and det > 1e-12 * max(l_max, 1e-300) ** 2:
+            vx = (cc * r0 - b * r1) / det
+            vy = (a * r1 - b * r0) / det
+    fit_flow[g, 0], fit_flow[g, 1] = vx, vy
+
+
 @_njit(parallel=True)
 def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                   ev_per_group, cost_scale, q_max, parallel_eps, line_gate, irls_delta,
-                  refine_iters):
-    """Step 2 of the module docstring, in parallel over the groups.
+                  refine_iters, threads):
+    """Step 2 of the module docstring, in parallel over the groups: a few tasks per thread
+    (``threads``: numba's thread count), each a run of consecutive groups with scratch arrays
+    of its own (allocated once per task, not a dozen times per group).
 
     Each hypothesis is evaluated only until its partial cost shows it cannot beat the best so
     far (a later rank must be strictly cheaper, an earlier one at most as costly), so the
@@ -364,126 +490,30 @@ def _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
     normal_speed = _filled(n_groups, 0.0, np.float64)
     gate2 = line_gate * line_gate
     eps2 = parallel_eps * parallel_eps
-    for g in _prange(n_groups):
-        major[g, 0] = 1.0  # the tensor path's direction without lines (theta = 0)
-        if h_count[g] == 0:
-            continue
-        # arg-min of (cost, rank). The hypothesis nearest the median flow goes first (it is
-        # usually the winner or close, so the bound cuts the others short); then the others
-        # in rank order. A tie goes to the smaller rank.
-        c0, c1 = c_start[g], c_start[g] + counts[g]
-        h0, nh = h_start[g], h_count[g]
-        hx = np.empty(nh, np.float32)
-        hy = np.empty(nh, np.float32)
-        for j in range(nh):
-            hx[j], hy[j] = c_x[h_cand[h0 + j]], c_y[h_cand[h0 + j]]
-        mx, my = np.median(hx), np.median(hy)
-        first = 0
-        for j in range(1, nh):
-            if abs(hx[j] - mx) + abs(hy[j] - my) < abs(hx[first] - mx) + abs(hy[first] - my):
-                first = j
-        g_best = _hypothesis_cost(hx[first], hy[first], c_x, c_y, c_event, c0, c1, _NO_BOUND,
-                                  cost_scale, q_max)
-        best_rank = first
-        # the group's events: candidates ev_ptr[e]..ev_ptr[e + 1]
-        n_ev = ev_per_group[g]
-        ev_ptr = np.empty(n_ev + 1, np.int64)
-        e = 0
-        for c in range(c0, c1):
-            if c > c0 and c_event[c] != c_event[c - 1]:
-                e += 1
-                ev_ptr[e] = c
-        ev_ptr[0], ev_ptr[n_ev] = c0, c1
-        # the others in rank order, in blocks of lanes of about equal size. A lane's bound
-        # is taken when its block starts: the best only improves during the block, so that
-        # bound is never below the one-by-one bound and a lane abandoned against it could not
-        # have won; the lanes are then compared in rank order with the one-by-one rule.
-        n_blocks = (nh - 2 + _MAX_LANES) // _MAX_LANES
-        per_block = (nh - 2 + n_blocks) // n_blocks if n_blocks else 1
-        lx = np.empty(per_block, np.float32)
-        ly = np.empty(per_block, np.float32)
-        l_rank = np.empty(per_block, np.int64)
-        l_bound = np.empty(per_block, np.int64)
-        l_total = np.empty(per_block, np.int64)
-        l_min = np.empty(per_block, np.float32)
-        l_q = np.empty(per_block, np.int64)
-        j = 0
-        while j < nh:
-            n_lanes = 0
-            while j < nh and n_lanes < per_block:
-                if j != first:
-                    lx[n_lanes], ly[n_lanes], l_rank[n_lanes] = hx[j], hy[j], j
-                    # an earlier rank also wins a tie: it must reach best + 1 to lose
-                    l_bound[n_lanes] = g_best + 1 if j < best_rank else g_best
-                    n_lanes += 1
-                j += 1
-            if n_lanes == 0:
-                continue
-            _lane_costs(lx, ly, n_lanes, c_x, c_y, ev_ptr, n_ev, l_bound, l_total, l_min,
-                        l_q, cost_scale, q_max)
-            for lane in range(n_lanes):
-                rank = l_rank[lane]
-                bound = g_best + 1 if rank < best_rank else g_best
-                if l_total[lane] < l_bound[lane] and l_total[lane] < bound:
-                    g_best, best_rank = l_total[lane], rank
-        chosen = h_cand[h0 + best_rank]
-        has[g] = True
-        best_cost[g] = g_best
-        fx, fy = c_x[chosen], c_y[chosen]
-        full[g, 0], full[g, 1] = fx, fy
-        f2 = fx * fx
-        f2 = f2 + fy * fy
-        lim2 = gate2 * max(np.float64(f2), 1.0)
-        # one constraint line per kept event that agrees with F
-        ln_x = np.empty(n_ev, np.float64)
-        ln_y = np.empty(n_ev, np.float64)
-        ln_s = np.empty(n_ev, np.float64)
-        n_lines = 0
-        for e in range(n_ev):
-            e0, e1 = ev_ptr[e], ev_ptr[e + 1]
-            i1, d2_1 = _nearest(c_x, c_y, e0, e1, fx, fy, cost_scale, q_max)
-            if np.float64(d2_1) > lim2:
-                continue  # disagrees with F: neither an inlier nor a line
-            inliers[g] += 1
-            ax, ay = np.float64(c_x[i1]), np.float64(c_y[i1])
-            # the nearest not parallel to the first (the first itself is parallel)
-            i2, _ = _nearest(c_x, c_y, e0, e1, fx, fy, cost_scale, q_max, True, ax, ay, eps2)
-            if i2 >= 0:
-                tx = ax - np.float64(c_x[i2])
-                ty = ay - np.float64(c_y[i2])
-                length = max(np.sqrt(tx * tx + ty * ty), 1e-30)
-                nx, ny = -ty / length, tx / length
-                s = nx * ax + ny * ay
-                if s < 0:
-                    nx, ny, s = -nx, -ny, -s
-                ln_x[n_lines], ln_y[n_lines], ln_s[n_lines] = nx, ny, s
-                n_lines += 1
-        lines[g] = n_lines
-        # IRLS intersection of the lines, from the Eq. 3 solution
-        vx, vy = np.float64(fx), np.float64(fy)
-        delta = irls_delta * max(np.sqrt(vx * vx + vy * vy), 1.0)
-        for _ in range(max(1, refine_iters)):
-            a = b = cc = r0 = r1 = 0.0
-            for i in range(n_lines):
-                nx, ny, s = ln_x[i], ln_y[i], ln_s[i]
-                w = 1.0 / max(abs(nx * vx + ny * vy - s), delta)
-                a += w * (nx * nx)
-                b += w * (nx * ny)
-                cc += w * (ny * ny)
-                r0 += (w * s) * nx
-                r1 += (w * s) * ny
-            half_tr = 0.5 * (a + cc)
-            rad = np.sqrt((0.5 * (a - cc)) ** 2 + b * b)
-            l_max, l_min = half_tr + rad, half_tr - rad
-            ratio[g] = max(l_min / max(l_max, 1e-300), 0.0) if l_max > 0 else 1.0
-            theta = 0.5 * np.arctan2(2 * b, a - cc)
-            major[g, 0], major[g, 1] = np.cos(theta), np.sin(theta)
-            normal_speed[g] = (major[g, 0] * r0 + major[g, 1] * r1) / max(l_max, 1e-300)
-            det = a * cc - b * b
-            if n_lines >= 2 and det > 1e-12 * max(l_max, 1e-300) ** 2:
-                vx = (cc * r0 - b * r1) / det
-                vy = (a * r1 - b * r0) / det
-        fit_flow[g, 0], fit_flow[g, 1] = vx, vy
+    n_tasks = min(n_groups, 4 * max(threads, 1))
+    for task in _prange(n_tasks):
+        g0, g1 = task * n_groups // n_tasks, (task + 1) * n_groups // n_tasks
+        max_h, max_ev = 1, 1
+        for g in range(g0, g1):
+            max_h = max(max_h, h_count[g])
+            max_ev = max(max_ev, ev_per_group[g])
+        hx, hy = np.empty(max_h, np.float32), np.empty(max_h, np.float32)
+        ev_ptr = np.empty(max_ev + 1, np.int64)
+        lx, ly = np.empty(max_h, np.float32), np.empty(max_h, np.float32)
+        l_rank, l_bound = np.empty(max_h, np.int64), np.empty(max_h, np.int64)
+        l_total, l_min = np.empty(max_h, np.int64), np.empty(max_h, np.float32)
+        l_q, s_act = np.empty(max_h, np.int64), np.empty(max_h, np.int64)
+        s_x, s_y = np.empty(max_h, np.float32), np.empty(max_h, np.float32)
+        s_bound, s_total = np.empty(max_h, np.int64), np.empty(max_h, np.int64)
+        ln_x, ln_y = np.empty(max_ev, np.float64), np.empty(max_ev, np.float64)
+        ln_s = np.empty(max_ev, np.float64)
+        for g in range(g0, g1):
+            _solve_group(g, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
+                         ev_per_group, cost_scale, q_max, gate2, eps2, irls_delta,
+                         refine_iters, full, has, best_cost, inliers, lines, fit_flow, ratio,
+                         major, normal_speed, hx, hy, ev_ptr, lx, ly, l_rank, l_bound,
+                         l_total, l_min, l_q, s_act, s_x, s_y, s_bound, s_total, ln_x, ln_y,
+                         ln_s)
     return full, has, best_cost, inliers, lines, fit_flow, ratio, major, normal_speed
 
 
@@ -575,7 +605,8 @@ def _group_positions(keys, gkey, slack, floor):
 def _register_closed_kernel(keys, gkey, seq, ordinal, flow, support, n_events, centres, n_roi,
                             window_us, max_events, max_hypotheses, n_ordinals, line_gate,
                             refine_iters, aperture_ratio, min_support, min_inlier_fraction,
-                            cost_scale, q_max, parallel_eps, irls_delta, slack, floor):
+                            cost_scale, q_max, parallel_eps, irls_delta, slack, floor,
+                            threads):
     group = _group_positions(keys, gkey, slack, floor)
     n_groups = keys.shape[0]
     (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
@@ -584,7 +615,7 @@ def _register_closed_kernel(keys, gkey, seq, ordinal, flow, support, n_events, c
     (full, has, best_cost, inliers, lines, fit_flow, ratio, major,
      normal_speed) = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts,
                                    c_start, ev_per_group, cost_scale, q_max, parallel_eps,
-                                   line_gate, irls_delta, refine_iters)
+                                   line_gate, irls_delta, refine_iters, threads)
     (reported, xy, t, flow_out, sup, cost, normal, normal_dir, full_flow, n_ev, roi,
      window) = _report_rows(keys, support, n_events, has, full, best_cost, ev_per_group,
                             inliers, lines, fit_flow, ratio, major, normal_speed, n_roi,
@@ -641,7 +672,8 @@ def register_closed_groups(keys: np.ndarray, gkey: np.ndarray, seq: np.ndarray,
             int(max_events), int(max_hypotheses), int(n_ordinals), float(line_gate),
             int(refine_iters), float(aperture_ratio), int(min_support),
             float(min_inlier_fraction), float(COST_SCALE), float(_Q_MAX),
-            float(_PARALLEL_EPS), float(_IRLS_DELTA), _POSITION_SLACK, _POSITION_FLOOR)
+            float(_PARALLEL_EPS), float(_IRLS_DELTA), _POSITION_SLACK, _POSITION_FLOOR,
+            numba.get_num_threads())
 
 
 _POSITION_SLACK = 8
@@ -672,7 +704,8 @@ def register_groups_compiled_arrays(group: np.ndarray, seq: np.ndarray, ordinal:
                                     n_ordinals)
         out = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
                             ev_per_group, float(cost_scale), float(q_max), float(parallel_eps),
-                            float(line_gate), float(irls_delta), int(refine_iters))
+                            float(line_gate), float(irls_delta), int(refine_iters),
+                            numba.get_num_threads())
     res = dict(zip(_RESULT_NAMES, out, strict=True))
     res["used_events"] = ev_per_group
     return res
