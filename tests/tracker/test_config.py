@@ -17,6 +17,21 @@ def test_shipped_yaml_equals_the_defaults() -> None:
     assert load_tracker_config(CONFIGS / "tracker.yaml").to_dict() == TrackerConfig().to_dict()
 
 
+def test_shipped_fast_object_config_changes_only_the_flow_span_and_tolerance() -> None:
+    """configs/tracker_fast.yaml: the defaults with the flow of configs/flow_fast.yaml (the
+    triplet span bound and tolerance); every other field as the defaults."""
+    from evtrack.flow import FlowConfig
+
+    fast = load_tracker_config(CONFIGS / "tracker_fast.yaml")
+    flow_fast = FlowConfig.from_yaml(CONFIGS / "flow_fast.yaml")
+    assert (fast.flow.max_span_us, fast.flow.tolerance_rel) == (flow_fast.max_span_us,
+                                                                flow_fast.tolerance_rel)
+    defaults = TrackerConfig()
+    assert fast.replace(flow=defaults.flow).to_dict() == defaults.to_dict()
+    assert fast.flow.replace(max_span_us=defaults.flow.max_span_us,
+                             tolerance_rel=defaults.flow.tolerance_rel) == defaults.flow
+
+
 def test_round_trip(tmp_path) -> None:
     cfg = TrackerConfig.from_dict({"method": "frame-flow", "flow": {"roi_size": 16},
                                    "velocity_kf": {"weighting": False},
