@@ -132,7 +132,10 @@ def _tracker_flow_defaults() -> FlowConfig:
     # poses, mask margin 32 px) the full method's RMSE on `faster` went 6.22 cm / 21.4 deg
     # (32 px) -> 5.51 / 19.0 (24) -> 4.92 / 16.4 (16) -> 4.89 / 14.9 (12) -> 6.03 / 15.4 (8).
     # The flow's generic defaults otherwise: configs/flow_fast.yaml's span bound and tighter
-    # tolerance did not help in the tracker (same set, 12 px RoIs: 5.01 cm / 15.3 deg).
+    # tolerance did not help in the tracker (same set, 12 px RoIs: 5.01 cm / 15.3 deg). On
+    # the 500 Hz set (the paper's render rate) they did: configs/tracker_fast.yaml and
+    # benchmarks/bench_tracker_configs.py (faster 12.8 -> 7.0 cm, regular same position,
+    # +0.9 deg rotation, oracle poses); not the default until measured with network poses.
     # A 12 px RoI of one 1 ms window rarely holds more than a few dozen events: the Eq. 3
     # search over 16 hypotheses from at most 32 events per RoI (generic: 48 from 64) gave the
     # same accuracy (faster 4.94 / 14.89 -> 4.88 / 14.80, regular 3.00 / 6.74 -> 2.94 / 6.62)
