@@ -234,18 +234,8 @@ def _rounded_lanes(mins, out, n_lanes, cost_scale, q_max):
 
 
 @_njit()
-def _lane_costs(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q, cost_scale,
-                q_max):
-    """:func:`_lane_costs_into` with scratch arrays of its own."""
-    _lane_costs_into(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
-                     cost_scale, q_max, np.empty(n_lanes, np.int64),
-                     np.empty(n_lanes, np.float32), np.empty(n_lanes, np.float32),
-                     np.empty(n_lanes, np.int64), np.empty(n_lanes, np.int64))
-
-
-@_njit()
-def _lane_costs_into(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
-                     cost_scale, q_max, act, ax, ay, a_bound, a_total):
+def _lane_costs(hx, hy, n_lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
+                cost_scale, q_max, act, ax, ay, a_bound, a_total):
     """:func:`_hypothesis_cost` of ``n_lanes`` hypotheses at once.
 
     Events ``e < n_ev`` hold the candidates ``ev_ptr[e]..ev_ptr[e + 1]``. On return
@@ -402,8 +392,8 @@ def _solve_group(g, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start
             j += 1
         if n_lanes == 0:
             continue
-        _lane_costs_into(lx, ly, n_lanes, c_x, c_y, ev_ptr, n_ev, l_bound, l_total, l_min,
-                     l_q, cost_scale, q_max, s_act, s_x, s_y, s_bound, s_total)
+        _lane_costs(lx, ly, n_lanes, c_x, c_y, ev_ptr, n_ev, l_bound, l_total, l_min,
+                    l_q, cost_scale, q_max, s_act, s_x, s_y, s_bound, s_total)
         for lane in range(n_lanes):
             rank = l_rank[lane]
             bound = g_best + 1 if rank < best_rank else g_best
@@ -602,20 +592,32 @@ def _group_positions(keys, gkey, slack, floor):
 
 
 @_njit()
+def _register_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypotheses,
+                     n_ordinals, cost_scale, q_max, parallel_eps, line_gate, irls_delta,
+                     refine_iters, threads):
+    """Steps 1 and 2 of the module docstring: ``(used events per group,)`` + the outputs of
+    :func:`_solve_kernel`."""
+    (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
+     h_count) = _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events,
+                                max_hypotheses, n_ordinals)
+    return (ev_per_group,) + _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event,
+                                           counts, c_start, ev_per_group, cost_scale, q_max,
+                                           parallel_eps, line_gate, irls_delta, refine_iters,
+                                           threads)
+
+
+@_njit()
 def _register_closed_kernel(keys, gkey, seq, ordinal, flow, support, n_events, centres, n_roi,
                             window_us, max_events, max_hypotheses, n_ordinals, line_gate,
                             refine_iters, aperture_ratio, min_support, min_inlier_fraction,
                             cost_scale, q_max, parallel_eps, irls_delta, slack, floor,
                             threads):
     group = _group_positions(keys, gkey, slack, floor)
-    n_groups = keys.shape[0]
-    (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
-     h_count) = _arrange_kernel(group, seq, ordinal, flow, n_groups, max_events,
-                                max_hypotheses, n_ordinals)
-    (full, has, best_cost, inliers, lines, fit_flow, ratio, major,
-     normal_speed) = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts,
-                                   c_start, ev_per_group, cost_scale, q_max, parallel_eps,
-                                   line_gate, irls_delta, refine_iters, threads)
+    (ev_per_group, full, has, best_cost, inliers, lines, fit_flow, ratio, major,
+     normal_speed) = _register_kernel(group, seq, ordinal, flow, keys.shape[0], max_events,
+                                      max_hypotheses, n_ordinals, cost_scale, q_max,
+                                      parallel_eps, line_gate, irls_delta, refine_iters,
+                                      threads)
     (reported, xy, t, flow_out, sup, cost, normal, normal_dir, full_flow, n_ev, roi,
      window) = _report_rows(keys, support, n_events, has, full, best_cost, ev_per_group,
                             inliers, lines, fit_flow, ratio, major, normal_speed, n_roi,
@@ -698,14 +700,11 @@ def register_groups_compiled_arrays(group: np.ndarray, seq: np.ndarray, ordinal:
         raise RuntimeError("the compiled flow backend needs numba (pip install numba)")
     with torch_thread_count():
         as64 = [np.ascontiguousarray(v, dtype=np.int64) for v in (group, seq, ordinal)]
-        f = np.ascontiguousarray(flow, dtype=np.float32)
-        (c_x, c_y, c_event, counts, c_start, ev_per_group, h_cand, h_start,
-         h_count) = _arrange_kernel(*as64, f, n_groups, max_events, max_hypotheses,
-                                    n_ordinals)
-        out = _solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
-                            ev_per_group, float(cost_scale), float(q_max), float(parallel_eps),
-                            float(line_gate), float(irls_delta), int(refine_iters),
-                            numba.get_num_threads())
+        ev_per_group, *out = _register_kernel(
+            *as64, np.ascontiguousarray(flow, dtype=np.float32), int(n_groups),
+            int(max_events), int(max_hypotheses), int(n_ordinals), float(cost_scale),
+            float(q_max), float(parallel_eps), float(line_gate), float(irls_delta),
+            int(refine_iters), numba.get_num_threads())
     res = dict(zip(_RESULT_NAMES, out, strict=True))
     res["used_events"] = ev_per_group
     return res

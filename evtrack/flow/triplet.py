@@ -408,14 +408,10 @@ class TripletFlow(nn.Module):
         self._last_t = events.t_end
 
     def _group_keys(self, x: Tensor, y: Tensor, t: Tensor) -> Tensor:
+        """(N,) group key of each event, by tensor ops (CUDA, or CPU without numba; on CPU
+        with numba :func:`_ingest` computes them)."""
         cols, rows = self.num_rois
         s = self.config.roi_size
-        if t.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
-            out = np.empty(t.shape[0], np.int64)
-            roi_of_x, roi_of_y = self._roi_tables()
-            _event_group_keys(x.numpy(), y.numpy(), t.numpy(), self.config.window_us, roi_of_x,
-                              roi_of_y, cols * rows, out)
-            return torch.from_numpy(out)
         window = torch.div(t, self.config.window_us, rounding_mode="floor")
         roi = torch.div(y, s, rounding_mode="floor") * cols + torch.div(x, s,
                                                                        rounding_mode="floor")
@@ -480,17 +476,8 @@ class TripletFlow(nn.Module):
                           ) -> tuple[Tensor, Tensor, Tensor]:
         """(M,) group key and (M,) ordinal of each candidate, and the group of each event
         that has candidates (its first candidate's); in NumPy on the CPU (as the table
-        helpers: the same int64 values)."""
+        helpers: the same int64 values). Without numba only: with it, :func:`_ingest`."""
         k = self.config.history
-        if self.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
-            m = len(cands)
-            c_g_np, ordinal_np = np.empty(m, np.int64), np.empty(m, np.int64)
-            supported_np = np.empty(m, np.int64)
-            n_sup = _candidate_group_keys(
-                cands.event.numpy(), cands.offset.numpy(), cands.age_j.numpy(),
-                cands.age_i.numpy(), seq0, gkey.numpy(), k, c_g_np, ordinal_np, supported_np)
-            return (torch.from_numpy(c_g_np), torch.from_numpy(ordinal_np),
-                    torch.from_numpy(supported_np[:n_sup]))
         if self.device.type == "cpu" and _NUMPY_ON_CPU:
             event = cands.event.numpy()
             c_g_np = gkey.numpy()[event - seq0]
@@ -547,17 +534,10 @@ class TripletFlow(nn.Module):
         return keys, g_events, g_support
 
     def _add_pending(self, gkey: Tensor, cands: Candidates, seq0: int) -> None:
+        """:meth:`_ingest` by tensor and NumPy operations (CUDA, or CPU without numba)."""
         p = self._pending
         c_g, ordinal, supported = self._candidate_groups(gkey, cands, seq0)
-        merged = None
-        if gkey.device.type == "cpu" and _NUMPY_ON_CPU and jit_available():
-            merged = _merge_group_counts(p.g_keys.numpy(), p.g_events.numpy(),
-                                         p.g_support.numpy(), gkey.numpy(), supported.numpy(),
-                                         _DENSE_SLACK, 65_536)
-        if merged is not None:
-            keys, g_events, g_support = (torch.from_numpy(a) for a in merged)
-        else:
-            keys, g_events, g_support = self._merged_counts(gkey, supported)
+        keys, g_events, g_support = self._merged_counts(gkey, supported)
         self._pending = _Pending(
             gkey=torch.cat([p.gkey, c_g]), seq=torch.cat([p.seq, cands.event]),
             ordinal=torch.cat([p.ordinal, ordinal]), flow=torch.cat([p.flow, cands.flow]),

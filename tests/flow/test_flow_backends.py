@@ -502,15 +502,20 @@ def test_lane_costs_equal_the_one_by_one_costs(lanes):
     exact = np.array([rc._hypothesis_cost(hx[k], hy[k], c_x, c_y, c_event, 0, ev_ptr[-1],
                                           rc._NO_BOUND, COST_SCALE, float(1 << 25))
                       for k in range(lanes)])
-    args = (c_x, c_y, ev_ptr, n_ev)
     total, mins, q = (np.empty(lanes, np.int64), np.empty(lanes, np.float32),
                       np.empty(lanes, np.int64))
+
+    def lane_costs(bound):  # into ``total``, with fresh scratch
+        rc._lane_costs(hx, hy, lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
+                       COST_SCALE, float(1 << 25), np.empty(lanes, np.int64),
+                       np.empty(lanes, np.float32), np.empty(lanes, np.float32),
+                       np.empty(lanes, np.int64), np.empty(lanes, np.int64))
+
     no_bound = np.full(lanes, rc._NO_BOUND, np.int64)
-    rc._lane_costs(hx, hy, lanes, *args, no_bound, total, mins, q, COST_SCALE,
-                   float(1 << 25))
+    lane_costs(no_bound)
     assert np.array_equal(total, exact)
     bound = np.full(lanes, int(np.median(exact)), np.int64)  # some lanes above, some below
-    rc._lane_costs(hx, hy, lanes, *args, bound, total, mins, q, COST_SCALE, float(1 << 25))
+    lane_costs(bound)
     below = exact < bound
     assert np.array_equal(total[below], exact[below])
     assert (total[~below] >= bound[~below]).all()
@@ -518,7 +523,7 @@ def test_lane_costs_equal_the_one_by_one_costs(lanes):
         assert (total[~below] < exact[~below]).any()
     # every lane at or above its bound: the evaluation stops early, above the bounds
     bound = np.full(lanes, int(exact.min()) // 2, np.int64)
-    rc._lane_costs(hx, hy, lanes, *args, bound, total, mins, q, COST_SCALE, float(1 << 25))
+    lane_costs(bound)
     assert (total >= bound).all() and (total < exact).any()
 
 
