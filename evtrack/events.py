@@ -286,12 +286,17 @@ class Events:
     __hash__ = None  # mutable tensors inside
 
     # ------------------------------------------------------------------ validation
-    def validate(self) -> EventsValidationReport:
+    def validate(self, sensor_size: tuple[int, int] | None = None) -> EventsValidationReport:
         """Check timestamp order, coordinates against the sensor, and polarity.
 
+        Args:
+            sensor_size: ``(width, height)`` to check the coordinates against instead of the
+                events' own ``sensor_size`` (a consumer's sensor).
+
         Returns a report with counts and first offending indices; never raises. Coordinates
-        are checked only for negativity when ``sensor_size`` is unknown.
+        are checked only for negativity when the sensor size is unknown.
         """
+        size = tuple(sensor_size) if sensor_size is not None else self.sensor_size
         n = len(self)
         problems: list[str] = []
         unsorted = outside = bad = 0
@@ -301,7 +306,7 @@ class Events:
             self.x, self.y, self.t, self.p)
         if n and self.device.type == "cpu" and jit_available():
             # the counts below in one compiled pass (a dozen NumPy passes otherwise)
-            w, h = self.sensor_size if self.sensor_size is not None else (-1, -1)
+            w, h = size if size is not None else (-1, -1)
             counts = _count_problems(x, y, t, p, w, h)
             if not any(counts[::2]):
                 return EventsValidationReport(n, 0, -1, 0, -1, 0, -1, ())
@@ -316,14 +321,14 @@ class Events:
                 )
         if n:
             out = (x < 0) | (y < 0)
-            if self.sensor_size is not None:
-                w, h = self.sensor_size
+            if size is not None:
+                w, h = size
                 out |= (x >= w) | (y >= h)
             outside = int(out.sum())
             if outside:
                 first_outside = _first_true(out)
                 problems.append(
-                    f"{outside} events outside the sensor {self.sensor_size}, first at index "
+                    f"{outside} events outside the sensor {size}, first at index "
                     f"{first_outside} (x={int(x[first_outside])}, y={int(y[first_outside])})"
                 )
             badp = (p != 1) & (p != -1)

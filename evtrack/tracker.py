@@ -543,7 +543,7 @@ class Tracker:
         if events.sensor_size is not None and tuple(events.sensor_size) != self.camera.size:
             raise EventsError(f"events of sensor size {tuple(events.sensor_size)} given to a "
                               f"tracker for a {self.camera.size} camera")
-        report = Events(events.x, events.y, events.t, events.p, self.camera.size).validate()
+        report = events.validate(self.camera.size)
         if not report.ok:
             raise EventsError(f"push_events: {report}")
         t_first, t_last = events.t_start, events.t_end

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from evtrack.errors import EventsError, EvtrackError
-from evtrack.events import Events, _count_problems
+from evtrack.events import Events
 from evtrack.flow.candidates import Candidates, CandidateSearch
 from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.config import FlowConfig, search_offsets
@@ -392,16 +392,9 @@ class TripletFlow(nn.Module):
                               f"for {tuple(self._sensor)}")
         if not len(events):
             return
-        if events.device.type == "cpu" and jit_available():  # one compiled pass when good
-            counts = _count_problems(events.x.numpy(), events.y.numpy(), events.t.numpy(),
-                                     events.p.numpy(), *self._sensor)
-            problem = any(counts[::2])
-        else:
-            problem = True
-        if problem:
-            report = Events(events.x, events.y, events.t, events.p, self._sensor).validate()
-            if not report.ok:
-                raise EventsError(f"flow input: {report}")
+        report = events.validate(self._sensor)
+        if not report.ok:
+            raise EventsError(f"flow input: {report}")
         if self._last_t is not None and events.t_start < self._last_t:
             raise EventsError(f"flow input: events start at t={events.t_start} µs, before the "
                               f"last event of the previous batch (t={self._last_t} µs)")

@@ -157,6 +157,18 @@ def test_compiled_problem_count_equals_the_report(sensor):
             rep.bad_polarity, rep.first_bad_polarity), trial
 
 
+def test_validate_against_a_given_sensor_size():
+    """``validate(sensor_size)`` checks the coordinates against that size instead of the
+    events' own (or their unknown one), in the compiled count and in the report."""
+    ev = Events([1, 40, 10], [1, 2, 30], [1, 2, 3], [1, -1, 1], sensor_size=(64, 48))
+    assert ev.validate().ok
+    rep = ev.validate((32, 24))
+    assert (rep.outside, rep.first_outside) == (2, 1) and "(32, 24)" in str(rep)
+    unknown = Events([1, 40, 10], [1, 2, 30], [1, 2, 3], [1, -1, 1])
+    assert unknown.validate().ok and unknown.validate((32, 24)).outside == 2
+    assert ev.validate((64, 48)) == ev.validate()
+
+
 def test_validate_ok():
     assert make_events(100).validate().ok
 
