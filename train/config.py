@@ -225,6 +225,12 @@ class ModelConfig:
             checkpoint of the same architecture and object) instead of a random
             initialisation: fine-tuning, or more epochs with a fresh schedule. Unlike
             ``--resume``, the optimiser, schedule and epoch count start afresh.
+        init_transfer: with ``init_weights``, accept weights trained on another object
+            (transfer learning: the belief and affinity maps are cuboid-generic, so a
+            network that already finds one object's cuboid corners starts closer than a
+            random one). Only the tensors are taken; the object, cuboid and weights record
+            come from this config. The architecture, hyper-parameters and input
+            normalisation must still match.
         channels_last: train in the NHWC memory format (``torch.channels_last``). On 2 CPU
             cores (oneDNN) a ``dope_lite_small`` step with the data prepared in the training
             process took 355 / 323 ms instead of 395 / 411 ms (1.11x / 1.27x, two runs of
@@ -237,7 +243,13 @@ class ModelConfig:
     mean: tuple[float, float, float] = IMAGENET_MEAN
     std: tuple[float, float, float] = IMAGENET_STD
     init_weights: str | None = None
+    init_transfer: bool = False
     channels_last: bool = False
+
+    def __post_init__(self) -> None:
+        if self.init_transfer and self.init_weights is None:
+            raise ConfigError("model.init_transfer is set but model.init_weights is not: "
+                              "name the weights to transfer from")
 
 
 @dataclass(frozen=True)

@@ -77,11 +77,13 @@ def build_module(config: TrainConfig) -> tuple[PoseLightningModule, PoseDataModu
 def _initial_network(config: TrainConfig):
     """The network loaded from ``model.init_weights``, checked against the config, in train
     mode (:func:`evtrack.models.create` refuses another architecture, object or
-    hyper-parameters; the record's input normalisation must match too)."""
+    hyper-parameters; the record's input normalisation must match too). With
+    ``model.init_transfer`` the weights may come from another object."""
     path = Path(config.model.init_weights)
     if not path.is_file():
         raise ConfigError(f"model.init_weights: {path} not found")
-    net = create(config.model.name, weights=path, object_name=config.object.name,
+    object_name = None if config.model.init_transfer else config.object.name
+    net = create(config.model.name, weights=path, object_name=object_name,
                  **config.model.kwargs)
     record, _ = load_weights_file(path)
     if (not np.allclose(record.mean, config.model.mean)

@@ -337,6 +337,31 @@ def test_init_weights_starts_from_trained_weights_with_a_fresh_schedule(trained_
             build_module(TrainConfig.from_dict(bad))
 
 
+def test_init_transfer_starts_another_object_from_trained_weights(trained_run, tmp_path):
+    cfg, first = trained_run
+    base = {**cfg.to_dict(), "output_dir": str(tmp_path), "run_name": "transfer"}
+    other = {**base["object"], "name": "mug", "dimensions": [0.08, 0.1, 0.09]}
+    transfer = TrainConfig.from_dict({**base, "object": other,
+                                      "model": {**base["model"], "init_weights": str(first.weights),
+                                                "init_transfer": True}})
+    from evtrack.train.fit import build_module
+
+    module, _ = build_module(transfer)
+    start, start_record = load_model(first.weights)
+    torch.testing.assert_close(module.net.state_dict(), start.state_dict())
+    assert module.net.training
+    # the record is the new object's: its name and cuboid, not the source weights'
+    assert module.record.object_name == "mug" and start_record.object_name == "box"
+    assert module.record.cuboid == transfer.object.cuboid() != start_record.cuboid
+    # the architecture must still match
+    with pytest.raises(WeightsError, match="architecture"):
+        build_module(TrainConfig.from_dict({**base, "object": other, "model": {
+            **base["model"], "name": "dope_lite_small", "init_weights": str(first.weights),
+            "init_transfer": True}}))
+    with pytest.raises(ConfigError, match="init_weights is not"):
+        TrainConfig.from_dict({**base, "model": {**base["model"], "init_transfer": True}})
+
+
 def test_train_and_export_commands(trained_run, tmp_path, capsys):
     cfg, result = trained_run
     config_file = result.run_dir / "config.yaml"
