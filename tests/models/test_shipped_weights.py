@@ -60,3 +60,55 @@ def test_shipped_weights_locate_the_demo_object_in_held_out_renders() -> None:
     # 9.7 cm, four rotations flipped); the bounds leave margin for numeric drift only
     assert np.median(dt) < 0.04, np.round(dt, 3)
     assert np.median(dr) < 12.0, np.round(dr, 1)
+
+
+def _held_out_errors(path, object_spec: str, object_name: str, n: int, seed: int):
+    """Median translation (m) and rotation (deg) error of the most confident detection on
+    ``n`` renders of ``object_spec`` with a seed no training run used."""
+    from evtrack.train.sim_source import SimSource, SimSourceOptions
+
+    net, record = load_model(path, object_name=object_name)
+    h, w = record.input_size
+    source = SimSource(object_spec, record.cuboid, n, (h, w), object_name=object_name,
+                       seed=seed, options=SimSourceOptions(samples_per_scene=n,
+                                                          z_range=(0.4, 0.9)))
+    try:
+        samples = [source[i] for i in range(len(source))]
+    finally:
+        source.close()
+    est = TorchPoseEstimator.from_weights(path, samples[0].K)
+    dt, dr = [], []
+    for s in samples:
+        dets = est(s.image)
+        if not dets:
+            dt.append(np.inf)
+            dr.append(180.0)
+            continue
+        T, truth = dets[0].pose.numpy(), s.poses[0]
+        dt.append(np.linalg.norm(T[:3, 3] - truth[:3, 3]))
+        c = np.clip((np.trace(T[:3, :3] @ truth[:3, :3].T) - 1) / 2, -1, 1)
+        dr.append(math.degrees(math.acos(c)))
+    return np.asarray(dt), np.asarray(dr)
+
+
+def _shipped_ycb():
+    return [(p, r) for p, r in list_weights() if r.object_name[:3].isdigit()]
+
+
+@pytest.mark.parametrize("index", range(len(_shipped_ycb())))
+def test_shipped_ycb_weights_locate_their_object_in_held_out_renders(index, ycb_dir) -> None:
+    """Each shipped YCB network (trained from the coded box's weights with
+    ``model.init_transfer``) finds its own object, rendered from the mesh in ../shared."""
+    pytest.importorskip("moderngl")
+    path, record = _shipped_ycb()[index]
+    name = record.object_name
+    assert path.stat().st_size <= 10 * 2**20
+    card = path.with_suffix(".md").read_text()
+    assert name in card and "held-out" in card.lower()  # the card states its held-out accuracy
+    mesh = ycb_dir / name / f"{name}_textured.gltf"
+    dt, dr = _held_out_errors(path, str(mesh), name, 12, seed=987_654)
+    # 003_cracker_box measures median 2.5 cm / 5.3 deg on these 12 frames at 320x240; the
+    # potted meat can's network after 108 s of training (corner identity 0.40, not shipped)
+    # 8.6 cm / 54 deg: a network that mixes its corners up fails the rotation bound
+    assert np.median(dt) < 0.04, np.round(dt, 3)
+    assert np.median(dr) < 9.0, np.round(dr, 1)

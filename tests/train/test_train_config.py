@@ -91,3 +91,23 @@ def test_overrides_and_files(tmp_path):
     bad.write_text("- a list")
     with pytest.raises(ConfigError, match="top level must be a mapping"):
         TrainConfig.from_yaml(bad)
+
+
+@pytest.mark.parametrize("path", [p for p in CONFIGS if p.stem.startswith("pose_ycb_")],
+                         ids=lambda p: p.stem)
+def test_ycb_configs_start_from_the_shipped_coded_box_network(path, monkeypatch):
+    """The YCB recipe transfers from the coded box's weights: the file it names is shipped, and
+    the network it builds holds those weights, not a random initialisation."""
+    import torch
+
+    from evtrack.models import load_model
+    from evtrack.train.fit import _initial_network
+
+    repo = Path(__file__).resolve().parents[2]
+    monkeypatch.chdir(repo)  # init_weights is relative to the repository root
+    cfg = TrainConfig.from_yaml(path)
+    assert cfg.model.init_transfer and cfg.object.name.startswith(path.stem[len("pose_ycb_"):])
+    net = _initial_network(cfg)
+    source, record = load_model(cfg.model.init_weights)
+    assert record.object_name == "coded_box" and net.training
+    torch.testing.assert_close(net.state_dict(), source.state_dict())
