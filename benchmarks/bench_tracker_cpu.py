@@ -41,6 +41,12 @@ over all alike; each child tracks the sequence twice and times the second run (t
 loads the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
 ``benchmarks/bench_tracker.py``. Printed per sequence and variant: the median processing time,
 the real-time factor (processing / sequence time) and the flow stage's time.
+
+``--frames files memory`` runs each variant twice: with the RGB-D frames decoded from the
+sequence's PNG files while tracking (as ``Tracker.track`` on a recording does, in a reader
+thread), and with them decoded beforehand, as a live camera delivers them (the tracking
+alone). A 640x480 16-bit depth PNG of the simulator takes ~6 ms to decode, 0.35 s per second
+of a 60 FPS sequence, on the same two cores.
 """
 
 from __future__ import annotations
@@ -55,7 +61,7 @@ from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3")
 
 
-def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
+def _child(sequence: Path, variant: str, method: str, threads: int, frames: str) -> dict:
     # first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
     import evtrack  # noqa: F401  # isort: skip
 
@@ -89,13 +95,14 @@ def _child(sequence: Path, variant: str, method: str, threads: int) -> dict:
               "flow_batch_steps": 10 if level >= VARIANTS.index("groups") else 5}
     if level < VARIANTS.index("eq3"):
         config["flow"] = {"max_hypotheses": 48, "max_events_per_roi": 64}
-    return time_tracking(sequence, config, threads)
+    return time_tracking(sequence, config, threads, frames)
 
 
-def _spawn(sequence: Path, variant: str, method: str, threads: int) -> dict:
+def _spawn(sequence: Path, setting: str, method: str, threads: int) -> dict:
+    variant, _, frames = setting.partition("/")
     cmd = [sys.executable, __file__, "--child", "--sequence", str(sequence), "--variants",
-           variant, "--method", method, "--threads", str(threads)]
-    return run_child(cmd, f"{sequence}, {variant}")
+           variant, "--method", method, "--threads", str(threads), "--frames", frames or "files"]
+    return run_child(cmd, f"{sequence}, {setting}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -103,13 +110,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
                     help="which cumulative variants to run (default: all)")
     add_run_arguments(ap, "variant")
+    ap.add_argument("--frames", nargs="+", choices=("files", "memory"), default=["files"],
+                    help="where the RGB-D frames come from: decoded from the sequence's image "
+                         "files while tracking (a recording), or decoded beforehand (a live "
+                         "camera: the tracking alone); several: each, side by side")
     args = ap.parse_args(argv)
     if args.child:
-        print(json.dumps(_child(args.sequence[0], args.variants[0], args.method, args.threads)))
+        print(json.dumps(_child(args.sequence[0], args.variants[0], args.method, args.threads,
+                                args.frames[0])))
         return 0
     print(f"evtrack.Tracker ({args.method}, {args.threads} threads, oracle poses), cumulative "
           f"CPU changes; median of {args.repeats} interleaved runs, each a fresh process")
-    compare(args.sequence, args.variants, "variant", args.repeats,
+    # one setting per variant, or per variant and frame source ("eq3/memory") with several
+    settings = (args.variants if len(args.frames) == 1 and args.frames[0] == "files"
+                else [f"{v}/{f}" for v in args.variants for f in args.frames])
+    compare(args.sequence, settings, "variant", args.repeats,
             lambda seq, name: _spawn(seq, name, args.method, args.threads))
     return 0
 

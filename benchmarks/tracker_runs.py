@@ -15,9 +15,15 @@ from pathlib import Path
 FIELDS = ("proc_s", "rtf", "flow_s")
 
 
-def time_tracking(sequence: Path, config: dict, threads: int) -> dict:
+def time_tracking(sequence: Path, config: dict, threads: int, frames: str = "files") -> dict:
     """Track ``sequence`` twice in this process and time the second run (the first loads the
     compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in ``bench_tracker.py``.
+
+    Args:
+        frames: ``"files"``: the tracker reads and decodes the RGB and depth frames from the
+            sequence's image files as it goes (``Tracker.track`` on a recording); ``"memory"``:
+            every frame is decoded before the timed runs, as a live RGB-D camera delivers
+            them (the tracking alone).
 
     Returns:
         ``{"proc_s": s, "rtf": processing / sequence time, "flow_s": the flow stage's s}``.
@@ -31,6 +37,12 @@ def time_tracking(sequence: Path, config: dict, threads: int) -> dict:
 
     torch.set_num_threads(threads)
     seq = Sequence.load(sequence)
+    if frames == "memory":
+        depth = [seq.depth(i) for i in range(len(seq.depth_times_us))]
+        rgb = [seq.rgb(i) for i in range(len(seq.rgb_times_us))]
+        seq.depth, seq.rgb = depth.__getitem__, rgb.__getitem__
+    elif frames != "files":
+        raise ValueError(f"frames must be 'files' or 'memory', got {frames!r}")
     cfg = TrackerConfig.from_dict({**config, "torch_threads": threads})
     result = {}
     for _ in range(2):
@@ -55,7 +67,7 @@ def run_child(cmd: list[str], what: str, env: dict | None = None) -> dict:
 
 def header(label: str) -> None:
     """The table's header; ``label`` names the compared setting."""
-    line = f"{'sequence':<32} {label:<10} {'proc s':>7} {'rtf':>6} {'flow s':>7}  runs (s)"
+    line = f"{'sequence':<32} {label:<16} {'proc s':>7} {'rtf':>6} {'flow s':>7}  runs (s)"
     print(line)
     print("-" * len(line))
 
@@ -64,7 +76,7 @@ def print_medians(sequence: Path, runs: dict[str, list[dict]]) -> None:
     """One row per setting: the medians of its runs and each run's processing time."""
     for name, rs in runs.items():
         med = {k: statistics.median(r[k] for r in rs) for k in FIELDS}
-        print(f"{sequence.name[:32]:<32} {name:<10} {med['proc_s']:>7.2f} {med['rtf']:>6.2f} "
+        print(f"{sequence.name[:32]:<32} {name:<16} {med['proc_s']:>7.2f} {med['rtf']:>6.2f} "
               f"{med['flow_s']:>7.2f}  " + " ".join(f"{r['proc_s']:.2f}" for r in rs),
               flush=True)
 
