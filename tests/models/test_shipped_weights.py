@@ -67,7 +67,7 @@ def _held_out_errors(path, object_spec: str, object_name: str, n: int, seed: int
     ``n`` renders of ``object_spec`` with a seed no training run used."""
     from evtrack.train.sim_source import SimSource, SimSourceOptions
 
-    net, record = load_model(path, object_name=object_name)
+    _, record = load_model(path, object_name=object_name)
     h, w = record.input_size
     source = SimSource(object_spec, record.cuboid, n, (h, w), object_name=object_name,
                        seed=seed, options=SimSourceOptions(samples_per_scene=n,
@@ -92,6 +92,7 @@ def _held_out_errors(path, object_spec: str, object_name: str, n: int, seed: int
 
 
 def _shipped_ycb():
+    """The shipped weights of YCB objects (their names start with the YCB number)."""
     return [(p, r) for p, r in list_weights() if r.object_name[:3].isdigit()]
 
 
