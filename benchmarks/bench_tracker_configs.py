@@ -1,7 +1,7 @@
 """Tracking errors and speed of tracker configs side by side, with oracle poses.
 
     python benchmarks/bench_tracker_configs.py --sequence DIR [DIR ...]
-        [--config configs/tracker_fast.yaml ...] [--seeds 0 1 2] [--method full]
+        [--config configs/tracker_slow.yaml ...] [--seeds 0 1 2] [--method full]
 
 Every sequence is tracked with the tracker's defaults (``configs/tracker.yaml``) and with
 each ``--config`` (files with only the fields they change, as ``TrackerConfig.from_yaml``
@@ -52,9 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sequence", type=Path, nargs="+", required=True,
                     help="sequence folders (names ending in _regular / _faster are averaged "
                          "per preset)")
-    ap.add_argument("--config", type=Path, nargs="*", default=[ROOT / "configs/tracker_fast.yaml"],
+    ap.add_argument("--config", type=Path, nargs="*", default=[ROOT / "configs/tracker_slow.yaml"],
                     help="tracker config YAMLs compared with the defaults "
-                         "(default: configs/tracker_fast.yaml)")
+                         "(default: configs/tracker_slow.yaml)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2],
                     help="oracle noise seeds (each a run per sequence and config)")
     ap.add_argument("--method", default="full", help="tracker method")

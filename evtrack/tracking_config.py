@@ -131,16 +131,23 @@ def _tracker_flow_defaults() -> FlowConfig:
     # RoI flows across it. On the benchmark set (four YCB objects, 4 kHz renders, oracle
     # poses, mask margin 32 px) the full method's RMSE on `faster` went 6.22 cm / 21.4 deg
     # (32 px) -> 5.51 / 19.0 (24) -> 4.92 / 16.4 (16) -> 4.89 / 14.9 (12) -> 6.03 / 15.4 (8).
-    # The flow's generic defaults otherwise: configs/flow_fast.yaml's span bound and tighter
-    # tolerance did not help in the tracker (same set, 12 px RoIs: 5.01 cm / 15.3 deg). On
-    # the 500 Hz set (the paper's render rate) they did: configs/tracker_fast.yaml and
-    # benchmarks/bench_tracker_configs.py (faster 12.8 -> 7.0 cm, regular same position,
-    # +0.9 deg rotation, oracle poses); not the default until measured with network poses.
+    # The span bound and tolerance of configs/flow_fast.yaml (triplets over at most 40 ms,
+    # 5 % tolerance; the flow's generic defaults: no bound, 10 %): on the 4 kHz set they
+    # tracked alike (faster 4.78 / 15.1 -> 4.90 / 15.4, regular 2.90 / 6.7 -> 2.74 / 7.4,
+    # oracle poses, 17-20 % less time); on the 500 Hz set (the paper's render rate) the
+    # generic flow lost the cracker box in two seeds of three (faster 12.8 cm / 28.4 deg ->
+    # 7.0 / 19.3; regular the same position, +0.9 deg rotation); with pose networks (the
+    # cracker box's own at 5 Hz, 2026-11-26): faster 3.98 / 7.89 -> 3.46 / 6.05 (4 kHz) and
+    # 24.4 / 37.3 -> 11.2 / 10.5 (500 Hz), regular 2.05 / 5.06 -> 2.51 / 4.31 and 1.85 /
+    # 5.00 -> 2.11 / 4.52; the demo (seeds 0-5) 13.9 cm / 23.5 deg -> 10.1 / 19.5. So they
+    # are the tracker's defaults since then; configs/tracker_slow.yaml restores the generic
+    # flow for slow motion (edges under ~50 px/s give no triplet within 40 ms).
     # A 12 px RoI of one 1 ms window rarely holds more than a few dozen events: the Eq. 3
     # search over 16 hypotheses from at most 32 events per RoI (generic: 48 from 64) gave the
     # same accuracy (faster 4.94 / 14.89 -> 4.88 / 14.80, regular 3.00 / 6.74 -> 2.94 / 6.62)
     # and cut the flow's time in the tracker by about a fifth (mustard faster 2.6 -> 2.0 s).
-    return FlowConfig(window_us=1000, roi_size=12, max_hypotheses=16, max_events_per_roi=32)
+    return FlowConfig(window_us=1000, roi_size=12, max_hypotheses=16, max_events_per_roi=32,
+                      max_span_us=40_000, tolerance_rel=0.05)
 
 
 def _pose_ukf_defaults() -> PoseUKFConfig:
@@ -309,7 +316,10 @@ class TrackerConfig:
             (normal-only rows where the flow saw one edge direction). Off, every RoI gets
             ``velocity_kf.assume_normal`` (the paper treats every flow as a normal flow).
         flow: the event optical flow (:class:`~evtrack.flow.FlowConfig`); ``velocity_step_us``
-            must be a multiple of ``flow.window_us``.
+            must be a multiple of ``flow.window_us``. The tracker's defaults differ from the
+            flow's: 1 ms windows, 12 px RoIs, Eq. 3 over 16 hypotheses from 32 events, and
+            triplets over at most 40 ms with a 5 % tolerance (fast objects; for slow motion
+            ``configs/tracker_slow.yaml``). The measurements are in ``_tracker_flow_defaults``.
         velocity_kf: the velocity Kalman filter (ablations: ``normal_flow``, ``weighting``).
         pose_ukf: the pose UKF of ``full``, ``velocity`` and ``ge``.
         pose_only_ukf: the pose UKF of the ``pose`` baseline (random-walk process noise).

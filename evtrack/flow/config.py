@@ -84,7 +84,8 @@ class FlowConfig:
             of 4-12 ms *earlier* best (``min_speed`` alone allows 300 ms spans at radius 3).
             For fast objects ``configs/flow_fast.yaml`` sets 40 ms with ``tolerance_rel``
             0.05: median relative RoI error 0.136 -> 0.092 on ``faster``, 0.116 -> 0.079 on
-            ``regular`` (4 kHz renders). It is not the default because edges slower than
+            ``regular`` (4 kHz renders); the tracker's flow (``TrackerConfig.flow``) uses
+            both by default. It is not the flow's default because edges slower than
             ``2 |d| / max_span_us`` (50 px/s for the nearest neighbours at 40 ms) give no
             candidates: on the slow DVXplorer sample of ``../shared/data/formats`` it leaves
             4 RoI flows of 1,418. A bound much shorter than 40 ms leaves a slow RoI only

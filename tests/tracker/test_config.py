@@ -17,18 +17,22 @@ def test_shipped_yaml_equals_the_defaults() -> None:
     assert load_tracker_config(CONFIGS / "tracker.yaml").to_dict() == TrackerConfig().to_dict()
 
 
-def test_shipped_fast_object_config_changes_only_the_flow_span_and_tolerance() -> None:
-    """configs/tracker_fast.yaml: the defaults with the flow of configs/flow_fast.yaml (the
-    triplet span bound and tolerance); every other field as the defaults."""
+def test_defaults_use_the_fast_object_flow_and_the_slow_config_the_generic_one() -> None:
+    """The tracker's flow bounds the triplet span and tolerance as configs/flow_fast.yaml does;
+    configs/tracker_slow.yaml is the defaults with the flow's generic span and tolerance, every
+    other field as the defaults."""
     from evtrack.flow import FlowConfig
 
-    fast = load_tracker_config(CONFIGS / "tracker_fast.yaml")
-    flow_fast = FlowConfig.from_yaml(CONFIGS / "flow_fast.yaml")
-    assert (fast.flow.max_span_us, fast.flow.tolerance_rel) == (flow_fast.max_span_us,
-                                                                flow_fast.tolerance_rel)
     defaults = TrackerConfig()
-    assert fast.replace(flow=defaults.flow).to_dict() == defaults.to_dict()
-    assert fast.flow.replace(max_span_us=defaults.flow.max_span_us,
+    flow_fast = FlowConfig.from_yaml(CONFIGS / "flow_fast.yaml")
+    assert (defaults.flow.max_span_us, defaults.flow.tolerance_rel) == (
+        flow_fast.max_span_us, flow_fast.tolerance_rel) == (40_000, 0.05)
+    slow = load_tracker_config(CONFIGS / "tracker_slow.yaml")
+    generic = FlowConfig()
+    assert (slow.flow.max_span_us, slow.flow.tolerance_rel) == (generic.max_span_us,
+                                                                generic.tolerance_rel)
+    assert slow.replace(flow=defaults.flow).to_dict() == defaults.to_dict()
+    assert slow.flow.replace(max_span_us=defaults.flow.max_span_us,
                              tolerance_rel=defaults.flow.tolerance_rel) == defaults.flow
 
 
