@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import bisect
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -191,8 +192,22 @@ class PoseTimeline:
             self._snaps[0] = self._snapshot()
         else:
             self._restore(self._snaps[j])
+        self._replay(j, times)
+        return True
+
+    def _replay(self, j: int, times: list[int],
+                twist_of: Callable[[int, int], Tensor | None] | None = None,
+                t_from: int = 0) -> None:
+        """From the state of step end ``j`` (restored), redo the steps after it, fusing the
+        kept measurements at their times; ``twist_of`` (see :meth:`remeasure`) may replace
+        the twist of each step starting at or after ``t_from`` first."""
         for i in range(j + 1, len(times)):
             t_start, t_end = times[i - 1], times[i]
+            if (twist_of is not None and t_start >= t_from
+                    and bool(self.filter.initialized[0])):
+                new = twist_of(t_start, t_end)
+                if new is not None:
+                    self._twists[i] = new.clone()
             twist = self._twists[i]
             t_cur = t_start
             for r in self._records:
@@ -202,7 +217,44 @@ class PoseTimeline:
                     t_cur = r.t_us
             self._predict(t_end - t_cur, twist)
             self._snaps[i] = self._snapshot()
-        return True
+
+    def remeasure(self, t_us: int, twist_of: Callable[[int, int], Tensor | None]) -> int:
+        """Measure again the twists of the kept steps after ``t_us``, and replay them.
+
+        For a twist-driven filter whose twists were measured without a pose (before the first
+        one, or after losing the object): once a late pose for ``t_us`` has started the track,
+        the motion of the steps since can be measured again at the poses the filter now has.
+        The kept steps from the one holding ``t_us`` on are redone in time order; before each
+        that starts at or after ``t_us``, ``twist_of(t_start, t_end)`` is called with the
+        filter holding the state at ``t_start`` (every kept measurement up to then fused) and
+        returns the step's new twist (1, 6), or ``None`` to keep the old one. Steps when the
+        filter holds no pose keep their twists and are not asked for. The state at
+        :attr:`now` is the result.
+
+        Returns:
+            The number of steps asked for a twist.
+
+        Raises:
+            ValueError: the filter is not twist-driven, or ``t_us`` is outside the kept past.
+        """
+        if not self.twist_driven:
+            raise ValueError("PoseTimeline.remeasure needs a twist-driven filter (PoseUKF)")
+        t_us = int(t_us)
+        times = list(self._times)
+        if t_us < times[0] or t_us > self.now:
+            raise ValueError(f"remeasure: {t_us} µs is outside the kept past "
+                             f"[{times[0]}, {self.now}] µs")
+        j = max(bisect.bisect_left(times, t_us) - 1, 0)
+        self._restore(self._snaps[j])
+        asked = 0
+
+        def counted(t_start: int, t_end: int) -> Tensor | None:
+            nonlocal asked
+            asked += 1
+            return twist_of(t_start, t_end)
+
+        self._replay(j, times, counted, t_us)
+        return asked
 
     def pose_at(self, t_us: int) -> tuple[Tensor, Tensor] | None:
         """``(t (3,), q (4,))`` the filter had at a kept past time ``t_us`` <= :attr:`now`:

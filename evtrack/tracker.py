@@ -166,6 +166,8 @@ class TrackerStats:
             rejections; lost: times the object was declared lost.
         twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
             measured on kept frame pairs when a late pose started the track.
+        steps_remeasured: velocity steps measured again, with RoI flows, once a late pose
+            started the track (``remeasure_on_pose``).
         depth_ranges: range measurements from depth frames given to the pose filter
             (``depth_range``); depth_ranges_skipped: depth frames without one, by reason
             (:class:`~evtrack.depth_range.RangeResult`).
@@ -192,6 +194,7 @@ class TrackerStats:
     lost: int = 0
     twist_measurements: int = 0
     twists_replayed: int = 0
+    steps_remeasured: int = 0
     depth_ranges: int = 0
     depth_ranges_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     time_s: dict[str, float] = dataclasses.field(default_factory=dict)
@@ -232,6 +235,18 @@ class _DepthFrame:
 
     t_us: int
     depth: np.ndarray
+
+
+@dataclass
+class _UnposedStep:
+    """A velocity step measured without a pose (all events, no silhouette): its RoI flows
+    and the sensor depth frame of that time, kept to be measured again once a late pose
+    starts the track (``TrackerConfig.remeasure_on_pose``)."""
+
+    uv: np.ndarray  # (N, 2) float64 px
+    flow: Tensor  # (N, 2) px/s
+    normal: Tensor  # (N,) bool
+    depth: tuple[np.ndarray | None, int | None]  # (map, t_us) of the sensor depth
 
 
 class _Timer:
@@ -419,6 +434,8 @@ class Tracker:
         # first pose is carried to the present by the measured motion
         self._velocity_before_pose = (cfg.velocity_before_pose and cfg.depth_source == "sensor"
                                       and self.method in ("full", "velocity"))
+        # ... and the steps measured so are measured again once that pose is there
+        self._remeasure_on_pose = self._velocity_before_pose and cfg.remeasure_on_pose
         self.timeline = PoseTimeline(filt, int(round(cfg.history_ms * 1e3)))
         self._zero_twist = torch.zeros(1, 6, dtype=torch.float64, device=self.device)
         self._pose_pool: ThreadPoolExecutor | None = None  # see TrackerConfig.pose_async
@@ -480,6 +497,7 @@ class Tracker:
         self._misses = 0  # pose-source misses in a row
         self._rejected_pose: tuple[int, Tensor] | None = None  # the last pose, if gated
         self._held: np.ndarray | None = None
+        self._unposed: dict[int, _UnposedStep] = {}  # by step end (µs), see _remeasure
         self._out_t: list[int] = []
         self._out_tq: list[np.ndarray] = []
         self._out_twist: list[np.ndarray] = []
@@ -818,6 +836,8 @@ class Tracker:
                         twist = self._velocity_step(dt, res, k, poly, pose)
                     else:
                         twist = self.vkf.predict(dt)
+                    if pose is None and self._remeasure_on_pose:
+                        self._keep_unposed(b, res, k)
             elif self.method == "ge":
                 lo = ev_cut[k - 1] if (ev_cut and k) else 0
                 ev_k = ev[lo:ev_cut[k]] if ev_cut else ev
@@ -912,19 +932,76 @@ class Tracker:
         uv, flow, normal = flows.step(k)
         if len(uv) == 0 or (poly is None and pose is not None):
             return self.vkf.predict(dt)
-        cfg = self.config
         if pose is None:  # before the first pose: plain patch medians, no fallback
             z = self._unranged_depth(uv)
         elif isinstance(self.depth, SensorDepth):
             z = self._step_depth(flows, k, poly, pose)
         else:
             z = self._roi_depth(uv, poly, pose)
-        kw = {"dtype": self.vkf.twist.dtype, "device": self.device}
         self.stats.roi_flows += len(uv)
         self.stats.velocity_updates += 1
+        return self._vkf_update(dt, uv, z, flow, normal)
+
+    def _vkf_update(self, dt: float, uv: np.ndarray, z: np.ndarray, flow: Tensor,
+                    normal: Tensor) -> Tensor:
+        """One VelocityKF predict + update from (N,) RoIs; returns the twist (1, 6)."""
+        kw = {"dtype": self.vkf.twist.dtype, "device": self.device}
         return self.vkf(dt, torch.as_tensor(uv, **kw).unsqueeze(0),
                         torch.as_tensor(z, **kw).unsqueeze(0), flow.unsqueeze(0),
-                        normal.unsqueeze(0) if cfg.use_flow_normal_flags else None)
+                        normal.unsqueeze(0) if self.config.use_flow_normal_flags else None)
+
+    def _keep_unposed(self, t_end: int, flows: _StepFlows, k: int) -> None:
+        """Keep step ``k`` (ending at ``t_end``) of an unposed group for :meth:`_remeasure`,
+        and forget the kept steps older than the pose filter's past."""
+        uv, flow, normal = flows.step(k)
+        depth = ((self.depth.map, self.depth.t_us) if isinstance(self.depth, SensorDepth)
+                 else (None, None))
+        self._unposed[t_end] = _UnposedStep(uv, flow, normal, depth)
+        oldest = t_end - self.timeline.horizon_us
+        while self._unposed and next(iter(self._unposed)) <= oldest:
+            del self._unposed[next(iter(self._unposed))]
+
+    def _remeasure(self, t_pose: int) -> None:
+        """The late pose of ``t_pose`` started the track: measure the kept unposed steps
+        after it again, each at the pose the filter has at its start (RoIs inside the
+        silhouette, depths in its range, the object's centre as the velocity filter's pivot),
+        with the velocity filter started afresh at ``t_pose``, and replay the pose filter
+        with these twists (see ``TrackerConfig.remeasure_on_pose``)."""
+        kept, self._unposed = self._unposed, {}
+        if not kept or t_pose < self.timeline._times[0]:
+            return
+        cfg = self.config
+        self.vkf.reset(1)
+        saved = ((self.depth.map, self.depth.t_us) if isinstance(self.depth, SensorDepth)
+                 else None)
+
+        def twist_of(t_start: int, t_end: int) -> Tensor:
+            dt = (t_end - t_start) * 1e-6
+            step = kept.get(t_end)
+            pose = self._current_pose()
+            poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
+            if cfg.velocity_kf.object_centred:
+                self.vkf.set_pivot(None if poly is None
+                                   else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
+            if step is None or poly is None or not len(step.uv):
+                return self.vkf.predict(dt)
+            inside = poly.contains(step.uv, cfg.mask_margin_px)
+            if not inside.any():
+                return self.vkf.predict(dt)
+            sel = torch.from_numpy(inside)
+            if saved is not None:
+                self.depth.map, self.depth.t_us = step.depth
+            z = self._roi_depth(step.uv[inside], poly, pose, t_now=t_start)
+            self.stats.steps_remeasured += 1
+            return self._vkf_update(dt, step.uv[inside], z, step.flow[sel.to(step.flow.device)],
+                                    step.normal[sel.to(step.normal.device)])
+
+        try:
+            with _Timer(self.stats.time_s, "velocity"):
+                self.timeline.remeasure(t_pose, twist_of)
+        finally:
+            if saved is not None:
+                self.depth.map, self.depth.t_us = saved
 
     def _unranged_depth(self, uv: np.ndarray) -> np.ndarray:
         self._expire_sensor_depth(self._t)
@@ -1018,6 +1095,8 @@ class Tracker:
             self._out_of_view_us = 0
             if self.method == "frame-flow":
                 self._replay_frame_flow(m.t_us)
+            elif self._unposed:
+                self._remeasure(m.t_us)
 
     def _agrees_with_rejected(self, t_us: int, pose: Tensor) -> bool:
         """Whether the previous pose was rejected by the gate and ``pose`` lies within the

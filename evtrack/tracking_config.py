@@ -312,6 +312,14 @@ class TrackerConfig:
             flow and the velocity filter on all events, with the sensor depth's patch medians,
             so that the first pose, which arrives ``pose_latency_ms`` late, is carried to the
             present by the measured motion (``full`` and ``velocity`` with sensor depth).
+        remeasure_on_pose: with ``velocity_before_pose``, keep those steps' RoI flows and
+            depth frames, and once the late pose has started the track, measure the steps
+            since that pose again at the poses the filter then has (RoIs inside the
+            silhouette, depths in its range, the object's centre as pivot) and carry the pose
+            to the present with these twists. Without a pose, neither the object's depth
+            range nor its centre is known: stale depth frames put many RoIs on the
+            background and the motion about the camera's origin confounds translation with
+            rotation.
         use_flow_normal_flags: pass the flow's per-RoI aperture flags to the velocity filter
             (normal-only rows where the flow saw one edge direction). Off, every RoI gets
             ``velocity_kf.assume_normal`` (the paper treats every flow as a normal flow).
@@ -362,6 +370,7 @@ class TrackerConfig:
     reinit_agree_deg_per_s: float = 180.0
     history_ms: float = 1000.0
     velocity_before_pose: bool = True
+    remeasure_on_pose: bool = True
     use_flow_normal_flags: bool = True
     flow: FlowConfig = field(default_factory=_tracker_flow_defaults)
     velocity_kf: VelocityKFConfig = field(default_factory=VelocityKFConfig)

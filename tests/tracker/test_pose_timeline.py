@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from evtrack.filters import PoseTwistUKF, PoseUKF
@@ -207,3 +208,69 @@ def test_snapshots_are_not_changed_by_in_place_writes_to_the_filter() -> None:
             line.add(1500, "pose", (before, torch.tensor([[1.0, 0.0, 0.0, 0.0]],
                                                          dtype=torch.float64)))
             assert abs(float(filt.t[0, 2]) - float(before[0, 2])) < 1e-3
+
+
+def test_remeasured_twists_equal_a_filter_started_by_the_pose_and_driven_by_them() -> None:
+    """A late first pose starts the filter at its own time; remeasure then replaces the twists
+    of the steps after it: the result equals a plain filter initialised by that pose at that
+    time and predicted with the new twists (the step the pose falls in keeps its old twist),
+    and later late poses replay over the new twists."""
+    n, t_pose, first_new = 50, 12_500, 13  # steps 13.. (t_start >= 13 ms) get new twists
+    old, new = _twists(n), -2.0 * _twists(n)
+    filt = PoseUKF(1, dtype=torch.float64)  # no pose yet
+    line = PoseTimeline(filt, horizon_us=100_000)
+    pose = _meas(0)
+    for k in range(n):
+        line.step((k + 1) * STEP, old[k])
+        if (k + 1) * STEP == 30 * STEP:  # the pose of 12.5 ms arrives at 30 ms
+            assert line.add(t_pose, "pose", pose)
+    assert bool(filt.initialized[0])
+    ref = PoseUKF(1, dtype=torch.float64)
+    ref.update(*pose)  # initialises at t_pose
+    ref.predict(old[12], (first_new * STEP - t_pose) * 1e-6)
+    asked = []
+
+    def twist_of(t_start: int, t_end: int) -> torch.Tensor:
+        k = t_start // STEP
+        asked.append((t_start, t_end))
+        # the filter holds the state at t_start: the reference's
+        torch.testing.assert_close(filt.t, ref.t, rtol=0, atol=1e-12)
+        torch.testing.assert_close(filt.q, ref.q, rtol=0, atol=1e-12)
+        ref.predict(new[k], STEP * 1e-6)
+        return new[k]
+
+    assert line.remeasure(t_pose, twist_of) == n - first_new
+    assert asked == [(k * STEP, (k + 1) * STEP) for k in range(first_new, n)]
+    torch.testing.assert_close(filt.t, ref.t, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.q, ref.q, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.cov, ref.cov, rtol=1e-9, atol=1e-15)
+    # a second late pose replays over the new twists, not the old ones
+    second = _meas(1)
+    assert line.add(40 * STEP, "pose", second)
+    ref2 = PoseUKF(1, dtype=torch.float64)
+    ref2.update(*pose)
+    ref2.predict(old[12], (first_new * STEP - t_pose) * 1e-6)
+    for k in range(first_new, n):
+        ref2.predict(new[k], STEP * 1e-6)
+        if (k + 1) * STEP == 40 * STEP:
+            ref2.update(*second)
+    torch.testing.assert_close(filt.t, ref2.t, rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.q, ref2.q, rtol=0, atol=1e-12)
+
+
+def test_remeasure_keeps_a_twist_when_asked_for_none_and_checks_its_input() -> None:
+    n = 20
+    twists = _twists(n)
+    filt = PoseUKF(1, dtype=torch.float64)
+    _start(filt)
+    line = PoseTimeline(filt, horizon_us=10_000)
+    for k in range(n):
+        line.step((k + 1) * STEP, twists[k])
+    before = (filt.t.clone(), filt.q.clone())
+    assert line.remeasure(12_000, lambda a, b: None) == 8
+    torch.testing.assert_close(filt.t, before[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(filt.q, before[1], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="outside the kept past"):
+        line.remeasure(5_000, lambda a, b: None)  # older than the 10 ms kept
+    with pytest.raises(ValueError, match="twist-driven"):
+        PoseTimeline(PoseTwistUKF(1), 10_000).remeasure(0, lambda a, b: None)

@@ -147,6 +147,27 @@ def test_frame_flow_measures_the_frames_a_late_first_pose_missed(fast_sequence, 
     assert with_replay.position_rmse_cm < 0.6 * without.position_rmse_cm
 
 
+def test_event_flow_measures_again_the_steps_a_late_first_pose_missed(fast_sequence,
+                                                                     runs) -> None:
+    """remeasure_on_pose (default): once the first pose (100 ms late) starts the track, the
+    steps since its frame, measured on all events without a pose, are measured again at the
+    timeline's poses (RoIs in the silhouette, depths in its range, the object as pivot)."""
+    traj, tracker, _ = runs.get("full")
+    assert tracker.stats.steps_remeasured > 50  # measured: 80 of the 100 steps
+    plain, _ = make_tracker(fast_sequence, method="full", remeasure_on_pose=False)
+    traj_plain = plain.track(fast_sequence)
+    assert plain.stats.steps_remeasured == 0
+    gt = fast_sequence.ground_truth
+    start = int(traj.t_us[traj.status == 1][0])
+    assert start == int(traj_plain.t_us[traj_plain.status == 1][0])
+    window = {"t_start_us": start, "t_end_us": start + 100_000}
+    again = tracking_errors(traj, gt, **window)
+    without = tracking_errors(traj_plain, gt, **window)
+    # measured over the first 100 ms: 5.6 cm / 21.3 deg measured again, 6.4 cm / 26.3 without
+    assert again.rotation_rmse_deg < 0.9 * without.rotation_rmse_deg
+    assert again.position_rmse_cm < without.position_rmse_cm
+
+
 def test_velocity_noise_pivots_about_the_tracked_object(fast_sequence, runs) -> None:
     """velocity_kf.object_centred (default): the velocity filter's process noise is set about
     the object's current position (off: the paper's diagonal noise)."""
