@@ -140,6 +140,12 @@ share of the budget (hysteresis: the kept cells change seldom)."""
 _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
 """Fibonacci hashing of RoI cell indices (thinning keeps the cells of smallest hash first)."""
 
+#: µs after a late first pose whose kept RoI flows must lie in its silhouette (see
+#: Tracker._pose_explains_events)
+_REMEASURE_CHECK_US = 50_000
+#: fewer RoI flows than this in that span: no check
+_REMEASURE_CHECK_MIN_ROIS = 10
+
 FrameInput = np.ndarray | Callable[[], np.ndarray] | None
 
 
@@ -167,7 +173,9 @@ class TrackerStats:
         twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
             measured on kept frame pairs when a late pose started the track.
         steps_remeasured: velocity steps measured again, with RoI flows, once a late pose
-            started the track (``remeasure_on_pose``).
+            started the track (``remeasure_on_pose``); remeasures_skipped: late first poses
+            whose steps were not measured again, the pose not explaining the events
+            (``remeasure_min_inside``).
         depth_ranges: range measurements from depth frames given to the pose filter
             (``depth_range``); depth_ranges_skipped: depth frames without one, by reason
             (:class:`~evtrack.depth_range.RangeResult`).
@@ -195,6 +203,7 @@ class TrackerStats:
     twist_measurements: int = 0
     twists_replayed: int = 0
     steps_remeasured: int = 0
+    remeasures_skipped: int = 0
     depth_ranges: int = 0
     depth_ranges_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     time_s: dict[str, float] = dataclasses.field(default_factory=dict)
@@ -971,6 +980,9 @@ class Tracker:
         if not kept or t_pose < self.timeline._times[0]:
             return
         cfg = self.config
+        if not self._pose_explains_events(t_pose, kept):
+            self.stats.remeasures_skipped += 1
+            return
         self.vkf.reset(1)
         saved = ((self.depth.map, self.depth.t_us) if isinstance(self.depth, SensorDepth)
                  else None)
@@ -1002,6 +1014,31 @@ class Tracker:
         finally:
             if saved is not None:
                 self.depth.map, self.depth.t_us = saved
+
+    def _pose_explains_events(self, t_pose: int, kept: dict[int, _UnposedStep]) -> bool:
+        """Whether at least ``remeasure_min_inside`` of the kept RoI flows of the
+        ``_REMEASURE_CHECK_US`` after ``t_pose`` lie in the silhouette (with the mask margin)
+        at the timeline's pose of their step (carried from the pose by the unposed twists);
+        True when they are fewer than ``_REMEASURE_CHECK_MIN_ROIS``. Measured again at a
+        wrong pose, the steps lose their RoIs and take depths out of the object's range,
+        which carries the wrong pose further off than the unposed twists do."""
+        from evtrack.geometry import tq_to_matrix
+
+        inside = total = 0
+        for t_end, step in kept.items():
+            if not t_pose < t_end <= t_pose + _REMEASURE_CHECK_US or not len(step.uv):
+                continue
+            tq = self.timeline.pose_at(t_end)
+            if tq is None:
+                continue
+            pose = tq_to_matrix(tq[0].double(), tq[1].double()).cpu().numpy()
+            poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
+            total += len(step.uv)
+            if poly is not None:
+                inside += int(poly.contains(step.uv, self.config.mask_margin_px).sum())
+        if total < _REMEASURE_CHECK_MIN_ROIS:
+            return True
+        return inside / total >= self.config.remeasure_min_inside
 
     def _unranged_depth(self, uv: np.ndarray) -> np.ndarray:
         self._expire_sensor_depth(self._t)

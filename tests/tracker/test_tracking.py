@@ -11,8 +11,11 @@ import pytest
 import torch
 from tracker_helpers import make_tracker, stream
 
+from evtrack.errors import ConfigError
 from evtrack.eval.metrics import tracking_errors
 from evtrack.filters import VelocityKF
+from evtrack.pose_sources import PoseMeasurement
+from evtrack.tracking_config import TrackerConfig
 from evtrack.trajectory import STATUS_TRACKING, STATUS_WAITING
 
 
@@ -166,6 +169,38 @@ def test_event_flow_measures_again_the_steps_a_late_first_pose_missed(fast_seque
     # measured over the first 100 ms: 5.6 cm / 21.3 deg measured again, 6.4 cm / 26.3 without
     assert again.rotation_rmse_deg < 0.9 * without.rotation_rmse_deg
     assert again.position_rmse_cm < without.position_rmse_cm
+
+
+def _first_pose_shifted(source, metres: float):
+    """``source`` with its first pose moved ``metres`` along the camera's x axis."""
+    shifted = []
+
+    def call(t_us, rgb, depth):
+        m = source(t_us, rgb, depth)
+        if m is not None and not shifted:
+            shifted.append(t_us)
+            pose = m.pose.clone()
+            pose[0, 3] += metres
+            m = PoseMeasurement(m.t_us, pose, m.cov, m.confidence)
+        return m
+
+    return call
+
+
+def test_a_first_pose_that_misses_the_events_is_not_used_to_measure_again(fast_sequence
+                                                                         ) -> None:
+    """A first pose 6 cm off (about 20 px on the 128x96 image) leaves many RoI flows
+    outside its silhouette: the kept steps keep their unposed twists (remeasure_min_inside),
+    and the run equals one with remeasure_on_pose off."""
+    tracker, source = make_tracker(fast_sequence, method="full")
+    tracker.pose_source = _first_pose_shifted(source, 0.06)
+    traj = tracker.track(fast_sequence)
+    assert tracker.stats.remeasures_skipped == 1 and tracker.stats.steps_remeasured == 0
+    plain, plain_source = make_tracker(fast_sequence, method="full", remeasure_on_pose=False)
+    plain.pose_source = _first_pose_shifted(plain_source, 0.06)
+    _same(traj, plain.track(fast_sequence))
+    with pytest.raises(ConfigError, match="remeasure_min_inside"):
+        TrackerConfig(remeasure_min_inside=1.5)
 
 
 def test_velocity_noise_pivots_about_the_tracked_object(fast_sequence, runs) -> None:
