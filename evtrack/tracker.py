@@ -973,8 +973,9 @@ class Tracker:
     def _remeasure(self, t_pose: int) -> None:
         """The late pose of ``t_pose`` started the track: measure the kept unposed steps
         after it again, each at the pose the filter has at its start (RoIs inside the
-        silhouette, depths in its range, the object's centre as the velocity filter's pivot),
-        with the velocity filter started afresh at ``t_pose``, and replay the pose filter
+        silhouette, depths in its range, the object's centre as the velocity filter's pivot;
+        one pose per step group, as :meth:`_group` has), with the velocity filter started
+        afresh at ``t_pose``, and replay the pose filter
         with these twists (see ``TrackerConfig.remeasure_on_pose``)."""
         kept, self._unposed = self._unposed, {}
         if not kept or t_pose < self.timeline._times[0]:
@@ -987,14 +988,20 @@ class Tracker:
         saved = ((self.depth.map, self.depth.t_us) if isinstance(self.depth, SensorDepth)
                  else None)
 
+        group_us = cfg.velocity_step_us * cfg.flow_batch_steps
+        at: dict[str, Any] = {"group": None}  # the group's pose and silhouette, as in _group
+
         def twist_of(t_start: int, t_end: int) -> Tensor:
             dt = (t_end - t_start) * 1e-6
             step = kept.get(t_end)
-            pose = self._current_pose()
-            poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
-            if cfg.velocity_kf.object_centred:
-                self.vkf.set_pivot(None if poly is None
-                                   else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
+            if at["group"] != t_start // group_us:
+                pose = self._current_pose()
+                poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
+                at.update(group=t_start // group_us, pose=pose, poly=poly)
+                if cfg.velocity_kf.object_centred:
+                    self.vkf.set_pivot(None if poly is None else
+                                       torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
+            pose, poly = at["pose"], at["poly"]
             if step is None or poly is None or not len(step.uv):
                 return self.vkf.predict(dt)
             inside = poly.contains(step.uv, cfg.mask_margin_px)
