@@ -978,8 +978,6 @@ class Tracker:
         afresh at ``t_pose``, and replay the pose filter
         with these twists (see ``TrackerConfig.remeasure_on_pose``)."""
         kept, self._unposed = self._unposed, {}
-        if not kept or t_pose < self.timeline._times[0]:
-            return
         cfg = self.config
         if not self._pose_explains_events(t_pose, kept):
             self.stats.remeasures_skipped += 1
@@ -1029,16 +1027,13 @@ class Tracker:
         True when they are fewer than ``_REMEASURE_CHECK_MIN_ROIS``. Measured again at a
         wrong pose, the steps lose their RoIs and take depths out of the object's range,
         which carries the wrong pose further off than the unposed twists do."""
-        from evtrack.geometry import tq_to_matrix
-
         inside = total = 0
         for t_end, step in kept.items():
             if not t_pose < t_end <= t_pose + _REMEASURE_CHECK_US or not len(step.uv):
                 continue
-            tq = self.timeline.pose_at(t_end)
-            if tq is None:
+            pose = self._past_pose(t_end)
+            if pose is None:
                 continue
-            pose = tq_to_matrix(tq[0].double(), tq[1].double()).cpu().numpy()
             poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
             total += len(step.uv)
             if poly is not None:
@@ -1244,20 +1239,23 @@ class Tracker:
         A = self.rgb_to_event_twist.to(**kw)
         return (A @ V[0]).unsqueeze(0), (A @ self.frame_kf.cov[0] @ A.T).unsqueeze(0)
 
+    def _past_pose(self, t_us: int) -> np.ndarray | None:
+        """(4, 4) the pose the filter had at a kept past time (:meth:`PoseTimeline.pose_at`),
+        or ``None``."""
+        tq = self.timeline.pose_at(t_us)
+        return None if tq is None else _quat_to_matrix(tq[0].tolist(), tq[1].tolist())
+
     def _replay_frame_flow(self, t_start: int) -> None:
         """Measure the kept frame pairs from ``t_start`` (the pose that started the track) to
         now, in order, each at the timeline's pose for its first frame."""
-        from evtrack.geometry import tq_to_matrix
-
         dtype = self.ukf.t.dtype
         backlog, self._ff_backlog = self._ff_backlog, deque()
         for pair, depth in backlog:
             if pair.t0_us < t_start or pair.t_mid_us > self.timeline.now:
                 continue
-            tq = self.timeline.pose_at(pair.t0_us)
-            if tq is None:
+            pose_ev = self._past_pose(pair.t0_us)
+            if pose_ev is None:
                 continue
-            pose_ev = tq_to_matrix(tq[0].double(), tq[1].double()).cpu().numpy()
             saved = None
             if depth is not None and isinstance(self.depth, SensorDepth):
                 saved = (self.depth.map, self.depth.t_us)
