@@ -211,7 +211,9 @@ class PoseDataModule(L.LightningDataModule):
         c = self.config
         return DataLoader(
             dataset, batch_size=c.batch_size, sampler=EpochSampler(len(dataset), shuffle, seed),
-            num_workers=c.num_workers, persistent_workers=False,
+            # Workers live for the whole run: re-forking them every epoch (short epochs of a
+            # small cache) left the GPU waiting for the first batches of each epoch.
+            num_workers=c.num_workers, persistent_workers=c.num_workers > 0,
             pin_memory=torch.cuda.is_available(), drop_last=False,
         )
 

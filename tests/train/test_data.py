@@ -130,3 +130,41 @@ def test_lightning_advances_the_sampler_epoch():
               enable_progress_bar=False, enable_model_summary=False, callbacks=[Spy()],
               use_distributed_sampler=False).fit(module, dm)
     assert seen == [0, 0, 1, 1, 2, 2]  # so each epoch's augmentation differs
+
+
+def test_persistent_loader_workers_see_each_epoch():
+    """The loader's workers live for the whole run; the epoch still reaches them (through the
+    sampler's keys), so 2 workers give the batches of the main process, epoch by epoch."""
+    import lightning as L
+
+    from evtrack.train import TrainConfig, build_module
+
+    batches = {}
+    for workers in (0, 2):
+        cfg = TrainConfig.from_dict({
+            "object": {"name": "box", "dimensions": [0.1, 0.16, 0.07]},
+            "model": {"name": "dope_lite_tiny"},
+            "data": {"train_samples": 4, "val_samples": 0, "image_size": [48, 64],
+                     "batch_size": 2, "num_workers": workers},
+        })
+        module, dm = build_module(cfg)
+        seen: list[torch.Tensor] = []
+
+        class Spy(L.Callback):
+            def __init__(self, into: list[torch.Tensor]) -> None:
+                self.into = into
+
+            def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+                self.into.append(batch["image"].clone())
+
+        trainer = L.Trainer(max_epochs=3, accelerator="cpu", logger=False,
+                            enable_checkpointing=False, enable_progress_bar=False,
+                            enable_model_summary=False, callbacks=[Spy(seen)],
+                            use_distributed_sampler=False)
+        trainer.fit(module, dm)
+        assert trainer.train_dataloader.persistent_workers == (workers > 0)
+        batches[workers] = seen
+    assert len(batches[0]) == len(batches[2]) == 6
+    for a, b in zip(batches[0], batches[2], strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert not torch.equal(batches[0][0], batches[0][2])  # epoch 1 is augmented anew
