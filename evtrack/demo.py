@@ -74,6 +74,8 @@ class DemoOptions:
         depth_refine: refine the network's poses on the depth frames (ICP with the mesh).
         depth_range: fuse the object's range measured on each depth frame into the pose
             filter (the tracker's ``depth_range``; not the paper's method).
+        depth_icp: align the mesh with the depth frames and fuse the aligned poses (the
+            tracker's ``depth_icp``; not the paper's method).
         seed: seed of the trajectory, the scene, the sensor noise and the oracle.
         overwrite: replace the outputs of an earlier demo in ``out``.
         jobs: worker processes tracking the methods in parallel.
@@ -87,6 +89,7 @@ class DemoOptions:
     oracle: bool = False
     depth_refine: bool = False
     depth_range: bool = False
+    depth_icp: bool = False
     seed: int = 0
     overwrite: bool = False
     jobs: int = field(default_factory=lambda: min(2, os.cpu_count() or 1))
@@ -145,16 +148,18 @@ def demo_weights(weights: Path | None = None) -> Path:
             "demo --oracle' to use ground-truth poses with noise instead of a network") from None
 
 
-def demo_tracker_config(width: int, depth_range: bool = False) -> TrackerConfig:
+def demo_tracker_config(width: int, depth_range: bool = False, depth_icp: bool = False
+                        ) -> TrackerConfig:
     """Tracker defaults with the demo's RoI size (``DEMO_ROI_AT_REFERENCE``, at least
     ``MIN_ROI``) and the default mask margin, both scaled from 640 px to the image width;
-    ``depth_range`` sets the tracker's field of that name (off by default, as in the paper)."""
+    ``depth_range`` and ``depth_icp`` set the tracker's fields of those names (off by default,
+    as in the paper)."""
     default = TrackerConfig()
     scale = width / REFERENCE_WIDTH
     roi = max(MIN_ROI, round(DEMO_ROI_AT_REFERENCE * scale))
     return TrackerConfig.from_dict(
         {"flow": {"roi_size": roi}, "mask_margin_px": default.mask_margin_px * scale,
-         "depth_range": bool(depth_range)},
+         "depth_range": bool(depth_range), "depth_icp": bool(depth_icp)},
         "demo tracker config")
 
 
@@ -216,7 +221,8 @@ def run_demo(opts: DemoOptions, log=print) -> DemoResult:
     runs = [RunSpec(m, m, DEMO_LABELS[m]) for m in DEMO_METHODS]
     log(f"[2/3] tracking with {', '.join(DEMO_METHODS)}; pose source: {spec.label}")
     t0 = time.perf_counter()
-    results = run_benchmark(sequences, runs, demo_tracker_config(w, opts.depth_range), spec,
+    config = demo_tracker_config(w, opts.depth_range, opts.depth_icp)
+    results = run_benchmark(sequences, runs, config, spec,
                             {DEMO_OBJECT: weights} if weights else {}, opts.out,
                             jobs=min(opts.jobs, len(runs)), progress=opts.progress)
     seconds["track"] = time.perf_counter() - t0

@@ -41,7 +41,9 @@ class Measurement:
         kind: ``"pose"`` (``value`` = (t (1,3), q (1,4))), ``"pose_reinit"`` (a pose that
             re-initialises the filter if its gate rejects it), ``"twist"`` (``value`` = (1,6)) or
             ``"range"`` (``value`` = (direction (1,3), distance (1,)): the position's component
-            along a direction, see :meth:`~evtrack.filters.PoseUKF.update_range`).
+            along a direction, see :meth:`~evtrack.filters.PoseUKF.update_range`) or
+            ``"aligned"`` (``value`` = (t (1,3), q (1,4)): a pose fitted from the filter's own,
+            e.g. on a depth frame, see :meth:`~evtrack.filters.PoseUKF.update_aligned`).
         value: see ``kind``.
         cov: (1,6,6) covariance, or ``None`` for the filter's default; for a range, its (1,)
             variance (m²).
@@ -135,6 +137,8 @@ class PoseTimeline:
             self.filter.update(m.value[0], m.value[1], m.cov, reinit_after=1)
         elif m.kind == "range":
             self.filter.update_range(m.value[0], m.value[1], m.cov)
+        elif m.kind == "aligned":
+            self.filter.update_aligned(m.value[0], m.value[1], m.cov)
         else:
             self.filter.update_twist(m.value[0], m.cov)
 

@@ -102,6 +102,11 @@ from evtrack.filters.scalar_lie import normalized, rotation_matrix
 from evtrack.flow import FlowResult, TripletFlow
 from evtrack.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
 from evtrack.geometry import integrate_twist, matrix_to_tq
+
+# evtrack.models is imported here, not where depth_icp is set up: it imports torch's
+# flop counter, which imports Triton where installed (CUDA builds of torch), and Triton's LLVM
+# crashes the process when Mesa's (the headless OpenGL of depth_range) is already loaded.
+from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.pose_sources import PoseMeasurement, PoseSource
 from evtrack.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.silhouette import Silhouette, SilhouettePolygon
@@ -179,6 +184,10 @@ class TrackerStats:
         depth_ranges: range measurements from depth frames given to the pose filter
             (``depth_range``); depth_ranges_skipped: depth frames without one, by reason
             (:class:`~evtrack.depth_range.RangeResult`).
+        depth_alignments: poses aligned with depth frames given to the pose filter
+            (``depth_icp``); depth_alignments_skipped: aligned frames without one, by reason
+            (``"few depth pixels"``, ``"few fit"``: too few depth pixels fit the mesh,
+            ``"correction too large"``).
         time_s: processing time per stage (flow, velocity, pose, frames, other).
     """
 
@@ -206,6 +215,8 @@ class TrackerStats:
     remeasures_skipped: int = 0
     depth_ranges: int = 0
     depth_ranges_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
+    depth_alignments: int = 0
+    depth_alignments_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     time_s: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
@@ -362,6 +373,24 @@ def _quat_to_matrix(t, q) -> np.ndarray:
     return np.array([[*r0, tx], [*r1, ty], [*r2, tz], [0.0, 0.0, 0.0, 1.0]])
 
 
+def _alignment_covariance(res: Any, std_m: float, std_rad: float) -> np.ndarray:
+    """(6, 6) tangent covariance ``[δt, δθ]`` (m², rad²; the pose filter's left perturbation
+    about the object's origin) of a depth alignment (:class:`~evtrack.models.RefineResult`):
+    the fit's ``rmse² · information⁻¹`` for its motion ``[δv, δω]`` about ``res.centre``, carried
+    to the origin ``t`` (``δv = δt + (t − c) × δθ``), plus the floors ``std_m²``, ``std_rad²``.
+    The information is regularised by 1e-9 of its largest eigenvalue, so directions the depth
+    did not see get a variance that large rather than an infinite one."""
+    t = res.pose[:3, 3]
+    p = t - res.centre
+    M = np.eye(6)
+    M[:3, 3:] = [[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]]
+    info = M.T @ res.information @ M
+    w, V = np.linalg.eigh(0.5 * (info + info.T))
+    w = np.maximum(w, 1e-9 * max(float(w.max()), 1e-30))
+    cov = (V / w) @ V.T * max(res.rmse_m, 1e-6) ** 2
+    return cov + np.diag([std_m ** 2] * 3 + [std_rad ** 2] * 3)
+
+
 class Tracker:
     """Track one known rigid object with an event camera and an RGB-D camera.
 
@@ -417,11 +446,22 @@ class Tracker:
                                   "mesh file), not bare vertices")
             self.depth_range = DepthRange(self.mesh, self.depth.camera, cfg.depth_range_scale,
                                           cfg.depth_range_std_m)
-            # the depth maps are in the sensing camera (frame-flow's is the RGB camera), the
-            # filter's pose in the event camera
-            T = (torch.linalg.inv(self.T_event_rgb) if self.method == "frame-flow"
-                 else torch.eye(4, dtype=torch.float64))
-            self._T_depth_event = T.numpy()
+        self.depth_icp = None
+        if cfg.depth_icp and self.method != "velocity":
+            if self.mesh is None:
+                raise ConfigError("depth_icp needs the object's mesh (an ObjectMesh or a "
+                                  "mesh file), not bare vertices")
+            self.depth_icp = DepthRefiner.from_mesh(self.mesh, DepthRefineConfig(
+                model_points=cfg.depth_icp_points, max_scene_points=cfg.depth_icp_scene_points))
+            depth_camera = self.depth.camera
+            self._depth_K = depth_camera.K().numpy()
+            self._depth_dist = (None if depth_camera.dist is None
+                                else depth_camera.dist.numpy())
+        # the depth maps are in the sensing camera (frame-flow's is the RGB camera), the
+        # filter's pose in the event camera
+        T = (torch.linalg.inv(self.T_event_rgb) if self.method == "frame-flow"
+             else torch.eye(4, dtype=torch.float64))
+        self._T_depth_event = T.numpy()
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
         self._blas = BlasThreads(cfg.blas_threads)
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
@@ -494,6 +534,7 @@ class Tracker:
         elif isinstance(self.depth, ModelDepth):
             self.depth.invalidate()
         self.stats = TrackerStats()
+        self._last_alignment_us: int | None = None  # depth_icp: last aligned frame's time
         self._t: int | None = None
         self._ev_buf: list[Events] = []
         self._thin_level = 0  # event thinning keeps 0.75**level of the RoI cells (_thin)
@@ -677,7 +718,7 @@ class Tracker:
                 depth_map = depth_map.raw
             else:
                 self.depth.set_frame(t_us, depth_map)
-            if self.depth_range is not None:
+            if self.depth_range is not None or self.depth_icp is not None:
                 self._schedule(t_us, _DepthFrame(t_us, self.depth.map))
                 self._apply_due(self._t)
         if rgb is None:
@@ -1096,6 +1137,7 @@ class Tracker:
                 self._fuse_pose(item)
             elif isinstance(item, _DepthFrame):
                 self._fuse_range(item)
+                self._fuse_alignment(item)
             elif isinstance(item, _Miss):
                 self._on_miss(t_now)
             elif isinstance(item, _PoseCall):
@@ -1178,6 +1220,41 @@ class Tracker:
             if self.timeline.add(frame.t_us, "range", value,
                                  torch.tensor([res.variance], **kw)):
                 self.stats.depth_ranges += 1
+
+    def _fuse_alignment(self, frame: _DepthFrame) -> None:
+        """Align the mesh with a depth frame from the filter's pose of the frame's time and
+        fuse the aligned pose there with the fit's covariance (``depth_icp``)."""
+        if not self.initialized or self.depth_icp is None:
+            return
+        cfg = self.config
+        period_us = 1e6 / cfg.depth_icp_rate_hz
+        last = self._last_alignment_us
+        if last is not None and 0 <= frame.t_us - last < 0.9 * period_us:
+            return
+        with _Timer(self.stats.time_s, "depth_icp"):
+            state = self.timeline.pose_at(frame.t_us)
+            if state is None:
+                return
+            self._last_alignment_us = frame.t_us
+            T_ev = _quat_to_matrix(state[0].cpu().numpy(), state[1].cpu().numpy())
+            T_d = self._T_depth_event @ T_ev
+            res = self.depth_icp.refine(T_d, frame.depth, self._depth_K, self._depth_dist)
+            if not res.refined:
+                key = ("correction too large" if "exceeds" in res.reason
+                       else "few fit" if "fit" in res.reason else "few depth pixels")
+                skipped = self.stats.depth_alignments_skipped
+                skipped[key] = skipped.get(key, 0) + 1
+                return
+            cov_d = _alignment_covariance(res, cfg.depth_icp_std_m,
+                                          math.radians(cfg.depth_icp_std_deg))
+            A = np.linalg.inv(self._T_depth_event)  # depth camera -> event camera
+            T_meas = A @ res.pose
+            Ra = np.kron(np.eye(2), A[:3, :3])  # both tangent blocks rotate with the frame
+            kw = {"dtype": self.ukf.t.dtype, "device": self.device}
+            value = pose_measurement_value(torch.from_numpy(T_meas), kw["dtype"], kw["device"])
+            cov = torch.as_tensor(Ra @ cov_d @ Ra.T, **kw).reshape(1, 6, 6)
+            if self.timeline.add(frame.t_us, "aligned", value, cov):
+                self.stats.depth_alignments += 1
 
     def _fuse_twist(self, t_us: int, twist: Tensor, cov: Tensor) -> None:
         if not self.initialized:

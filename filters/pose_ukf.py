@@ -260,6 +260,67 @@ class _PoseFilter(CompilableSteps, nn.Module):
                         torch.where(keep.unsqueeze(-1), P_new, P))
         return passed
 
+    def update_aligned(
+        self,
+        t_meas: Tensor,
+        q_meas: Tensor,
+        cov_meas: Tensor,
+        valid: Tensor | None = None,
+    ) -> Tensor:
+        """Fuse a pose fitted from the filter's own pose, e.g. the object's mesh aligned with a
+        depth frame (:class:`~evtrack.models.DepthRefiner`) from the predicted pose. Returns
+        (B,) bool, True where it was used.
+
+        Unlike :meth:`update` such a pose is not an independent detection: it is gated
+        (``νᵀ S⁻¹ ν`` against ``config.gate_chi2``) but a rejection is not counted in
+        ``rejected`` nor in the run that re-initialises the filter, and an uninitialised track
+        is left alone. Its covariance may be nearly singular in the other direction: huge
+        along what the fit could not see (a can turning about its axis), so the update leaves
+        the state there to the other measurements.
+
+        The pose measures the state's pose part directly (``H = [I₆, 0]`` on the tangent), so
+        the update is the exact linear one: ``ν = (t_m, q_m) ⊟ (t, q)``, ``S = P₆₆ + R``,
+        ``K = P H ᵀ S⁻¹``, state ``⊞ K ν``, covariance in Joseph form
+        ``(I − K H) P (I − K H)ᵀ + K R Kᵀ``.
+
+        Args:
+            t_meas: (B,3) metres. q_meas: (B,4) wxyz (normalised here; either sign).
+            cov_meas: (B,6,6) or (6,6) tangent covariance ``[δt, δθ]`` (m², rad²).
+            valid: (B,) bool, False for tracks without a pose this time (default all True).
+                Non-finite inputs count as missing.
+        """
+        t_meas, q_meas, R, valid = self._update_inputs(t_meas, q_meas, cov_meas, valid)
+        B = self.batch_size
+        kw = {"dtype": self.t.dtype, "device": self.t.device}
+        finite = torch.isfinite(t_meas.sum(-1) + q_meas.sum(-1) + R.sum((-2, -1)))
+        ok = valid & finite & self.initialized
+        t, q, extra, P = self._state()
+        zeros6 = torch.zeros(B, 6, **kw)
+        eye6 = torch.eye(6, **kw).expand(B, 6, 6)
+        t_in = torch.where(ok.unsqueeze(-1), t_meas, t)  # no NaN reaches the arithmetic
+        q_in = torch.where(ok.unsqueeze(-1), q_meas, q)
+        R = torch.where(ok[:, None, None], R, eye6)
+        q_in = q_in / torch.linalg.vector_norm(q_in, dim=-1, keepdim=True)
+        n = P.shape[-1]
+        nu = torch.where(ok.unsqueeze(-1), pose_boxminus(t_in, q_in, t, q), zeros6)
+        S = symmetrize(P[:, :6, :6] + R)
+        Pxz = P[:, :, :6]
+        X = spd_solve(S, torch.cat([Pxz.transpose(-1, -2), nu.unsqueeze(-1)], dim=-1))
+        K = X[..., :n].transpose(-1, -2)  # (B,n,6) = P Hᵀ S⁻¹
+        d2 = (nu.unsqueeze(-2) @ X[..., n:]).reshape(-1)
+        passed = ok & (d2 <= self.gate)
+        delta = (K @ nu.unsqueeze(-1)).squeeze(-1)
+        t_new, q_new = pose_boxplus(t, q, delta[:, :6])
+        H = torch.zeros(B, 6, n, **kw)
+        H[:, :, :6] = torch.eye(6, **kw)
+        IKH = torch.eye(n, **kw) - K @ H
+        P_new = symmetrize(IKH @ P @ IKH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
+        keep = passed.unsqueeze(-1)
+        self._set_state(torch.where(keep, t_new, t), torch.where(keep, q_new, q),
+                        torch.where(keep, extra + delta[:, 6:], extra),
+                        torch.where(keep.unsqueeze(-1), P_new, P))
+        return passed
+
     def _update_inputs(
         self, t_meas: Tensor, q_meas: Tensor, cov_meas: Tensor | None, valid: Tensor | None
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:

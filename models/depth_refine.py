@@ -136,6 +136,13 @@ class RefineResult:
         rmse_m: RMS point-to-plane residual of the inliers, metres (NaN without inliers).
         iterations: Gauss-Newton steps taken.
         reason: why the pose was not refined ("" when it was).
+        information: (6, 6) Gauss-Newton normal matrix ``Σ w a aᵀ`` of the inliers at the
+            final pose (m⁻² per m² of residual variance), for a rigid motion ``[δv, δω]`` about
+            ``centre``: ``residual variance × information⁻¹`` is the fit's covariance.
+            Directions the depth leaves unconstrained (sliding within a face seen head-on,
+            turning a can about its axis) have eigenvalues near zero. ``None`` when refused.
+        centre: (3,) the camera-frame point the motion is about (the object's bounding-box
+            centre at the final pose); ``None`` when refused.
     """
 
     pose: np.ndarray
@@ -145,6 +152,8 @@ class RefineResult:
     rmse_m: float
     iterations: int
     reason: str = ""
+    information: np.ndarray | None = None
+    centre: np.ndarray | None = None
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
@@ -355,11 +364,16 @@ class DepthRefiner:
         m, n, s, seen = self._associate(R, t, tree, scene, depth, K, dist, rays,
                                         cfg.final_gate_m)
         inliers = len(m)
-        rmse = float(np.sqrt(np.mean(((s - m) * n).sum(1) ** 2))) if inliers else float("nan")
+        r = ((s - m) * n).sum(1)
+        rmse = float(np.sqrt(np.mean(r ** 2))) if inliers else float("nan")
         reason = self._refusal(T0, T, inliers, seen)
         if reason:
             return RefineResult(T0, False, inliers, seen, rmse, steps, reason)
-        return RefineResult(T, True, inliers, seen, rmse, steps)
+        c = R @ self.centre + t
+        a = np.hstack([n, np.cross(m - c, n)])
+        wts = np.where(np.abs(r) <= cfg.huber_m, 1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
+        information = (a * wts[:, None]).T @ a
+        return RefineResult(T, True, inliers, seen, rmse, steps, "", information, c)
 
     def _associate(self, R: np.ndarray, t: np.ndarray, tree, scene: np.ndarray,
                    depth: np.ndarray, K: np.ndarray, dist: np.ndarray | None, rays,

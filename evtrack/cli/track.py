@@ -43,6 +43,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="also fuse the object's range measured on every depth frame (the mesh "
                         "at the predicted pose against the sensor depth; depth_range in the "
                         "config; not in the paper)")
+    p.add_argument("--depth-icp", action="store_true",
+                   help="also align the object's mesh with the depth frames (ICP from the "
+                        "filter's pose) and fuse the aligned poses; depth_icp in the config; "
+                        "not in the paper")
     p.add_argument("--device", default=None, help="torch device (overrides the config's)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads while tracking (default: the config's torch_threads)")
@@ -91,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     changes = {k: v for k, v in (("method", args.method), ("device", args.device),
                                  ("torch_threads", args.threads),
-                                 ("depth_range", args.depth_range)) if v}
+                                 ("depth_range", args.depth_range),
+                                 ("depth_icp", args.depth_icp)) if v}
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
     traj = tracker.track(seq, progress=not args.quiet)
@@ -100,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{args.out}: {len(traj)} samples ({cfg.method}), {int(traj.tracked.sum())} tracking; "
           f"{st.events} events, {st.poses} poses ({st.poses_rejected} rejected), "
           f"{st.lost} losses" + (f", {st.depth_ranges} depth ranges fused" if cfg.depth_range
-                                 else ""))
+                                 else "")
+          + (f", {st.depth_alignments} depth alignments fused" if cfg.depth_icp else ""))
     if seq.ground_truth is not None:
         print(f"error against ground truth: {tracking_errors(traj, seq.ground_truth)}")
     return 0

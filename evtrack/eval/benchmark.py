@@ -54,8 +54,9 @@ class RunSpec:
         return TrackerConfig.from_dict(changes, f"run {self.name}", base=base)
 
 
-#: Ablations of the full method (the paper's Table III), and one extension: the range of
-#: every depth frame fused into the pose filter (``depth_range``, not in the paper).
+#: Ablations of the full method (the paper's Table III), and two extensions (not in the
+#: paper): the range of every depth frame fused into the pose filter (``depth_range``), and
+#: the mesh aligned with the depth frames (``depth_icp``).
 ABLATIONS = (
     RunSpec("full-no-normal-flow", "full", "full w/o normal-flow constraint",
             {"velocity_kf": {"normal_flow": False}}),
@@ -63,6 +64,8 @@ ABLATIONS = (
             {"velocity_kf": {"weighting": False}}),
     RunSpec("full-depth-range", "full", "full + depth range (not in the paper)",
             {"depth_range": True}),
+    RunSpec("full-depth-icp", "full", "full + depth alignment (not in the paper)",
+            {"depth_icp": True}),
 )
 
 

@@ -80,22 +80,28 @@ def test_demo_options_are_checked(tmp_path, capsys):
     assert demo_tracker_config(320).mask_margin_px == TrackerConfig().mask_margin_px / 2
     assert not demo_tracker_config(320).depth_range
     assert demo_tracker_config(320, depth_range=True).depth_range
+    assert not demo_tracker_config(320).depth_icp
+    assert demo_tracker_config(320, depth_icp=True).depth_icp
 
 
 def test_demo_depth_range_reaches_the_tracker(tmp_path, monkeypatch):
-    """``evtrack demo --depth-range`` hands the option to the tracker config of every run."""
+    """``evtrack demo --depth-range`` / ``--depth-icp`` hand the options to the tracker
+    config of every run."""
     from evtrack import demo as demo_module
 
     seen = {}
 
     def fake_benchmark(sequences, runs, config, *args, **kwargs):
         seen["depth_range"] = config.depth_range
+        seen["depth_icp"] = config.depth_icp
         raise RuntimeError("stop after the config")
 
     monkeypatch.setattr(demo_module, "_simulate", lambda opts, folder: None)
     monkeypatch.setattr(demo_module, "find_sequences", lambda folder: [])
     monkeypatch.setattr(demo_module, "run_benchmark", fake_benchmark)
-    for flag, expected in (([], False), (["--depth-range"], True)):
+    for flag, ranged, aligned in (([], False, False), (["--depth-range"], True, False),
+                                  (["--depth-icp"], False, True)):
         with pytest.raises(RuntimeError, match="stop after the config"):
-            main(["demo", "--out", str(tmp_path / str(expected)), "--oracle", *flag])
-        assert seen.pop("depth_range") is expected
+            main(["demo", "--out", str(tmp_path / "_".join(flag or ["plain"])), "--oracle",
+                  *flag])
+        assert seen.pop("depth_range") is ranged and seen.pop("depth_icp") is aligned

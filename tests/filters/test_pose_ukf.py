@@ -539,3 +539,85 @@ def test_range_gate_and_missing_inputs() -> None:
                                                    dtype=F64), 1e-4)[0])
     with pytest.raises(ValueError, match="direction"):
         filt.update_range(torch.zeros(2, 3, dtype=F64), torch.ones(3, dtype=F64), 1e-4)
+
+
+# ---------------------------------------------------------------------------- aligned poses
+@pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
+def test_aligned_update_equals_the_information_form(cls: type) -> None:
+    """The aligned-pose update against the information form of the same linear measurement
+    of the tangent: ``P⁺ = (P⁻¹ + Hᵀ R⁻¹ H)⁻¹``, ``δ = P⁺ Hᵀ R⁻¹ ν`` with ``H = [I₆, 0]`` and
+    ``ν = z ⊟ x̄``; a twist in the state moves through the covariance only."""
+    g = torch.Generator().manual_seed(5)
+    B = 5
+    filt = cls(B, fast_path=False)
+    n = filt.n
+    t0 = torch.randn(B, 3, generator=g, dtype=F64) + torch.tensor([0, 0, 1.0], dtype=F64)
+    q0 = _unit_q(g, B)
+    P0 = _random_spd(g, B, n, 0.05)
+    filt.reset(t=t0, q=q0, cov=P0)
+    twist0 = filt.twist.clone() if cls is PoseTwistUKF else None
+    R = _random_spd(g, B, 6, 0.02)
+    nu = 0.01 * torch.randn(B, 6, generator=g, dtype=F64)
+    from evtrack.filters.lie import pose_boxminus, pose_boxplus
+
+    t_m, q_m = pose_boxplus(t0, q0, nu)
+    used = filt.update_aligned(t_m, -q_m, R)  # either quaternion sign
+    assert used.all()
+    torch.testing.assert_close(pose_boxminus(t_m, q_m, t0, q0), nu, rtol=0, atol=1e-12)
+    H = torch.zeros(B, 6, n, dtype=F64)
+    H[:, :, :6] = torch.eye(6, dtype=F64)
+    Rinv = torch.linalg.inv(R)
+    P_post = torch.linalg.inv(torch.linalg.inv(P0) + H.transpose(-1, -2) @ Rinv @ H)
+    delta = (P_post @ H.transpose(-1, -2) @ Rinv @ nu.unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(filt.cov, P_post, rtol=1e-7, atol=1e-12)
+    torch.testing.assert_close(filt.t, t0 + delta[:, :3], rtol=0, atol=1e-12)
+    q_expected = torch.stack([torch.tensor(
+        (Rotation.from_rotvec(delta[b, 3:6].numpy()) * Rotation.from_quat(
+            q0[b, [1, 2, 3, 0]].numpy())).as_quat()[[3, 0, 1, 2]]) for b in range(B)])
+    assert _same_rotation(filt.q, q_expected) < 1e-12
+    if twist0 is not None:
+        torch.testing.assert_close(filt.twist, twist0 + delta[:, 6:], rtol=0, atol=1e-12)
+
+
+def test_aligned_update_leaves_unseen_directions_alone() -> None:
+    """A covariance huge about one axis (a can's axis: the depth cannot see that turn) leaves
+    the state and its variance about that axis as they were, and corrects the rest."""
+    filt = PoseUKF(1)
+    t0 = torch.tensor([[0.0, 0.0, 0.8]], dtype=F64)
+    q0 = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=F64)
+    filt.reset(t=t0, q=q0)
+    P0 = filt.cov.clone()
+    from evtrack.filters.lie import pose_boxplus
+
+    t_m, q_m = pose_boxplus(t0, q0, torch.tensor([[0.01, 0, 0, 0, 0.1, 0.1]], dtype=F64))
+    R = torch.diag(torch.tensor([1e-6] * 3 + [1e-6, 1e-6, 1e8], dtype=F64))
+    assert bool(filt.update_aligned(t_m, q_m, R)[0])
+    rotvec = Rotation.from_quat(filt.q[0, [1, 2, 3, 0]].numpy()).as_rotvec()
+    assert abs(rotvec[2]) < 1e-6 and abs(rotvec[1] - 0.1) < 1e-3
+    assert abs(float(filt.t[0, 0]) - 0.01) < 1e-4
+    assert abs(float(filt.cov[0, 5, 5] - P0[0, 5, 5])) < 1e-6 * float(P0[0, 5, 5])
+    assert float(filt.cov[0, 4, 4]) < 1.01e-6
+
+
+def test_aligned_gate_and_missing_inputs() -> None:
+    """An aligned pose beyond the gate is rejected and, unlike a detection, never counted nor
+    a reason to re-initialise (even many in a row); uninitialised tracks and non-finite
+    inputs are skipped."""
+    filt = PoseUKF(3)
+    t0 = torch.tensor([[0, 0, 1.0]] * 3, dtype=F64)
+    q0 = torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=F64)
+    filt.reset(t=t0, q=q0)
+    filt.initialized[2] = False
+    R = torch.eye(6, dtype=F64) * 1e-6
+    far = t0 + torch.tensor([[0.5, 0, 0], [0.0, 0, 0], [0.0, 0, 0]], dtype=F64)
+    q_bad = q0.clone()
+    q_bad[1] = float("nan")
+    before_t, before_P = filt.t.clone(), filt.cov.clone()
+    for _ in range(3 * filt.config.reinit_after):
+        assert not filt.update_aligned(far, q_bad, R).any()
+    assert torch.equal(filt.t, before_t) and torch.equal(filt.cov, before_P)
+    assert filt.rejected.tolist() == [0, 0, 0] and filt.reinitialised.tolist() == [0, 0, 0]
+    assert filt.rejected_run.tolist() == [0, 0, 0]
+    assert filt.update_aligned(t0 + 0.001, q0, R).tolist() == [True, True, False]
+    with pytest.raises(ValueError, match="cov_meas"):
+        filt.update_aligned(t0, q0, torch.eye(5, dtype=F64))

@@ -174,5 +174,9 @@ def test_track_command(fast_sequence, tmp_path, capsys) -> None:
     assert main(["track", str(fast_sequence.root), "--out", str(out), "--oracle", "--quiet",
                  "--depth-range"]) == 0
     assert "depth ranges fused" in capsys.readouterr().out
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--oracle", "--quiet",
+                 "--depth-icp"]) == 0
+    text = capsys.readouterr().out
+    assert "depth alignments fused" in text and "depth ranges" not in text
     assert main(["track", str(fast_sequence.root), "--out", str(out)]) == 1  # no pose source
     assert "--weights PATH" in capsys.readouterr().err

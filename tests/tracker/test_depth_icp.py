@@ -1,0 +1,123 @@
+"""The mesh aligned with depth frames (``depth_icp``): its covariance in the pose filter's
+tangent, and its use in the tracker."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from tracker_helpers import make_tracker
+
+from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError
+from evtrack.eval.metrics import rotation_errors
+from evtrack.models.depth_refine import RefineResult
+from evtrack.tracker import Tracker, _alignment_covariance
+from evtrack.tracking_config import TrackerConfig
+
+
+def _residuals(delta: np.ndarray, P: np.ndarray, normals: np.ndarray, t: np.ndarray
+               ) -> np.ndarray:
+    """Point-to-plane residuals of the object's points ``P`` (camera frame) moved by the pose
+    filter's perturbation ``δ = [δt, δθ]``: ``P → exp(δθ)(P − t) + t + δt``."""
+    moved = Rotation.from_rotvec(delta[3:]).apply(P - t) + t + delta[:3]
+    return ((moved - P) * normals).sum(1)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_alignment_covariance_against_a_finite_difference_fit(seed) -> None:
+    """The fit's covariance carried into the filter's tangent against the least-squares
+    covariance ``σ² (JᵀJ)⁻¹`` with ``J`` the finite-difference Jacobian of the residuals in the
+    filter's own perturbation (about the object's origin, not the fit's centre)."""
+    rng = np.random.default_rng(seed)
+    t = np.array([0.05, -0.03, 0.8])
+    centre = t + rng.normal(0, 0.03, 3)  # the mesh's box centre is not its origin
+    P = centre + rng.normal(0, 0.05, (300, 3))
+    normals = rng.normal(size=(300, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    a = np.hstack([normals, np.cross(P - centre, normals)])
+    pose = np.eye(4)
+    pose[:3, 3] = t
+    res = RefineResult(pose, True, 300, 300, 0.002, 5, "", a.T @ a, centre)
+    J = np.zeros((300, 6))
+    h = 1e-7
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = h
+        J[:, k] = (_residuals(d, P, normals, t) - _residuals(-d, P, normals, t)) / (2 * h)
+    expected = 0.002 ** 2 * np.linalg.inv(J.T @ J)
+    floors = np.diag([1e-6] * 3 + [1e-4] * 3)
+    got = _alignment_covariance(res, 1e-3, 1e-2)
+    np.testing.assert_allclose(got - floors, expected, rtol=1e-5, atol=1e-14)
+
+
+def test_unseen_direction_gets_a_huge_variance() -> None:
+    """Points on a cylinder about z (a can seen by the depth): turning about its axis moves
+    nothing along the normals, so that variance is orders above the others."""
+    ang = np.linspace(0, np.pi, 200)
+    P = np.stack([0.04 * np.cos(ang), 0.04 * np.sin(ang) - 0.1, np.linspace(-.05, .05, 200)],
+                 1) + [0, 0, 0.8]
+    normals = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)
+    centre = np.array([0, -0.1, 0.8])
+    a = np.hstack([normals, np.cross(P - centre, normals)])
+    pose = np.eye(4)
+    pose[:3, 3] = centre
+    cov = _alignment_covariance(RefineResult(pose, True, 200, 200, 0.001, 3, "", a.T @ a,
+                                             centre), 0.0, 0.0)
+    assert cov[5, 5] > 1e4 * max(cov[3, 3], cov[4, 4])
+    assert np.isfinite(cov).all()
+
+
+def _rotation_rmse_deg(traj, seq, t_from_us: int) -> float:
+    gt = seq.ground_truth
+    t = traj.t_us.numpy()
+    keep = (t >= t_from_us) & np.isfinite(traj.poses.numpy()[:, 0, 0])
+    est = traj.poses[keep]
+    err = rotation_errors(est, gt.pose_at(traj.t_us[keep]).reshape(-1, 4, 4))
+    return float(np.degrees(np.sqrt((err.numpy() ** 2).mean())))
+
+
+def test_tracker_aligns_depth_frames_and_tracks_rotation_better(fast_sequence) -> None:
+    """Oracle poses with 2 cm / 0.1 rad noise: the full method's rotation error with the
+    depth alignment (every depth frame) is well below that without. Measured after 150 ms:
+    17.6 deg without, 0.86 with (1.46 at the default 30 Hz); 30 of the 36 depth frames
+    aligned (those before the first pose, 100 ms late, find no track). Bounds: 0.5x, and 60 %
+    of the frames."""
+    seq = fast_sequence
+    oracle = {"std_translation": 0.02, "std_rotation": 0.1}
+    plain, _ = make_tracker(seq, oracle=oracle)
+    aligned, _ = make_tracker(seq, oracle=oracle, depth_icp=True, depth_icp_rate_hz=100.0)
+    a, b = plain.track(seq), aligned.track(seq)
+    assert plain.stats.depth_alignments == 0 and plain.depth_icp is None
+    st = aligned.stats
+    frames = len(seq.depth_times_us)
+    assert st.depth_alignments >= 0.6 * frames, st.depth_alignments_skipped
+    assert set(st.depth_alignments_skipped) <= {"few depth pixels", "few fit",
+                                                 "correction too large"}
+    e_plain, e_aligned = _rotation_rmse_deg(a, seq, 150_000), _rotation_rmse_deg(b, seq,
+                                                                                 150_000)
+    assert e_aligned < 0.5 * e_plain, (e_plain, e_aligned)
+
+
+def test_alignment_rate_is_bounded(fast_sequence) -> None:
+    seq = fast_sequence
+    tracker, _ = make_tracker(seq, depth_icp=True, depth_icp_rate_hz=10.0)
+    tracker.track(seq)
+    st = tracker.stats
+    tried = st.depth_alignments + sum(st.depth_alignments_skipped.values())
+    duration_s = float(seq.depth_times_us[-1] - seq.depth_times_us[0]) * 1e-6
+    assert 1 <= tried <= duration_s * 10.0 + 1
+
+
+def test_depth_icp_config_is_checked(fast_sequence) -> None:
+    with pytest.raises(ConfigError, match="depth_source 'sensor'"):
+        TrackerConfig.from_dict({"depth_icp": True, "depth_source": "model"})
+    for name in ("depth_icp_rate_hz", "depth_icp_std_m", "depth_icp_points"):
+        with pytest.raises(ConfigError, match=name):
+            TrackerConfig.from_dict({name: 0})
+    cube = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
+    with pytest.raises(ConfigError, match="mesh"):
+        Tracker(TrackerConfig(depth_icp=True), camera=PinholeCamera(160.0, 160.0, 63.5, 47.5,
+                                                                    128, 96), mesh=cube)
+    velocity, _ = make_tracker(fast_sequence, method="velocity", depth_icp=True)
+    assert velocity.depth_icp is None
