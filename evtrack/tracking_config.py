@@ -286,9 +286,9 @@ class TrackerConfig:
             barely apart from a shift; the depth sees it. Off by default (not in the paper);
             needs ``depth_source: sensor`` and the object's mesh. Not used by ``velocity``.
         depth_icp_rate_hz: at most this many depth frames per second are aligned (each costs
-            13-17 ms of one CPU core with the defaults below, for a YCB object at 640x480;
-            with the filter's replays after each, the mustard bottle ``faster`` took 4.1 s of
-            processing for its 2 s instead of 2.4).
+            13-17 ms of one CPU core with the defaults below, for a YCB object at 640x480:
+            ``track`` took 3.6-3.8 s for the 2 s of the mustard bottle ``faster`` instead of
+            2.5-2.8, 10.6-11.0 s for the cracker box instead of 10.1-10.5, on 2 cores).
         depth_icp_points: mesh surface samples of the fit (about half face the camera).
         depth_icp_scene_points: most depth pixels around the object used by the fit.
         depth_icp_std_m, depth_icp_std_deg: floors added to the fit's translation and rotation
