@@ -121,3 +121,18 @@ def test_depth_icp_config_is_checked(fast_sequence) -> None:
                                                                     128, 96), mesh=cube)
     velocity, _ = make_tracker(fast_sequence, method="velocity", depth_icp=True)
     assert velocity.depth_icp is None
+
+
+@pytest.mark.parametrize("method", ["pose", "frame-flow", "ge"])
+def test_every_pose_filter_method_aligns_depth_frames(fast_sequence, method) -> None:
+    """The baselines with a pose filter align depth frames too (frame-flow's depth is in the
+    RGB camera: the aligned pose and its covariance are carried into the event camera's
+    frame); every frame tried is fused or refused with a reason, and the track stays finite."""
+    seq = fast_sequence
+    tracker, _ = make_tracker(seq, method=method, depth_icp=True)
+    traj = tracker.track(seq)
+    st = tracker.stats
+    assert set(st.depth_alignments_skipped) <= {"few depth pixels", "few fit",
+                                                 "correction too large"}
+    assert st.depth_alignments >= 5
+    assert np.isfinite(traj.poses.numpy()[traj.status.numpy() > 0]).all()
