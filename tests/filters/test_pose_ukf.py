@@ -459,6 +459,19 @@ def _random_spd(g: torch.Generator, B: int, n: int, scale: float) -> torch.Tenso
     return A @ A.transpose(-1, -2) + 1e-4 * torch.eye(n, dtype=F64)
 
 
+def _assert_state(filt, t0, q0, twist0, P_post, delta, cov_rtol: float) -> None:
+    """The filter holds ``(t0, q0, twist0) ⊞ delta`` (the rotation by scipy, independently of
+    the filters' quaternion code) and the covariance ``P_post``."""
+    torch.testing.assert_close(filt.cov, P_post, rtol=cov_rtol, atol=1e-12)
+    torch.testing.assert_close(filt.t, t0 + delta[:, :3], rtol=0, atol=1e-12)
+    q_expected = torch.stack([torch.tensor(
+        (Rotation.from_rotvec(delta[b, 3:6].numpy()) * Rotation.from_quat(
+            q0[b, [1, 2, 3, 0]].numpy())).as_quat()[[3, 0, 1, 2]]) for b in range(len(q0))])
+    assert _same_rotation(filt.q, q_expected) < 1e-12
+    if twist0 is not None:
+        torch.testing.assert_close(filt.twist, twist0 + delta[:, 6:], rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
 def test_range_update_equals_the_information_form(cls: type) -> None:
     """The range update against the information form of the same linear measurement, an
@@ -484,14 +497,7 @@ def test_range_update_equals_the_information_form(cls: type) -> None:
     info = torch.linalg.inv(P0) + H.transpose(-1, -2) @ H / r[:, None, None]
     P_post = torch.linalg.inv(info)
     delta = (P_post @ H.transpose(-1, -2)).squeeze(-1) * (nu / r)[:, None]
-    torch.testing.assert_close(filt.cov, P_post, rtol=1e-8, atol=1e-12)
-    torch.testing.assert_close(filt.t, t0 + delta[:, :3], rtol=0, atol=1e-12)
-    q_expected = torch.stack([torch.tensor(
-        (Rotation.from_rotvec(delta[b, 3:6].numpy()) * Rotation.from_quat(
-            q0[b, [1, 2, 3, 0]].numpy())).as_quat()[[3, 0, 1, 2]]) for b in range(B)])
-    assert _same_rotation(filt.q, q_expected) < 1e-12
-    if twist0 is not None:
-        torch.testing.assert_close(filt.twist, twist0 + delta[:, 6:], rtol=0, atol=1e-12)
+    _assert_state(filt, t0, q0, twist0, P_post, delta, cov_rtol=1e-8)
 
 
 def test_range_update_moves_only_along_the_direction_when_uncorrelated() -> None:
@@ -569,14 +575,7 @@ def test_aligned_update_equals_the_information_form(cls: type) -> None:
     Rinv = torch.linalg.inv(R)
     P_post = torch.linalg.inv(torch.linalg.inv(P0) + H.transpose(-1, -2) @ Rinv @ H)
     delta = (P_post @ H.transpose(-1, -2) @ Rinv @ nu.unsqueeze(-1)).squeeze(-1)
-    torch.testing.assert_close(filt.cov, P_post, rtol=1e-7, atol=1e-12)
-    torch.testing.assert_close(filt.t, t0 + delta[:, :3], rtol=0, atol=1e-12)
-    q_expected = torch.stack([torch.tensor(
-        (Rotation.from_rotvec(delta[b, 3:6].numpy()) * Rotation.from_quat(
-            q0[b, [1, 2, 3, 0]].numpy())).as_quat()[[3, 0, 1, 2]]) for b in range(B)])
-    assert _same_rotation(filt.q, q_expected) < 1e-12
-    if twist0 is not None:
-        torch.testing.assert_close(filt.twist, twist0 + delta[:, 6:], rtol=0, atol=1e-12)
+    _assert_state(filt, t0, q0, twist0, P_post, delta, cov_rtol=1e-7)
 
 
 def test_aligned_update_leaves_unseen_directions_alone() -> None:
