@@ -36,6 +36,12 @@ def test_defaults_use_the_fast_object_flow_and_the_slow_config_the_generic_one()
                              tolerance_rel=defaults.flow.tolerance_rel) == defaults.flow
 
 
+def test_rgbd_preset_is_the_defaults_with_both_depth_extensions() -> None:
+    rgbd = load_tracker_config(CONFIGS / "tracker_rgbd.yaml")
+    assert rgbd.depth_range and rgbd.depth_icp
+    assert rgbd.replace(depth_range=False, depth_icp=False).to_dict() == TrackerConfig().to_dict()
+
+
 def test_round_trip(tmp_path) -> None:
     cfg = TrackerConfig.from_dict({"method": "frame-flow", "flow": {"roi_size": 16},
                                    "velocity_kf": {"weighting": False},
