@@ -98,6 +98,7 @@ from evtrack.errors import ConfigError, EventsError
 from evtrack.eval.metrics import position_errors, rotation_errors
 from evtrack.events import Events, concatenate
 from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
+from evtrack.filters.lie import pivot_map
 from evtrack.filters.scalar_lie import normalized, rotation_matrix
 from evtrack.flow import FlowResult, TripletFlow
 from evtrack.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
@@ -380,10 +381,7 @@ def _alignment_covariance(res: Any, std_m: float, std_rad: float) -> np.ndarray:
     to the origin ``t`` (``δv = δt + (t − c) × δθ``), plus the floors ``std_m²``, ``std_rad²``.
     The information is regularised by 1e-9 of its largest eigenvalue, so directions the depth
     did not see get a variance that large rather than an infinite one."""
-    t = res.pose[:3, 3]
-    p = t - res.centre
-    M = np.eye(6)
-    M[:3, 3:] = [[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]]
+    M = pivot_map(torch.from_numpy(res.pose[:3, 3] - res.centre)).numpy()
     info = M.T @ res.information @ M
     w, V = np.linalg.eigh(0.5 * (info + info.T))
     w = np.maximum(w, 1e-9 * max(float(w.max()), 1e-30))
@@ -462,6 +460,7 @@ class Tracker:
         T = (torch.linalg.inv(self.T_event_rgb) if self.method == "frame-flow"
              else torch.eye(4, dtype=torch.float64))
         self._T_depth_event = T.numpy()
+        self._T_event_depth = np.linalg.inv(self._T_depth_event)
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
         self._blas = BlasThreads(cfg.blas_threads)
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
@@ -1200,10 +1199,9 @@ class Tracker:
         if not self.initialized or self.depth_range is None:
             return
         with _Timer(self.stats.time_s, "depth_range"):
-            state = self.timeline.pose_at(frame.t_us)
-            if state is None:
+            T_ev = self._past_pose(frame.t_us)
+            if T_ev is None:
                 return
-            T_ev = _quat_to_matrix(state[0].cpu().numpy(), state[1].cpu().numpy())
             T_d = self._T_depth_event @ T_ev
             res = self.depth_range.measure(frame.depth, T_d)
             if not res.ok:
@@ -1232,22 +1230,19 @@ class Tracker:
         if last is not None and 0 <= frame.t_us - last < 0.9 * period_us:
             return
         with _Timer(self.stats.time_s, "depth_icp"):
-            state = self.timeline.pose_at(frame.t_us)
-            if state is None:
+            T_ev = self._past_pose(frame.t_us)
+            if T_ev is None:
                 return
             self._last_alignment_us = frame.t_us
-            T_ev = _quat_to_matrix(state[0].cpu().numpy(), state[1].cpu().numpy())
             T_d = self._T_depth_event @ T_ev
             res = self.depth_icp.refine(T_d, frame.depth, self._depth_K, self._depth_dist)
             if not res.refined:
-                key = ("correction too large" if "exceeds" in res.reason
-                       else "few fit" if "fit" in res.reason else "few depth pixels")
                 skipped = self.stats.depth_alignments_skipped
-                skipped[key] = skipped.get(key, 0) + 1
+                skipped[res.refusal] = skipped.get(res.refusal, 0) + 1
                 return
             cov_d = _alignment_covariance(res, cfg.depth_icp_std_m,
                                           math.radians(cfg.depth_icp_std_deg))
-            A = np.linalg.inv(self._T_depth_event)  # depth camera -> event camera
+            A = self._T_event_depth
             T_meas = A @ res.pose
             Ra = np.kron(np.eye(2), A[:3, :3])  # both tangent blocks rotate with the frame
             kw = {"dtype": self.ukf.t.dtype, "device": self.device}

@@ -143,6 +143,9 @@ class RefineResult:
             turning a can about its axis) have eigenvalues near zero. ``None`` when refused.
         centre: (3,) the camera-frame point the motion is about (the object's bounding-box
             centre at the final pose); ``None`` when refused.
+        refusal: the kind of refusal, for counting: ``""`` (refined), ``"few depth pixels"``
+            (too few depth pixels around the object or near the mesh), ``"few fit"`` (too few
+            of them fit the mesh at the final pose) or ``"correction too large"``.
     """
 
     pose: np.ndarray
@@ -154,6 +157,7 @@ class RefineResult:
     reason: str = ""
     information: np.ndarray | None = None
     centre: np.ndarray | None = None
+    refusal: str = ""
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
@@ -330,7 +334,7 @@ class DepthRefiner:
         if len(scene) < cfg.min_points:
             return RefineResult(T0, False, 0, 0, float("nan"), 0,
                                 f"{len(scene)} depth pixels around the object, fewer than "
-                                f"min_points={cfg.min_points}")
+                                f"min_points={cfg.min_points}", refusal="few depth pixels")
         tree = cKDTree(scene)
         R, t = T_start[:3, :3].copy(), T_start[:3, 3].copy()
         gate = cfg.gate_m
@@ -340,7 +344,8 @@ class DepthRefiner:
             if len(m) < cfg.min_points:
                 return RefineResult(T0, False, len(m), 0, float("nan"), steps,
                                     f"{len(m)} depth pixels meet the mesh near the pose, fewer "
-                                    f"than min_points={cfg.min_points}")
+                                    f"than min_points={cfg.min_points}",
+                                    refusal="few depth pixels")
             c = R @ self.centre + t
             r = ((s - m) * n).sum(1)
             a = np.hstack([n, np.cross(m - c, n)])
@@ -366,9 +371,9 @@ class DepthRefiner:
         inliers = len(m)
         r = ((s - m) * n).sum(1)
         rmse = float(np.sqrt(np.mean(r ** 2))) if inliers else float("nan")
-        reason = self._refusal(T0, T, inliers, seen)
+        refusal, reason = self._refusal(T0, T, inliers, seen)
         if reason:
-            return RefineResult(T0, False, inliers, seen, rmse, steps, reason)
+            return RefineResult(T0, False, inliers, seen, rmse, steps, reason, refusal=refusal)
         c = R @ self.centre + t
         a = np.hstack([n, np.cross(m - c, n)])
         wts = np.where(np.abs(r) <= cfg.huber_m, 1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
@@ -387,22 +392,26 @@ class DepthRefiner:
         ok = np.isfinite(d)
         return P[ok], N[ok], scene[idx[ok]], int(seen.sum())
 
-    def _refusal(self, T0: np.ndarray, T: np.ndarray, inliers: int, visible: int) -> str:
+    def _refusal(self, T0: np.ndarray, T: np.ndarray, inliers: int, visible: int
+                 ) -> tuple[str, str]:
+        """``(kind, reason)`` of a refusal (see :class:`RefineResult`), ``("", "")`` if none."""
         cfg = self.config
         if inliers < cfg.min_points:
-            return (f"{inliers} depth pixels fit the mesh, fewer than min_points="
-                    f"{cfg.min_points}")
+            return "few fit", (f"{inliers} depth pixels fit the mesh, fewer than min_points="
+                               f"{cfg.min_points}")
         if inliers < cfg.min_inlier_fraction * visible:
-            return (f"only {inliers} of the {visible} visible surface samples with a depth fit "
-                    f"it (min_inlier_fraction={cfg.min_inlier_fraction}): something else is "
-                    "in front of the object, or it is not there")
+            return "few fit", (
+                f"only {inliers} of the {visible} visible surface samples with a depth fit "
+                f"it (min_inlier_fraction={cfg.min_inlier_fraction}): something else is "
+                "in front of the object, or it is not there")
         dt = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
         cos = np.clip((np.trace(T[:3, :3] @ T0[:3, :3].T) - 1) / 2, -1.0, 1.0)
         dr = math.degrees(math.acos(cos))
         if dt > cfg.max_translation_m or dr > cfg.max_rotation_deg:
-            return (f"the correction ({dt * 100:.1f} cm, {dr:.1f} deg) exceeds max_translation_m="
-                    f"{cfg.max_translation_m} / max_rotation_deg={cfg.max_rotation_deg}")
-        return ""
+            return "correction too large", (
+                f"the correction ({dt * 100:.1f} cm, {dr:.1f} deg) exceeds max_translation_m="
+                f"{cfg.max_translation_m} / max_rotation_deg={cfg.max_rotation_deg}")
+        return "", ""
 
     def refine_detections(self, detections: Sequence, depth: np.ndarray,
                           K: np.ndarray | torch.Tensor, dist: np.ndarray | None = None) -> list:

@@ -69,7 +69,7 @@ def test_recovers_the_simulated_pose_from_a_network_like_error(truth) -> None:
     start = _perturb(truth, [0.02, -0.015, 0.09], [0.12, -0.1, 0.08])
     assert _errors(start, truth)[0] > 0.08 and _errors(start, truth)[1] > 9
     res = REFINER.refine(start, depth, K)
-    assert res.refined, res.reason
+    assert res.refined and res.refusal == "", res.reason
     dt, dr = _errors(res.pose, truth)
     assert dt < 1e-3 and dr < 0.2, (dt, dr)
     assert res.inliers >= 0.8 * res.visible and res.rmse_m < 1e-3
@@ -108,10 +108,12 @@ def test_refuses_without_usable_depth() -> None:
     holes = np.full((CAM.height, CAM.width), np.nan, np.float32)
     res = REFINER.refine(start, holes, K)
     assert not res.refined and "depth pixels" in res.reason
+    assert res.refusal == "few depth pixels" and res.information is None
     np.testing.assert_array_equal(res.pose, start)
     wall = np.full((CAM.height, CAM.width), 2.5, np.float32)  # the object is not there
     res = REFINER.refine(start, wall, K)
     assert not res.refined and res.reason
+    assert res.refusal in ("few depth pixels", "few fit")
     np.testing.assert_array_equal(res.pose, start)
     with pytest.raises(ValueError, match="metres"):
         REFINER.refine(start, np.zeros((CAM.height, CAM.width), np.uint16), K)
@@ -129,6 +131,7 @@ def test_refuses_an_implausibly_large_correction() -> None:
     tight = DepthRefiner(BOX.vertices, BOX.faces, DepthRefineConfig(max_rotation_deg=5.0))
     res = tight.refine(start, depth, K)
     assert not res.refined and "max_rotation_deg" in res.reason
+    assert res.refusal == "correction too large"
     np.testing.assert_array_equal(res.pose, start)
 
 
