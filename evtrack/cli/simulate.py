@@ -82,6 +82,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="only these YCB objects (default: all four)")
     b.add_argument("--presets", nargs="+", choices=("regular", "faster"), default=None,
                    help="only these presets (default: both)")
+    b.add_argument("--preset-speeds", nargs="+", default=None, metavar="PRESET=LIN,ANG",
+                   help="mean speeds of a preset instead of its defaults: linear m/s and "
+                        "angular rad/s, e.g. 'faster=0.5,0.9' (same seeds and waypoints, "
+                        "traversed at these speeds; defaults: regular=0.3,1.0 "
+                        "faster=0.8,2.5); recorded per sequence in summary.yaml")
     b.add_argument("--velocity-only", action="store_true",
                    help="only write the pixel-velocity report (velocity_cdf.png, summary.yaml) "
                         "from the trajectories, without rendering (seconds instead of minutes)")
@@ -145,6 +150,41 @@ def run_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def parse_preset_speeds(items: list[str] | None) -> dict[str, tuple[float, float]]:
+    """``["faster=0.5,0.9", ...]`` -> ``{"faster": (0.5, 0.9)}`` (m/s, rad/s).
+
+    Raises:
+        ConfigError: naming the item: not ``PRESET=LIN,ANG``, an unknown preset, a preset
+            given twice, or a speed that is not a positive finite number.
+    """
+    import math
+
+    from evtrack.sim.benchmark_set import PRESETS
+
+    out: dict[str, tuple[float, float]] = {}
+    for item in items or []:
+        preset, sep, values = item.partition("=")
+        parts = values.split(",")
+        if not sep or len(parts) != 2:
+            raise ConfigError(f"--preset-speeds {item!r}: expected PRESET=LINEAR,ANGULAR "
+                              "(m/s, rad/s), e.g. faster=0.5,0.9")
+        if preset not in PRESETS:
+            raise ConfigError(f"--preset-speeds {item!r}: unknown preset {preset!r} "
+                              f"(one of {', '.join(PRESETS)})")
+        if preset in out:
+            raise ConfigError(f"--preset-speeds: {preset!r} given twice")
+        try:
+            linear, angular = (float(v) for v in parts)
+        except ValueError:
+            raise ConfigError(f"--preset-speeds {item!r}: the speeds must be numbers") from None
+        if not (math.isfinite(linear) and math.isfinite(angular) and linear > 0
+                and angular > 0):
+            raise ConfigError(f"--preset-speeds {item!r}: the speeds must be positive and "
+                              "finite")
+        out[preset] = (linear, angular)
+    return out
+
+
 def run_benchmark(args: argparse.Namespace) -> int:
     from evtrack.sim.benchmark_set import (
         benchmark_entries,
@@ -153,6 +193,7 @@ def run_benchmark(args: argparse.Namespace) -> int:
     )
 
     cfg = build_config(args)
+    speeds = parse_preset_speeds(args.preset_speeds)
     _check_device(cfg.events.device)
     entries = benchmark_entries()
     if args.objects:
@@ -164,7 +205,8 @@ def run_benchmark(args: argparse.Namespace) -> int:
     if args.presets:
         entries = [e for e in entries if e[1] in args.presets]
     if args.velocity_only:
-        summary = velocity_report(args.out, cfg, ycb_dir=args.ycb_dir, entries=entries)
+        summary = velocity_report(args.out, cfg, ycb_dir=args.ycb_dir, entries=entries,
+                                  speeds=speeds)
         for name, row in summary["sequences"].items():
             s = row["pixel_speed_px_s"]
             print(f"{name:32s} median {s['p50']:7.0f}  p90 {s['p90']:7.0f}  "
@@ -173,7 +215,8 @@ def run_benchmark(args: argparse.Namespace) -> int:
         return 0
     try:
         summary = make_benchmark_set(args.out, cfg, ycb_dir=args.ycb_dir, entries=entries,
-                                     overwrite=args.overwrite, progress=not args.quiet)
+                                     overwrite=args.overwrite, progress=not args.quiet,
+                                     speeds=speeds)
     except FileExistsError as exc:
         raise EvtrackError(f"{exc} (use --overwrite)") from None
     for name, row in summary["sequences"].items():

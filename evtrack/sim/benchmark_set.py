@@ -7,6 +7,7 @@ paper's figure) and ``summary.yaml`` (counts and pixel-speed percentiles per seq
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -25,9 +26,13 @@ from evtrack.sim.groundtruth import plot_speed_cdf, speed_percentiles
 from evtrack.sim.objects import YCB_OBJECTS, resolve_object
 
 __all__ = ["BENCHMARK_SEEDS", "benchmark_entries", "make_benchmark_set", "velocity_report",
-           "PRESETS"]
+           "PRESETS", "PresetSpeeds"]
 
 PRESETS = ("regular", "faster")
+
+PresetSpeeds = Mapping[str, tuple[float, float]]
+"""Preset name -> ``(linear m/s, angular rad/s)`` replacing that preset's mean speeds
+(:data:`~evtrack.sim.config.TRAJECTORY_PRESETS`); the waypoints (the seed's) stay."""
 
 #: Fixed seeds of the benchmark set: (object, preset) -> seed.
 BENCHMARK_SEEDS: dict[tuple[str, str], int] = {
@@ -65,10 +70,24 @@ def _report(out_dir: Path, summary: dict[str, Any], samples: dict[str, list[np.n
     return summary
 
 
-def _entry_config(base: SimConfig, preset: str, seed: int) -> SimConfig:
+def _entry_config(base: SimConfig, preset: str, seed: int,
+                  speeds: PresetSpeeds | None = None) -> SimConfig:
     import dataclasses
 
-    return dataclasses.replace(preset_config(base, preset), seed=seed)
+    cfg = dataclasses.replace(preset_config(base, preset), seed=seed)
+    if speeds and preset in speeds:
+        linear, angular = speeds[preset]
+        fields = {f.name: getattr(cfg.trajectory, f.name)
+                  for f in dataclasses.fields(cfg.trajectory)}
+        fields.update(linear_speed=float(linear), angular_speed=float(angular))
+        cfg = dataclasses.replace(cfg, trajectory=type(cfg.trajectory)(**fields))
+    return cfg
+
+
+def _speeds_of(cfg: SimConfig) -> dict[str, float]:
+    """The mean trajectory speeds of an entry, for the summary."""
+    return {"linear_speed_m_s": float(cfg.trajectory.linear_speed),
+            "angular_speed_rad_s": float(cfg.trajectory.angular_speed)}
 
 
 def make_benchmark_set(
@@ -79,6 +98,7 @@ def make_benchmark_set(
     entries: list[tuple[str, str, int]] | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    speeds: PresetSpeeds | None = None,
 ) -> dict[str, Any]:
     """Simulate the benchmark set into ``out_dir``.
 
@@ -89,9 +109,11 @@ def make_benchmark_set(
         ycb_dir: folder of the YCB meshes (see :func:`evtrack.sim.objects.find_ycb_dir`).
         entries: a subset of :func:`benchmark_entries` (default: all eight).
         overwrite: replace existing sequence folders.
+        speeds: per preset, ``(linear m/s, angular rad/s)`` instead of the preset's mean
+            speeds (same seeds, so the same waypoints, traversed at those speeds).
 
     Returns:
-        the summary written to ``summary.yaml``.
+        the summary written to ``summary.yaml`` (per sequence also the speeds used).
     """
     out_dir = Path(out_dir)
     base = config or SimConfig()
@@ -103,11 +125,11 @@ def make_benchmark_set(
     for (name, preset, seed), folder in zip(entries, folders, strict=True):
         if name not in objects:
             objects[name] = resolve_object(name, ycb_dir=ycb_dir)
-        cfg = _entry_config(base, preset, seed)
+        cfg = _entry_config(base, preset, seed, speeds)
         stats = simulate(objects[name], cfg, folder, overwrite=overwrite, progress=progress)
         samples.setdefault(preset, []).append(stats.pixel_speed_samples)
         summary["sequences"][folder.name] = {
-            "object": name, "preset": preset, "seed": seed, **stats.summary(),
+            "object": name, "preset": preset, "seed": seed, **_speeds_of(cfg), **stats.summary(),
             "seconds": round(stats.timings["total"], 2),
         }
     return _report(out_dir, summary, samples)
@@ -119,6 +141,7 @@ def velocity_report(
     *,
     ycb_dir: str | Path | None = None,
     entries: list[tuple[str, str, int]] | None = None,
+    speeds: PresetSpeeds | None = None,
 ) -> dict[str, Any]:
     """The pixel-speed report of the benchmark set without rendering anything.
 
@@ -136,13 +159,13 @@ def velocity_report(
     for name, preset, seed in entries:
         if name not in objects:
             objects[name] = resolve_object(name, ycb_dir=ycb_dir)
-        cfg = _entry_config(base, preset, seed)
+        cfg = _entry_config(base, preset, seed, speeds)
         obj = objects[name]
         times = render_times_us(cfg.duration, cfg.render.render_hz)
         s = speed_samples(obj, sequence_trajectory(cfg, obj), times, cfg.camera.camera(),
                           cfg.ground_truth.velocity_samples)
         samples.setdefault(preset, []).append(s)
         summary["sequences"][f"{name}_{preset}"] = {
-            "object": name, "preset": preset, "seed": seed,
+            "object": name, "preset": preset, "seed": seed, **_speeds_of(cfg),
             "pixel_speed_px_s": speed_percentiles(s)}
     return _report(out_dir, summary, samples)

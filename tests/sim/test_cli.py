@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import yaml
 
 from evtrack import Sequence
@@ -68,6 +69,48 @@ def test_velocity_report_without_rendering(tmp_path, ycb_dir, capsys) -> None:
     assert (out / "velocity_cdf.png").is_file()
     assert not any(p.is_dir() for p in out.iterdir())  # nothing rendered
     assert "010_potted_meat_can_faster" in capsys.readouterr().out
+
+
+def test_preset_speeds_slow_a_preset_down(tmp_path, ycb_dir, capsys) -> None:
+    """--preset-speeds replaces one preset's mean speeds: the same waypoints traversed at a
+    third of the speed move the object's image slower; the other preset keeps its defaults;
+    the speeds used are in the summary."""
+    def report(out, *extra):
+        assert main(["simulate-benchmark", "--out", str(out), "--velocity-only", "--duration",
+                     "1.0", "--ycb-dir", str(ycb_dir), "--objects", "005_tomato_soup_can",
+                     *extra]) == 0
+        return yaml.safe_load((out / "summary.yaml").read_text())["sequences"]
+
+    default = report(tmp_path / "default")
+    slow = report(tmp_path / "slow", "--preset-speeds", "faster=0.27,0.83")
+    fast_d, fast_s = default["005_tomato_soup_can_faster"], slow["005_tomato_soup_can_faster"]
+    assert (fast_d["linear_speed_m_s"], fast_d["angular_speed_rad_s"]) == (0.8, 2.5)
+    assert (fast_s["linear_speed_m_s"], fast_s["angular_speed_rad_s"]) == (0.27, 0.83)
+    assert fast_s["pixel_speed_px_s"]["p50"] < 0.6 * fast_d["pixel_speed_px_s"]["p50"]
+    assert slow["005_tomato_soup_can_regular"] == default["005_tomato_soup_can_regular"]
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize("item, message", [
+    ("faster", "expected PRESET=LINEAR,ANGULAR"),
+    ("faster=0.5", "expected PRESET=LINEAR,ANGULAR"),
+    ("slow=0.5,1", "unknown preset 'slow'"),
+    ("faster=0.5,x", "must be numbers"),
+    ("faster=0,1", "positive and finite"),
+    ("faster=0.5,nan", "positive and finite"),
+])
+def test_preset_speeds_errors(tmp_path, capsys, item, message) -> None:
+    out = tmp_path / "b"
+    assert main(["simulate-benchmark", "--out", str(out), "--velocity-only",
+                 "--preset-speeds", item]) == 1
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_preset_speeds_twice(tmp_path, capsys) -> None:
+    assert main(["simulate-benchmark", "--out", str(tmp_path / "b"), "--velocity-only",
+                 "--preset-speeds", "faster=0.5,1", "faster=0.6,1"]) == 1
+    assert "'faster' given twice" in capsys.readouterr().err
 
 
 def test_object_texture_follows_object_seed_not_trajectory_seed(tmp_path) -> None:
