@@ -86,7 +86,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="mean speeds of a preset instead of its defaults: linear m/s and "
                         "angular rad/s, e.g. 'faster=0.5,0.9' (same seeds and waypoints, "
                         "traversed at these speeds; defaults: regular=0.3,1.0 "
-                        "faster=0.8,2.5); recorded per sequence in summary.yaml")
+                        "faster=0.8,2.5); recorded per sequence in summary.yaml. 'paper': "
+                        "regular=0.24,0.76 faster=0.8,1.0, the speeds at which the pose-only "
+                        "baseline errs about as much as the paper's (see "
+                        "evtrack.sim.benchmark_set.PAPER_MATCHED_SPEEDS)")
     b.add_argument("--velocity-only", action="store_true",
                    help="only write the pixel-velocity report (velocity_cdf.png, summary.yaml) "
                         "from the trajectories, without rendering (seconds instead of minutes)")
@@ -151,7 +154,8 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 
 def parse_preset_speeds(items: list[str] | None) -> dict[str, tuple[float, float]]:
-    """``["faster=0.5,0.9", ...]`` -> ``{"faster": (0.5, 0.9)}`` (m/s, rad/s).
+    """``["faster=0.5,0.9", ...]`` -> ``{"faster": (0.5, 0.9)}`` (m/s, rad/s); ``["paper"]``
+    -> :data:`~evtrack.sim.benchmark_set.PAPER_MATCHED_SPEEDS`.
 
     Raises:
         ConfigError: naming the item: not ``PRESET=LIN,ANG``, an unknown preset, a preset
@@ -159,8 +163,12 @@ def parse_preset_speeds(items: list[str] | None) -> dict[str, tuple[float, float
     """
     import math
 
-    from evtrack.sim.benchmark_set import PRESETS
+    from evtrack.sim.benchmark_set import PAPER_MATCHED_SPEEDS, PRESETS
 
+    if items and "paper" in items:
+        if len(items) > 1:
+            raise ConfigError("--preset-speeds paper sets both presets; give it alone")
+        return dict(PAPER_MATCHED_SPEEDS)
     out: dict[str, tuple[float, float]] = {}
     for item in items or []:
         preset, sep, values = item.partition("=")

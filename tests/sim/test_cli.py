@@ -107,6 +107,22 @@ def test_preset_speeds_errors(tmp_path, capsys, item, message) -> None:
     assert not out.exists()
 
 
+def test_preset_speeds_paper(tmp_path, ycb_dir, capsys) -> None:
+    from evtrack.sim.benchmark_set import PAPER_MATCHED_SPEEDS
+
+    out = tmp_path / "paper"
+    assert main(["simulate-benchmark", "--out", str(out), "--velocity-only", "--duration",
+                 "0.3", "--ycb-dir", str(ycb_dir), "--objects", "005_tomato_soup_can",
+                 "--preset-speeds", "paper"]) == 0
+    rows = yaml.safe_load((out / "summary.yaml").read_text())["sequences"]
+    for preset, (linear, angular) in PAPER_MATCHED_SPEEDS.items():
+        row = rows[f"005_tomato_soup_can_{preset}"]
+        assert (row["linear_speed_m_s"], row["angular_speed_rad_s"]) == (linear, angular)
+    assert main(["simulate-benchmark", "--out", str(tmp_path / "x"), "--velocity-only",
+                 "--preset-speeds", "paper", "faster=0.5,1"]) == 1
+    assert "give it alone" in capsys.readouterr().err
+
+
 def test_preset_speeds_twice(tmp_path, capsys) -> None:
     assert main(["simulate-benchmark", "--out", str(tmp_path / "b"), "--velocity-only",
                  "--preset-speeds", "faster=0.5,1", "faster=0.6,1"]) == 1
