@@ -67,6 +67,10 @@ class PoseTimeline:
             :attr:`late`.
     """
 
+    batch_replay: bool = True
+    """Replay the steps without a measurement in one compiled call each run (see
+    :meth:`_replay`); off: step by step (the tests compare the two)."""
+
     def __init__(self, filt: PoseUKF | PoseTwistUKF, horizon_us: int) -> None:
         if filt.batch_size != 1:
             raise ValueError(f"PoseTimeline needs a filter of batch size 1, got {filt.batch_size}")
@@ -204,23 +208,60 @@ class PoseTimeline:
                 t_from: int = 0) -> None:
         """From the state of step end ``j`` (restored), redo the steps after it, fusing the
         kept measurements at their times; ``twist_of`` (see :meth:`remeasure`) may replace
-        the twist of each step starting at or after ``t_from`` first."""
-        for i in range(j + 1, len(times)):
-            t_start, t_end = times[i - 1], times[i]
-            if (twist_of is not None and t_start >= t_from
-                    and bool(self.filter.initialized[0])):
-                new = twist_of(t_start, t_end)
-                if new is not None:
-                    self._twists[i] = new.clone()
-            twist = self._twists[i]
-            t_cur = t_start
-            for r in self._records:
-                if t_start < r.t_us <= t_end:
-                    self._predict(r.t_us - t_cur, twist)
-                    self._fuse(r)
-                    t_cur = r.t_us
-            self._predict(t_end - t_cur, twist)
-            self._snaps[i] = self._snapshot()
+        the twist of each step starting at or after ``t_from`` first. Without ``twist_of``,
+        each run of steps without a measurement is predicted in one call
+        (:meth:`PoseUKF.predict_run <evtrack.filters.PoseUKF.predict_run>`, where it
+        applies and :attr:`batch_replay` is set): the same states, bit for bit."""
+        i = j + 1
+        if twist_of is None and self.batch_replay and self.twist_driven:
+            # the steps holding a measurement: r in (times[i - 1], times[i]] -> step i
+            measured = {bisect.bisect_left(times, r.t_us) for r in self._records}
+            while i < len(times):
+                end = i
+                while end < len(times) and end not in measured:
+                    end += 1
+                if end - i >= 2 and self._predict_steps(i, end, times):
+                    i = end
+                if i < len(times):
+                    self._replay_step(i, times, None, t_from)
+                    i += 1
+            return
+        for k in range(i, len(times)):
+            self._replay_step(k, times, twist_of, t_from)
+
+    def _predict_steps(self, i0: int, i1: int, times: list[int]) -> bool:
+        """Steps ``i0..i1-1`` (no measurement inside) by one :meth:`PoseUKF.predict_run`
+        call, their snapshots kept; False (nothing done) where it does not apply."""
+        run = range(i0, i1)
+        states = self.filter.predict_run([self._twists[k] for k in run],
+                                         [(times[k] - times[k - 1]) * 1e-6 for k in run])
+        if states is None:
+            return False
+        last = self._snapshot()  # the final state, and the unchanged counters' copies
+        slots = {"t": 0, "q": 1, "cov": 2}
+        for n, k in enumerate(run):
+            self._snaps[k] = tuple(states[slots[name]][n] if name in slots else last[m]
+                                   for m, name in enumerate(self.names))
+        return True
+
+    def _replay_step(self, i: int, times: list[int],
+                     twist_of: Callable[[int, int], Tensor | None] | None, t_from: int) -> None:
+        """Redo step ``i`` of :meth:`_replay`."""
+        t_start, t_end = times[i - 1], times[i]
+        if (twist_of is not None and t_start >= t_from
+                and bool(self.filter.initialized[0])):
+            new = twist_of(t_start, t_end)
+            if new is not None:
+                self._twists[i] = new.clone()
+        twist = self._twists[i]
+        t_cur = t_start
+        for r in self._records:
+            if t_start < r.t_us <= t_end:
+                self._predict(r.t_us - t_cur, twist)
+                self._fuse(r)
+                t_cur = r.t_us
+        self._predict(t_end - t_cur, twist)
+        self._snaps[i] = self._snapshot()
 
     def remeasure(self, t_us: int, twist_of: Callable[[int, int], Tensor | None]) -> int:
         """Measure again the twists of the kept steps after ``t_us``, and replay them.

@@ -36,7 +36,7 @@ from evtrack.filters.scalar_lie import normalized, quat_mul, quat_rotate, rotati
 from evtrack.jit import available as _numba_available
 from evtrack.jit import njit as _njit
 
-__all__ = ["available", "pose_predict", "velocity_update"]
+__all__ = ["available", "pose_predict", "pose_predict_run", "velocity_update"]
 
 _TINY = float(np.finfo(np.float64).tiny)
 _NOT_PD = -1  # status of a factorisation that met a non-positive pivot
@@ -326,6 +326,35 @@ def _pose_predict_kernel(t, q, cov, twist, dt, q_matrix):
         for j in range(6):
             cov_out[0, i, j] = 0.5 * (full[i, j] + full[j, i]) + dt * q_matrix[i, j]
     return t_out, q_out, cov_out
+
+
+@_njit
+def _pose_predict_run_kernel(t, q, cov, twists, dts, q_matrix):
+    """:func:`_pose_predict_kernel` ``n`` times in a row: step ``k`` by ``twists[k]`` over
+    ``dts[k]``; returns the states after each step, (n,1,3), (n,1,4), (n,1,6,6)."""
+    n = twists.shape[0]
+    t_all = np.empty((n, 1, 3))
+    q_all = np.empty((n, 1, 4))
+    cov_all = np.empty((n, 1, 6, 6))
+    for k in range(n):
+        t, q, cov = _pose_predict_kernel(t, q, cov, twists[k:k + 1], dts[k], q_matrix)
+        t_all[k] = t
+        q_all[k] = q
+        cov_all[k] = cov
+    return t_all, q_all, cov_all
+
+
+def pose_predict_run(t: np.ndarray, q: np.ndarray, cov: np.ndarray, twists: np.ndarray,
+                     dts: np.ndarray, q_matrix: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`pose_predict` for ``n`` steps in one call (the same arithmetic, bit for bit):
+    ``twists`` (n,6), ``dts`` (n,) s; returns the states after each step, ``t`` (n,1,3),
+    ``q`` (n,1,4), ``cov`` (n,1,6,6). Needs numba (:func:`available`)."""
+    f64 = np.float64
+    return _pose_predict_run_kernel(
+        np.ascontiguousarray(t, f64), np.ascontiguousarray(q, f64),
+        np.ascontiguousarray(cov, f64), np.ascontiguousarray(twists, f64).reshape(-1, 6),
+        np.ascontiguousarray(dts, f64).reshape(-1), np.ascontiguousarray(q_matrix, f64))
 
 
 def pose_predict(t: np.ndarray, q: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt: float,

@@ -35,6 +35,7 @@ rounding), unless ``fast_path=False``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -623,6 +624,44 @@ class PoseUKF(_PoseFilter):
             self.t, self.q, self.cov, twist, self._dt(dt)
         )
         return self.t, self.q
+
+    def predict_run(
+        self, twists: Sequence[Tensor], dts: Sequence[float]
+    ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """``len(twists)`` predicts in a row in one compiled call: step ``k`` moves the pose
+        by ``twists[k]`` (1,6) over ``dts[k]`` s, with the same arithmetic as
+        :meth:`predict` (bit for bit). For a replay of many steps (a late measurement's,
+        :class:`~evtrack.pose_timeline.PoseTimeline`), where one call per step costs more
+        than the step.
+
+        Returns:
+            the states after each step, ``t`` (n,1,3), ``q`` (n,1,4), ``cov`` (n,1,6,6), the
+            last of which is now the filter's; or ``None``, with the filter unchanged, when
+            :meth:`predict` would not take its compiled single-track path (a batch, CUDA,
+            float32, gradients, sigma points, no numba...): then call :meth:`predict` per step.
+        """
+        if len(twists) != len(dts):
+            raise ValueError(f"predict_run: {len(twists)} twists but {len(dts)} time steps")
+        if not (
+            twists
+            and fp.COMPILED
+            and _compiled.available()
+            and all(isinstance(w, Tensor) and w.shape == (1, 6) and w.is_cpu for w in twists)
+            and self._fast((*twists, *(float(dt) for dt in dts)))
+        ):
+            return None
+        buf = self._buffers
+        t, q, cov = _compiled.pose_predict_run(
+            buf["t"].numpy(),
+            buf["q"].numpy(),
+            buf["cov"].numpy(),
+            np.concatenate([fp.as_array(w) for w in twists]),
+            np.array([self._fast_dt(dt) for dt in dts], dtype=np.float64),
+            buf["q_matrix"].numpy(),
+        )
+        buf.update(t=torch.from_numpy(t[-1].copy()), q=torch.from_numpy(q[-1].copy()),
+                   cov=torch.from_numpy(cov[-1].copy()))
+        return torch.from_numpy(t), torch.from_numpy(q), torch.from_numpy(cov)
 
     def predict_state(
         self, t: Tensor, q: Tensor, cov: Tensor, twist: Tensor, dt: Tensor

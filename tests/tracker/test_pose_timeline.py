@@ -274,3 +274,65 @@ def test_remeasure_keeps_a_twist_when_asked_for_none_and_checks_its_input() -> N
         line.remeasure(5_000, lambda a, b: None)  # older than the 10 ms kept
     with pytest.raises(ValueError, match="twist-driven"):
         PoseTimeline(PoseTwistUKF(1), 10_000).remeasure(0, lambda a, b: None)
+
+
+@pytest.mark.parametrize("kinds", [("pose",), ("pose", "range", "aligned")])
+def test_batched_replay_equals_step_by_step_replay_bit_for_bit(kinds) -> None:
+    """The measurement-free runs of a replay go through one ``PoseUKF.predict_run`` call
+    each: every kept snapshot (probed by ``pose_at``) and the final state equal the replay
+    step by step exactly, counters included."""
+    n = 120
+    twists = _twists(n)
+    lines = []
+    for batched in (True, False):
+        filt = PoseUKF(1, dtype=torch.float64)
+        _start(filt)
+        line = PoseTimeline(filt, horizon_us=50_000)
+        line.batch_replay = batched
+        for k in range(n):
+            line.step((k + 1) * STEP, twists[k])
+            if k % 20 == 19:  # a measurement 15.5 ms in the past, of each kind in turn
+                tm = (k + 1) * STEP - 15_500
+                kind = kinds[(k // 20) % len(kinds)]
+                t, q = _meas(k)
+                if kind == "range":
+                    line.add(tm, "range", (torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64),
+                                           t[:, 2]), torch.tensor([1e-4], dtype=torch.float64))
+                else:
+                    line.add(tm, kind, (t, q), torch.eye(6, dtype=torch.float64)[None] * 1e-3)
+        lines.append(line)
+    fast, slow = lines
+    for name in fast.names:
+        assert torch.equal(getattr(fast.filter, name), getattr(slow.filter, name)), name
+    for t_us in range(fast._times[0], fast.now + 1, 250):
+        a, b = fast.pose_at(t_us), slow.pose_at(t_us)
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1]), t_us
+    for snap_a, snap_b in zip(fast._snaps, slow._snaps, strict=True):
+        for x, y in zip(snap_a, snap_b, strict=True):
+            assert torch.equal(x, y)
+
+
+def test_predict_run_equals_predict_calls_and_declines_batches() -> None:
+    twists = _twists(7)
+    dts = [1e-3, 2.5e-4, 1e-3, 3e-3, 1e-6, 1e-3, 7e-4]
+    run, ref = PoseUKF(1, dtype=torch.float64), PoseUKF(1, dtype=torch.float64)
+    _start(run)
+    _start(ref)
+    states = run.predict_run(list(twists), dts)
+    assert states is not None
+    for k in range(len(dts)):
+        ref.predict(twists[k], dts[k])
+        assert torch.equal(states[0][k], ref.t) and torch.equal(states[1][k], ref.q)
+        assert torch.equal(states[2][k], ref.cov)
+    assert torch.equal(run.t, ref.t) and torch.equal(run.cov, ref.cov)
+    # not the compiled single-track path: None, nothing changed
+    two = PoseUKF(2, dtype=torch.float64)
+    before = two.t.clone()
+    assert two.predict_run([torch.zeros(2, 6, dtype=torch.float64)], [1e-3]) is None
+    assert torch.equal(two.t, before)
+    single = PoseUKF(1, dtype=torch.float32)
+    assert single.predict_run([torch.zeros(1, 6)], [1e-3]) is None
+    with pytest.raises(ValueError, match="2 twists but 1 time steps"):
+        run.predict_run(list(twists[:2]), [1e-3])
