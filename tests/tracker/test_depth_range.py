@@ -105,7 +105,9 @@ def test_tracker_fuses_ranges_and_tracks_depth_better(fast_sequence) -> None:
     """Oracle poses with 2 cm noise at 10 Hz: the depth error of the full method with the range
     of every depth frame is well below that without. Measured after 150 ms: 4.27 cm without,
     1.55 cm with; 28 of the 36 depth frames fused (those before the first pose, which arrives
-    100 ms late, find no track). Bounds: 0.6x, and 70 % of the frames."""
+    100 ms late, find no track). Since the tracker's flow reports RoI windows of 2
+    supporting events (``flow.min_support``, 2026-11-26) the run without ranges is better:
+    2.95 cm without, 1.78 cm with. Bounds: 0.75x, and 70 % of the frames."""
     seq = fast_sequence
     oracle = {"std_translation": 0.02, "std_rotation": 0.03}
     plain, _ = make_tracker(seq, oracle=oracle)
@@ -115,7 +117,7 @@ def test_tracker_fuses_ranges_and_tracks_depth_better(fast_sequence) -> None:
     frames = len(seq.depth_times_us)
     assert ranged.stats.depth_ranges >= 0.7 * frames, ranged.stats.depth_ranges_skipped
     e_plain, e_ranged = _depth_rmse_cm(a, seq, 150_000), _depth_rmse_cm(b, seq, 150_000)
-    assert e_ranged < 0.6 * e_plain, (e_plain, e_ranged)
+    assert e_ranged < 0.75 * e_plain, (e_plain, e_ranged)
 
 
 def test_depth_range_config_is_checked(fast_sequence) -> None:
