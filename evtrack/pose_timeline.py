@@ -220,12 +220,13 @@ class PoseTimeline:
                 end = i
                 while end < len(times) and end not in measured:
                     end += 1
-                if end - i >= 2 and self._predict_steps(i, end, times):
-                    i = end
-                if i < len(times):
+                if end - i < 2:
                     self._replay_step(i, times, None, t_from)
                     i += 1
-            return
+                elif self._predict_steps(i, end, times):
+                    i = end
+                else:  # the compiled path does not apply to this filter: step by step
+                    break
         for k in range(i, len(times)):
             self._replay_step(k, times, twist_of, t_from)
 

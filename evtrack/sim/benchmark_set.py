@@ -97,10 +97,8 @@ def _entry_config(base: SimConfig, preset: str, seed: int,
     cfg = dataclasses.replace(preset_config(base, preset), seed=seed)
     if speeds and preset in speeds:
         linear, angular = speeds[preset]
-        fields = {f.name: getattr(cfg.trajectory, f.name)
-                  for f in dataclasses.fields(cfg.trajectory)}
-        fields.update(linear_speed=float(linear), angular_speed=float(angular))
-        cfg = dataclasses.replace(cfg, trajectory=type(cfg.trajectory)(**fields))
+        cfg = dataclasses.replace(cfg, trajectory=dataclasses.replace(
+            cfg.trajectory, linear_speed=float(linear), angular_speed=float(angular)))
     return cfg
 
 
