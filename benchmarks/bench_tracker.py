@@ -2,7 +2,8 @@
 
     python benchmarks/bench_tracker.py [--size 320x240] [--duration 1.0] [--threads 2 1]
                                        [--methods full pose] [--sequence DIR] [--weights W.pt]
-                                       [--caps 0 2000 1000] [--pose-async off on]
+                                       [--caps 0 2000 1000] [--search-per-window 0 128 64]
+                                       [--pose-async off on]
                                        [--save-sequence DIR]
 
 Simulates a ``faster`` sequence of the procedural box (or takes ``--sequence``), then tracks it
@@ -22,6 +23,8 @@ Columns:
     filters/step: mean time of one velocity-filter + pose-filter step (µs).
     cap: ``max_events_per_step`` (events per 1 ms step entering the flow; thinned above it):
         ``--caps`` compares the speed and the error of several budgets.
+    sample: ``search_per_roi_window`` (events of a RoI window searched for candidates, a hash
+        sample; 0: all): ``--search-per-window`` compares several.
 
 Timings on a shared machine are noisy; rerun when it is quiet.
 """
@@ -77,11 +80,13 @@ def _pose_source(seq: Sequence, weights: str | None):
 
 
 def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | None,
-         cap: int | None, pose_async: bool = True) -> dict:
+         cap: int | None, pose_async: bool = True, sample: int | None = None) -> dict:
     torch.set_num_threads(threads)
     changes = {**config, "method": method, "torch_threads": threads, "pose_async": pose_async}
     if cap is not None:
         changes["max_events_per_step"] = cap
+    if sample is not None:
+        changes["search_per_roi_window"] = sample
     cfg = TrackerConfig.from_dict(changes)
     source, source_name = _pose_source(seq, weights)
     tracker = Tracker.for_sequence(seq, cfg, source)
@@ -101,6 +106,7 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
     st = tracker.stats
     filt = st.time_s.get("velocity", 0.0) + st.time_s.get("pose", 0.0)
     row = {"method": method, "threads": threads, "cap": cfg.max_events_per_step,
+           "sample": cfg.search_per_roi_window,
            "async": "on" if pose_async else "off", "pose_src": st.time_s.get("pose_source", 0.0),
            "thinned": st.events_thinned, "source": source_name, "events": st.events,
            "seq_s": span, "proc_s": wall, "rtf": wall / span, "ev_per_s": st.events / wall,
@@ -135,6 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--caps", type=int, nargs="+", default=[None], metavar="N",
                     help="max_events_per_step values to compare (0: no cap; default: the "
                          "config's)")
+    ap.add_argument("--search-per-window", type=int, nargs="+", default=[None], metavar="N",
+                    help="search_per_roi_window values to compare (events searched per RoI "
+                         "window, a hash sample; 0: all; default: the config's)")
     ap.add_argument("--pose-async", nargs="+", choices=["on", "off"], default=["on"],
                     help="TrackerConfig.pose_async values to compare (on: the pose source in "
                          "the tracker's worker thread; default: on)")
@@ -155,16 +164,17 @@ def main(argv: list[str] | None = None) -> int:
         margin = args.mask_margin if args.mask_margin is not None else demo.mask_margin_px
         config = {"flow": {"roi_size": roi}, "mask_margin_px": margin,
                   "flow_batch_steps": args.batch_steps}
-        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on")
-                for th in args.threads for cap in args.caps for mode in args.pose_async
-                for m in args.methods]
+        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample)
+                for th in args.threads for cap in args.caps for sample in args.search_per_window
+                for mode in args.pose_async for m in args.methods]
     cam = seq.meta.event_camera
     print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, mask margin "
           f"{margin:g} px, "
           f"{rows[0]['events']} events over {rows[0]['seq_s']:.2f} s, pose source "
           f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every {args.batch_steps} steps, "
           f"OMP_WAIT_POLICY {wait_policy()}")
-    head = (f"{'method':<10} {'thr':>3} {'async':>5} {'cap':>6} {'thinned':>8} {'proc s':>7} "
+    head = (f"{'method':<10} {'thr':>3} {'async':>5} {'cap':>6} {'sample':>6} {'thinned':>8} "
+            f"{'proc s':>7} "
             f"{'rtf':>6} {'pose src':>8} "
             f"{'ev/s':>9} {'flow':>6} "
             f"{'veloc':>6} {'pose':>6} {'frames':>6} {'grp p50':>8} {'grp p95':>8} "
@@ -173,7 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     print("-" * len(head))
     for r in rows:
         print(f"{r['method']:<10} {r['threads']:>3} {r['async']:>5} {r['cap']:>6} "
-              f"{r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} {r['pose_src']:>8.2f} "
+              f"{r['sample']:>6} {r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
+              f"{r['pose_src']:>8.2f} "
               f"{r['ev_per_s']:>9.0f} {r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} "
               f"{r['frames']:>6.2f} {r['group_p50_ms']:>6.2f}ms {r['group_p95_ms']:>6.2f}ms "
               f"{r['step_us']:>7.0f}us  {r.get('error', '')}")

@@ -17,7 +17,7 @@ try:
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
-__all__ = ["available", "njit"]
+__all__ = ["available", "njit", "warm_up"]
 
 F = TypeVar("F", bound=Callable)
 
@@ -31,3 +31,29 @@ def njit(fn: F) -> F:
     """``fn`` compiled by numba (``nopython``, cached on disk, without the GIL), or ``fn``
     itself where numba is missing."""
     return numba.njit(cache=True, nogil=True)(fn) if numba is not None else fn
+
+
+def _first_call(values):
+    """A trivial compiled function whose first call pays numba's start-up."""
+    return values.shape[0]
+
+
+_first = njit(_first_call)
+_warmed = False
+
+
+def warm_up() -> None:
+    """Pay numba's one-time start-up now instead of at the first compiled call.
+
+    The first call of any compiled function in a process loads numba's typing and lowering
+    registries (about 0.3 s on 2 cores, measured 2026-11-27); the kernels themselves then
+    load from the disk cache in milliseconds each. :class:`evtrack.Tracker` calls this when
+    it is made, so that a live stream's first events do not wait for it. Later calls do
+    nothing; without numba it does nothing."""
+    global _warmed
+    if _warmed or numba is None:
+        return
+    import numpy as np
+
+    _first(np.zeros(1, np.int64))
+    _warmed = True

@@ -41,6 +41,16 @@ re-initialises itself after ``reinit_after`` gated poses in a row
 (:class:`~evtrack.filters.PoseUKF`), and on the second of two gated poses in a row that agree
 with each other (``reinit_on_agreement``: the filter has drifted off, the poses have not).
 
+Sampled search (``search_per_roi_window``): of a RoI window with more events than that, the
+flow searches only a hash sample of about that many for candidates
+(:func:`evtrack.flow.sampling.sampled_search`). Every event still enters the search's history,
+so a searched event forms the triplets it would form in the whole stream, and the sample is
+drawn by the hash that also picks the registration's data term (at most
+``flow.max_events_per_roi`` events): a window whose sample still holds that many
+candidate-bearing events registers the same flow as unsampled. The candidate search is most of
+the flow's cost and grows with the events, while the data term does not; on the densely
+textured cracker box `faster` (8.6 M events/s) the sample of 32 searches about a fifth of them.
+
 Event bursts: a step whose events outside the object's predicted silhouette (plus
 ``mask_margin_px``) exceed ``burst_rate_hz`` per pixel over the image outside it is an event
 burst (flicker, a sensor glitch): none of its events is used, the velocity filter only
@@ -100,9 +110,10 @@ from evtrack.events import Events, concatenate
 from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
 from evtrack.filters.lie import pivot_map
 from evtrack.filters.scalar_lie import normalized, rotation_matrix
-from evtrack.flow import FlowResult, TripletFlow
+from evtrack.flow import FlowResult, TripletFlow, sampled_search
 from evtrack.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
 from evtrack.geometry import integrate_twist, matrix_to_tq
+from evtrack.jit import warm_up
 
 # evtrack.models is imported here, not where depth_icp is set up: it imports torch's
 # flop counter, which imports Triton where installed (CUDA builds of torch), and Triton's LLVM
@@ -172,6 +183,9 @@ class TrackerStats:
             found to be event bursts (see the module docstring).
         events_thinned: events of the cells beyond a group's ``max_events_per_step`` budget
             (not used; see the module docstring).
+        events_unsearched: events given to the flow but, beyond a RoI window's
+            ``search_per_roi_window``, not searched for candidates (they still serve the
+            searched events' triplets; see the module docstring).
         roi_flows: RoI flows given to the velocity filter.
         velocity_updates: steps with at least one RoI flow (or GE row).
         depth_fallbacks: RoIs that took the fallback depth (see the module docstring).
@@ -203,6 +217,7 @@ class TrackerStats:
     events_in_bursts: int = 0
     burst_steps: int = 0
     events_thinned: int = 0
+    events_unsearched: int = 0
     roi_flows: int = 0
     velocity_updates: int = 0
     depth_fallbacks: int = 0
@@ -422,6 +437,7 @@ class Tracker:
                  T_event_rgb: Tensor | np.ndarray | None = None) -> None:
         self.config = config if config is not None else TrackerConfig()
         cfg = self.config
+        warm_up()  # numba's start-up now, not at the first events (see evtrack.jit)
         self.camera = camera
         self.rgb_camera = rgb_camera if rgb_camera is not None else camera
         self.T_event_rgb = (torch.eye(4, dtype=torch.float64) if T_event_rgb is None
@@ -875,7 +891,15 @@ class Tracker:
             with _Timer(st.time_s, "flow"):
                 # group ends are whole steps, and steps whole flow windows (the config
                 # checks it): every window of the group is over, one registration reports all
-                res = _StepFlows(self.flow.update(ev, until_us=t_end), t0, step,
+                search = None
+                if cfg.search_per_roi_window and len(ev):
+                    fc = self.flow.config
+                    search = sampled_search(ev.x, ev.y, ev.t, self.flow.events_seen,
+                                            roi_size=fc.roi_size, window_us=fc.window_us,
+                                            sensor_width=self.camera.width,
+                                            per_window=cfg.search_per_roi_window)
+                    st.events_unsearched += int(len(search) - int(search.sum()))
+                res = _StepFlows(self.flow.update(ev, until_us=t_end, search=search), t0, step,
                                  (t_end - t0) // step, self.vkf.twist.dtype, self.device)
         ev_cut = torch.searchsorted(ev.t, t0 + step * torch.arange(
             1, (t_end - t0) // step + 1, dtype=torch.int64)).tolist() if len(ev) else None

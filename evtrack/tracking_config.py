@@ -260,6 +260,12 @@ class TrackerConfig:
             6.5 unthinned, in 0.4x the time (real-time factor 10.1 -> 4.0). The default is
             ~5x the peak rate of the fast 640x480 simulated sequences (3.8k events per ms on
             the whole sensor).
+        search_per_roi_window: the flow searches at most about this many events of one RoI
+            window for candidates, a sample by the hash that also picks the registration's
+            data term (:func:`evtrack.flow.sampling.sampled_search`); all events still enter
+            the search's history, so the searched events' triplets are those of the whole
+            stream, and a window whose sample holds ``flow.max_events_per_roi``
+            candidate-bearing events registers the same flow as unsampled. 0: search all.
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed
             outside the image (less than ``min_visible_fraction`` of its hull area inside) for
             this long; the pose filter then waits for the next pose to re-initialise.
@@ -384,6 +390,7 @@ class TrackerConfig:
     mask_margin_px: float = 32.0
     burst_rate_hz: float = 100.0
     max_events_per_step: int = 20_000
+    search_per_roi_window: int = 64
     lost_after_ms: float = 100.0
     min_visible_fraction: float = 0.05
     lost_after_misses: int = 3
@@ -434,9 +441,10 @@ class TrackerConfig:
                               f"{DEPTH_SOURCES}, got {self.depth_source!r}")
         for name in ("torch_threads", "blas_threads", "velocity_step_us", "flow_batch_steps",
                      "depth_patch_px", "depth_stride_px", "model_depth_interval_us",
-                     "lost_after_misses", "max_events_per_step"):
+                     "lost_after_misses", "max_events_per_step", "search_per_roi_window"):
             _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads", "blas_threads",
-                                                "lost_after_misses", "max_events_per_step")
+                                                "lost_after_misses", "max_events_per_step",
+                                                "search_per_roi_window")
                       else 1)
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
                      "pose_min_confidence", "burst_rate_hz", "reinit_agree_m",

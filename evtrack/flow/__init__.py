@@ -12,6 +12,7 @@ from evtrack.flow.candidates import Candidates, CandidateSearch
 from evtrack.flow.config import FlowConfig, dt_bounds_us, search_offsets
 from evtrack.flow.registration import Registration, register_groups
 from evtrack.flow.result import FlowResult
+from evtrack.flow.sampling import sampled_search
 from evtrack.flow.triplet import TripletFlow
 
 __all__ = [
@@ -23,5 +24,6 @@ __all__ = [
     "TripletFlow",
     "dt_bounds_us",
     "register_groups",
+    "sampled_search",
     "search_offsets",
 ]

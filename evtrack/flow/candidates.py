@@ -205,13 +205,19 @@ class CandidateSearch:
         self.next_seq = 0
 
     # ------------------------------------------------------------------ driver
-    def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Candidates:
+    def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor,
+                 search: Tensor | None = None) -> Candidates:
         """Search the candidates of the next events of the stream and add them to the history.
 
         Args:
             x, y: (n,) integer pixel coordinates (inside the sensor; not checked here).
             t: (n,) int64 timestamps in µs, non-decreasing and not before earlier calls.
             p: (n,) polarity (+1 / -1).
+            search: optional (n,) bool: the events whose candidates are searched (default
+                all). The others still pass the burst filter and enter the history, so later
+                events form the same triplets with them; they only get no candidates of
+                their own. (Here the candidates are found for all and those rows dropped;
+                the compiled search skips the lookups.)
 
         Returns:
             The candidates, with stream indices continuing those of earlier calls.
@@ -219,6 +225,11 @@ class CandidateSearch:
         n = int(t.shape[0])
         if n == 0:
             return Candidates.empty(self.device)
+        if search is not None:
+            seq0 = self.next_seq
+            found = self(x, y, t, p)
+            searched = search.to(found.event.device, torch.bool)
+            return found.select(searched[found.event - seq0])
         dev = self.device
         x = x.to(dev, torch.int64)
         y = y.to(dev, torch.int64)

@@ -111,7 +111,7 @@ def _cell_index(plane, yy, xx, lo, hi, r2, width, pixels, halo_cell):
 
 
 @_njit()
-def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+def _search_kernel(x, y, t, p, srch, start, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
                    num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
                    o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_out,
                    lo, hi, r2, halo_pix, halo_cell):
@@ -157,7 +157,7 @@ def _search_kernel(x, y, t, p, start, seq0, width, height, off_x, off_y, dt_lo, 
                 and tk - (prev >> 1) <= refractory):
             continue  # inside a burst: neither searched nor stored
         plane = 1 - positive
-        if own:
+        if own and srch[k - 1]:
             # inner: every cell read lies in the strip's own rows and inside the sensor
             inner = yk - r2 >= lo and yk + r2 < hi and xk >= r2 and xk < width - r2
             cell_k = plane * pixels + yk * width + xk
@@ -244,7 +244,7 @@ def _copy_halos(lo_s, hi_s, r2, width, height, x_min, x_max, last, hist, hist_s,
 
 
 @_njit(parallel=True)
-def _search_strips(x, y, t, p, starts, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+def _search_strips(x, y, t, p, srch, starts, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
                    num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
                    o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_outs, cap,
                    lo_s, hi_s, r2, halo_pix0, halo_cell0):
@@ -256,7 +256,7 @@ def _search_strips(x, y, t, p, starts, seq0, width, height, off_x, off_y, dt_lo,
             continue
         a, b = s * cap, (s + 1) * cap
         k, m = _search_kernel(
-            x, y, t, p, starts[s], seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+            x, y, t, p, srch, starts[s], seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
             num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
             o_event[a:b], o_off[a:b], o_aj[a:b], o_ai[a:b], o_sj[a:b], o_si[a:b], o_dt[a:b],
             o_flow[a:b], n_outs[s], lo_s[s], hi_s[s], r2, halo_pix0 + s * strip_pix,
@@ -332,7 +332,7 @@ def _strip_cuts(y, height, count):
 
 
 @_njit(parallel=True)
-def _search_strips_merged(x, y, t, p, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
+def _search_strips_merged(x, y, t, p, srch, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
                           num_x, num_y, history, refractory, tol_abs, permille, last, hist,
                           hist_s, lo_s, hi_s, r2, halo_pix0, halo_cell0, cap):
     """The first pass of a batch in strips, in one call: the private rows' copy
@@ -361,7 +361,7 @@ def _search_strips_merged(x, y, t, p, seq0, width, height, off_x, off_y, dt_lo, 
     for s in _prange(count):
         a, b = s * cap, (s + 1) * cap
         k, m = _search_kernel(
-            x, y, t, p, 0, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j, num_x,
+            x, y, t, p, srch, 0, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j, num_x,
             num_y, history, refractory, tol_abs, permille, last, hist, hist_s, o_event[a:b],
             o_off[a:b], o_aj[a:b], o_ai[a:b], o_sj[a:b], o_si[a:b], o_dt[a:b], o_flow[a:b],
             0, lo_s[s], hi_s[s], r2, halo_pix0 + s * strip_pix, halo_cell0 + s * 2 * strip_pix)
@@ -500,13 +500,17 @@ class CompiledSearch:
                     np.full(1, n, np.int64))
         return _strip_cuts(y, self.height, count)
 
-    def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> Candidates:
+    def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor,
+                 search: Tensor | None = None) -> Candidates:
         """Search the candidates of the next events of the stream and add them to the history.
 
         Args:
             x, y: (n,) integer pixel coordinates (inside the sensor; not checked here).
             t: (n,) int64 timestamps in µs, non-decreasing and not before earlier calls.
             p: (n,) polarity (+1 / -1).
+            search: optional (n,) bool: the events whose candidates are searched (default
+                all); the others enter the history all the same (see
+                :meth:`~evtrack.flow.candidates.CandidateSearch.__call__`).
 
         Returns:
             The candidates, with stream indices continuing those of earlier calls.
@@ -516,13 +520,15 @@ class CompiledSearch:
             return Candidates.empty(self.device)
         x, y, t, p = (np.ascontiguousarray(a.detach().cpu().numpy(), dtype=np.int64)
                       for a in (x, y, t, p))
+        srch = (np.ones(n, np.uint8) if search is None else
+                np.ascontiguousarray(search.detach().cpu().numpy(), dtype=np.uint8))
         parts = []
         start = 0
         while start < n:  # pieces spanning less than MAX_SPAN_US, as the torch search
             stop = int(np.searchsorted(t, t[start] + MAX_SPAN_US, side="left"))
             self._ensure_range(int(t[start]), int(t[stop - 1]))
             arrays = [x[start:stop], y[start:stop], t[start:stop] - self.t_base,
-                      p[start:stop]]
+                      p[start:stop], srch[start:stop]]
             lo_s, hi_s, own = self._strip_rows(arrays[1])
             if lo_s.shape[0] == 1:
                 parts += self._search_whole(arrays, stop - start)

@@ -332,7 +332,13 @@ class TripletFlow(nn.Module):
         first = self.update(events)
         return FlowResult.cat([first, self.flush()])
 
-    def update(self, events: Events, until_us: int | None = None) -> FlowResult:
+    @property
+    def events_seen(self) -> int:
+        """Events given since the last reset: the stream index of the next event."""
+        return self._search.next_seq if self._search is not None else 0
+
+    def update(self, events: Events, until_us: int | None = None,
+               search: Tensor | None = None) -> FlowResult:
         """Add the next events of the stream; return the RoI windows they complete.
 
         Args:
@@ -343,6 +349,12 @@ class TripletFlow(nn.Module):
                 registration as those the events close. A later event before it raises
                 :class:`EventsError`. The results equal those without the promise, only
                 sooner.
+            search: optional (N,) bool, which of ``events`` are searched for candidates
+                (default all). The others enter the history as usual, so the triplets of
+                later events are those of the whole stream; they get no candidates and add
+                nothing to a RoI window's data term or support. Used to spend the search on
+                a sample of dense windows' events (see
+                :func:`evtrack.flow.sampling.sampled_search`).
 
         Raises:
             EventsError: unsorted events, events before the previous batch (or before an
@@ -355,9 +367,16 @@ class TripletFlow(nn.Module):
                 raise EventsError(f"flow input: until_us={until_us} µs is before the last "
                                   f"event (t={events.t_end} µs)")
         self._check(events)
+        if search is not None:
+            search = torch.as_tensor(search)
+            if search.dtype != torch.bool or search.shape != (len(events),):
+                raise ValueError(f"flow input: search must be a ({len(events)},) bool tensor, "
+                                 f"got {tuple(search.shape)} {search.dtype}")
         parts = [FlowResult.empty(self.device, self._emitted, self.return_event_flow)]
         size = self.config.chunk_size
-        pieces = [events[start:start + size] for start in range(0, len(events), size)]
+        pieces = [(events[start:start + size],
+                   None if search is None else search[start:start + size])
+                  for start in range(0, len(events), size)]
         for i, piece in enumerate(self._searched(pieces)):
             last = i == len(pieces) - 1 and until_us is not None
             parts.append(self._register_piece(*piece, finalise=not last))
@@ -423,7 +442,7 @@ class TripletFlow(nn.Module):
                              np.arange(h, dtype=np.int64) // s * cols)
         return self._roi_lut[1], self._roi_lut[2]
 
-    def _searched(self, pieces: list[Events]):
+    def _searched(self, pieces: list[tuple[Events, Tensor | None]]):
         """The searched pieces, in order. With the compiled search and several pieces, the
         search of piece ``k + 1`` runs in a worker thread (the kernel releases the GIL) while
         the caller registers piece ``k``: the search is sequential by nature and the
@@ -441,14 +460,18 @@ class TripletFlow(nn.Module):
                     ahead = pool.submit(self._search_piece, pieces[k + 1])
                 yield done
 
-    def _search_piece(self, ev: Events) -> tuple[Tensor, Tensor, Tensor, Candidates, int]:
+    def _search_piece(self, piece: tuple[Events, Tensor | None]
+                      ) -> tuple[Tensor, Tensor, Tensor, Candidates, int]:
         """The candidates of the next events (advances the search's history)."""
+        ev, search = piece
         dev = self.device
         x = ev.x.to(dev, torch.int64)
         y = ev.y.to(dev, torch.int64)
         t = ev.t.to(dev, torch.int64)
         seq0 = self._search.next_seq
-        return x, y, t, self._search(x, y, t, ev.p.to(dev)), seq0
+        if search is None:
+            return x, y, t, self._search(x, y, t, ev.p.to(dev)), seq0
+        return x, y, t, self._search(x, y, t, ev.p.to(dev), search.to(dev)), seq0
 
     def _register_piece(self, x: Tensor, y: Tensor, t: Tensor, cands: Candidates,
                         seq0: int, finalise: bool = True) -> FlowResult:

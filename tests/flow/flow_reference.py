@@ -23,8 +23,11 @@ def reference_offsets(radius: int) -> list[tuple[int, int]]:
 
 def reference_candidates(x, y, t, p, sensor_size, *, radius, history, refractory_us,
                          tolerance_us, tolerance_permille, min_speed, max_speed, max_span_us=0,
-                         state=None):
+                         state=None, search=None):
     """Candidates of every event, sequentially.
+
+    ``search`` (optional, one bool per event): events marked False are not searched, but
+    stored like any other.
 
     Returns ``(rows, state)``; each row is ``(k, offset, age_j, age_i, seq_j, seq_i, dt_ki,
     flow_x, flow_y)`` with ``k`` the stream index of e_k. ``state`` (the per-pixel deques and
@@ -37,7 +40,9 @@ def reference_candidates(x, y, t, p, sensor_size, *, radius, history, refractory
     cells = state["cells"]
     last = state["last"]
     rows = []
-    for xk, yk, tk, pk in zip(list(x), list(y), list(t), list(p), strict=True):
+    wanted = [True] * len(list(t)) if search is None else [bool(s) for s in search]
+    for xk, yk, tk, pk, searched in zip(list(x), list(y), list(t), list(p), wanted,
+                                        strict=True):
         xk, yk, tk, pk = int(xk), int(yk), int(tk), int(pk)
         k = state["next"]
         state["next"] = k + 1
@@ -47,7 +52,7 @@ def reference_candidates(x, y, t, p, sensor_size, *, radius, history, refractory
         if (refractory_us > 0 and previous is not None and previous[1] == pk
                 and tk - previous[0] <= refractory_us):
             continue  # inside the burst of an earlier event: skipped, not stored
-        for oi, (dx, dy) in enumerate(offsets):
+        for oi, (dx, dy) in enumerate(offsets if searched else ()):
             xj, yj, xi, yi = xk - dx, yk - dy, xk - 2 * dx, yk - 2 * dy
             if not (0 <= xi < width and 0 <= yi < height):
                 continue

@@ -326,7 +326,7 @@ def test_burst_of_100x_rate_is_processed_in_bounded_chunks(texture, monkeypatch)
     original = TripletFlow._search_piece
 
     def spy(self, chunk):
-        seen.append(len(chunk))
+        seen.append(len(chunk[0]))  # (events, search mask)
         return original(self, chunk)
 
     monkeypatch.setattr(TripletFlow, "_search_piece", spy)

@@ -76,6 +76,8 @@ def test_partial_sections_keep_the_other_defaults() -> None:
     ({"depth_source": "lidar"}, "depth_source"),
     ({"history_ms": 100}, "history_ms"),
     ({"use_flow_normal_flags": 1}, "use_flow_normal_flags"),
+    ({"search_per_roi_window": -1}, "search_per_roi_window"),
+    ({"search_per_roi_window": 2.5}, "search_per_roi_window"),
 ])
 def test_errors_name_the_field(data, match) -> None:
     with pytest.raises(ConfigError, match=match):

@@ -1,0 +1,129 @@
+"""Which events the flow searches: a hash sample of each dense RoI window.
+
+The registration uses at most ``FlowConfig.max_events_per_roi`` events of a RoI window in its
+data term: the candidate-bearing events with the smallest :func:`~evtrack.flow.registration.hash32`
+of their stream index (:mod:`evtrack.flow.registration`). On a densely textured object a
+window holds hundreds of events, and the candidate search, the dominant cost of the flow, is
+spent mostly on events the registration then leaves out.
+
+:func:`sampled_search` picks, per RoI window, the events whose hash lies below
+``per_window / count * 2^32`` (all events of windows of at most ``per_window`` events):
+about ``per_window`` of them, spread over the window, chosen by the *same* hash as the data
+term. Given to :meth:`TripletFlow.update(..., search=...) <evtrack.flow.TripletFlow.update>`,
+the other events still enter the search's history (their trails serve the triplets of later
+events) but are not searched themselves. Hence:
+
+* a window whose sampled events still include ``max_events_per_roi`` candidate-bearing ones
+  has the same data term, the same hypotheses and so the same flow as without the sample
+  (the smallest hashes are all below the threshold); only its ``support`` is smaller;
+* a sparser window loses data-term events, and a window of at most ``per_window`` events
+  loses none.
+
+The counts are those of the events given in one call, so the sample depends on how the
+stream was cut unless each call ends on a window boundary (as the tracker's step groups do).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from evtrack.flow.registration import hash32
+from evtrack.jit import available as jit_available
+from evtrack.jit import njit
+
+__all__ = ["sampled_search"]
+
+_HASH_RANGE = 1 << 32
+_GOLDEN = 2654435761  # evtrack.flow.registration.hash32's multiplier
+
+
+def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size: int,
+                   window_us: int, sensor_width: int, per_window: int) -> Tensor:
+    """(N,) bool: about ``per_window`` events of each RoI window, by the hash of their
+    stream index (see the module docstring).
+
+    Args:
+        x, y: (N,) integer pixel coordinates (non-negative).
+        t: (N,) int64 timestamps in µs, non-decreasing.
+        first_seq: the flow's stream index of the first event (``TripletFlow.events_seen``
+            before the call).
+        roi_size: the flow's RoI side in pixels.
+        window_us: the flow's registration window in µs.
+        sensor_width: sensor width in pixels (the RoI grid's column count follows from it).
+        per_window: events searched per RoI window at most, about; must be positive.
+
+    Returns:
+        (N,) bool on ``t``'s device; all True where a window has at most ``per_window``
+        events. On CPU with numba, one compiled pass; otherwise tensor operations (the
+        same result).
+    """
+    if per_window < 1:
+        raise ValueError(f"sampled_search: per_window must be >= 1, got {per_window}")
+    if int(t.shape[0]) == 0:
+        return torch.zeros(0, dtype=torch.bool, device=t.device)
+    cols = -(-int(sensor_width) // roi_size)
+    if t.device.type == "cpu" and jit_available():
+        keep = _sample_compiled(x.numpy(), y.numpy(), t.numpy(), int(first_seq), int(roi_size),
+                                int(window_us), cols, int(per_window))
+        return torch.from_numpy(keep)
+    return _sample_torch(x, y, t, int(first_seq), roi_size, window_us, cols, per_window)
+
+
+def _sample_torch(x: Tensor, y: Tensor, t: Tensor, first_seq: int, roi_size: int,
+                  window_us: int, cols: int, per_window: int) -> Tensor:
+    """:func:`sampled_search` by tensor operations (any device)."""
+    n = int(t.shape[0])
+    t = t.to(torch.int64)
+    window = torch.div(t, window_us, rounding_mode="floor")
+    w0 = int(window[0])
+    n_windows = int(window[-1]) - w0 + 1
+    roi = (torch.div(y.to(torch.int64), roi_size, rounding_mode="floor") * cols
+           + torch.div(x.to(torch.int64), roi_size, rounding_mode="floor"))
+    rows = int(roi.max()) // cols + 1
+    key = (window - w0) * (rows * cols) + roi
+    count = torch.bincount(key, minlength=n_windows * rows * cols)[key]
+    seq = torch.arange(first_seq, first_seq + n, dtype=torch.int64, device=t.device)
+    # hash < per_window / count * 2^32, in exact integers (hash < 2^32, count < 2^31)
+    return (count <= per_window) | (hash32(seq) * count < per_window * _HASH_RANGE)
+
+
+@njit
+def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, per_window):
+    """:func:`sampled_search` in passes over NumPy arrays: the RoI of each event by lookup
+    tables, its window by the time-sorted order (a division only where a window starts),
+    the counts, then the test."""
+    n = t.shape[0]
+    w0 = t[0] // window_us
+    n_windows = t[n - 1] // window_us - w0 + 1
+    y_max = 0
+    for i in range(n):
+        y_max = max(y_max, np.int64(y[i]))
+    rows = y_max // roi_size + 1
+    per = rows * cols
+    row_base = np.empty(y_max + 1, np.int64)
+    for v in range(y_max + 1):
+        row_base[v] = (v // roi_size) * cols
+    col_of = np.empty(cols * roi_size, np.int64)
+    for v in range(cols * roi_size):
+        col_of[v] = v // roi_size
+    key = np.empty(n, np.int64)
+    count = np.zeros(n_windows * per, np.int64)
+    base = np.int64(0)
+    next_start = (w0 + 1) * window_us
+    for i in range(n):
+        if t[i] >= next_start:
+            w = t[i] // window_us
+            base = (w - w0) * per
+            next_start = (w + 1) * window_us
+        k = base + row_base[y[i]] + col_of[x[i]]
+        key[i] = k
+        count[k] += 1
+    keep = np.empty(n, np.bool_)
+    bound = np.int64(per_window) << 32
+    for i in range(n):
+        c = count[key[i]]
+        h = (((first_seq + i) & 0x7FFFFFFF) * _GOLDEN) & 0xFFFFFFFF
+        keep[i] = c <= per_window or h * c < bound
+    return keep
