@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tracker_cpu.py --sequence DIR [DIR ...] [--repeats 2]
                                            [--variants reference blas strips mask groups kf
-                                                       depth eq3]
+                                                       depth eq3 sample]
 
 Variants, cumulative (each adds one change to the one before):
 
@@ -20,7 +20,10 @@ Variants, cumulative (each adds one change to the one before):
   NumPy;
 * ``depth``: the RoI depth lookup compiled (``evtrack.depth_sources.COMPILED``);
 * ``eq3``: the tracker's Eq. 3 caps, 16 hypotheses from at most 32 events per RoI window
-  (the flow's generic 48 from 64 before), the tracker's default: all eight changes.
+  (the flow's generic 48 from 64 before);
+* ``sample``: the flow searches a hash sample of about 64 events of each RoI window
+  (``search_per_roi_window``; every event still enters the search's history), the tracker's
+  default: all nine changes.
 
 The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
@@ -30,12 +33,13 @@ variant, as are the later small-call savings of the flow (registration kernels w
 parallel loops, compiled group keys and counts), the NumPy gather of the event mask and the
 compiled row spans, and the pose source in ``track``'s worker thread (``pose_async``).
 
-All but ``groups`` and ``eq3`` give the same trajectory as the variant before up to float
+All but ``groups``, ``eq3`` and ``sample`` give the same trajectory as the variant before up to float
 rounding (the
 strips bit for bit; the BLAS thread count and the mask's arithmetic can move an event on the
 mask's edge); ``groups`` masks 10 steps of events with the silhouette predicted at their first
 step (its errors on the benchmark sets: see ``TrackerConfig.flow_batch_steps``); ``eq3`` solves
-Eq. 3 over fewer hypotheses (its errors: see ``evtrack.tracking_config``). Each run is a
+Eq. 3 over fewer hypotheses (its errors: see ``evtrack.tracking_config``), ``sample`` the
+data term of fewer events in the crowded windows (see ``evtrack.tracker``). Each run is a
 fresh child process, the variants interleaved run by run so that the machine's load drifts
 over all alike; each child tracks the sequence twice and times the second run (the first
 loads the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
@@ -58,7 +62,7 @@ from pathlib import Path
 
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
-VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3")
+VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3", "sample")
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int, frames: str) -> dict:
@@ -95,6 +99,8 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
               "flow_batch_steps": 10 if level >= VARIANTS.index("groups") else 5}
     if level < VARIANTS.index("eq3"):
         config["flow"] = {"max_hypotheses": 48, "max_events_per_roi": 64}
+    if level < VARIANTS.index("sample"):
+        config["search_per_roi_window"] = 0
     return time_tracking(sequence, config, threads, frames)
 
 
