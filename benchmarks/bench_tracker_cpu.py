@@ -34,8 +34,8 @@ parallel loops, compiled group keys and counts), the NumPy gather of the event m
 compiled row spans, and the pose source in ``track``'s worker thread (``pose_async``).
 
 All but ``groups``, ``eq3`` and ``sample`` give the same trajectory as the variant before up
-to float rounding (the strips bit for bit; the BLAS thread count and the mask's arithmetic can move an event on the
-mask's edge); ``groups`` masks 10 steps of events with the silhouette predicted at their first
+to float rounding (the strips bit for bit; the BLAS thread count and the mask's arithmetic can
+move an event on the mask's edge); ``groups`` masks 10 steps of events with the silhouette predicted at their first
 step (its errors on the benchmark sets: see ``TrackerConfig.flow_batch_steps``); ``eq3`` solves
 Eq. 3 over fewer hypotheses (its errors: see ``evtrack.tracking_config``), ``sample`` the
 data term of fewer events in the crowded windows (see ``evtrack.tracker``). Each run is a
