@@ -33,17 +33,18 @@ variant, as are the later small-call savings of the flow (registration kernels w
 parallel loops, compiled group keys and counts), the NumPy gather of the event mask and the
 compiled row spans, and the pose source in ``track``'s worker thread (``pose_async``).
 
-All but ``groups``, ``eq3`` and ``sample`` give the same trajectory as the variant before up
-to float rounding (the strips bit for bit; the BLAS thread count and the mask's arithmetic can
-move an event on the mask's edge); ``groups`` masks 10 steps of events with the silhouette predicted at their first
-step (its errors on the benchmark sets: see ``TrackerConfig.flow_batch_steps``); ``eq3`` solves
-Eq. 3 over fewer hypotheses (its errors: see ``evtrack.tracking_config``), ``sample`` the
-data term of fewer events in the crowded windows (see ``evtrack.tracker``). Each run is a
-fresh child process, the variants interleaved run by run so that the machine's load drifts
-over all alike; each child tracks the sequence twice and times the second run (the first
-loads the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
-``benchmarks/bench_tracker.py``. Printed per sequence and variant: the median processing time,
-the real-time factor (processing / sequence time) and the flow stage's time.
+All but ``groups``, ``eq3`` and ``sample`` give the same trajectory as the variant before up to
+float rounding (the strips bit for bit; the BLAS thread count and the mask's arithmetic can
+move an event on the mask's edge); ``groups`` masks 10 steps of events with the silhouette
+predicted at their first step (its errors on the benchmark sets: see
+``TrackerConfig.flow_batch_steps``); ``eq3`` solves Eq. 3 over fewer hypotheses (its errors:
+see ``evtrack.tracking_config``), ``sample`` the data term of fewer events in the crowded
+windows (see ``evtrack.tracker``). Each run is a fresh child process, the variants interleaved
+run by run so that the machine's load drifts over all alike; each child tracks the sequence
+twice and times the second run (the first loads the compiled kernels). Oracle poses (1 cm /
+0.03 rad noise), as in ``benchmarks/bench_tracker.py``. Printed per sequence and variant: the
+median processing time, the real-time factor (processing / sequence time) and the flow stage's
+time.
 
 ``--frames files memory`` runs each variant twice: with the RGB-D frames decoded from the
 sequence's PNG files while tracking (as ``Tracker.track`` on a recording does, in a reader
