@@ -351,9 +351,9 @@ class TripletFlow(nn.Module):
                 sooner.
             search: optional (N,) bool, which of ``events`` are searched for candidates
                 (default all). The others enter the history as usual, so the triplets of
-                later events are those of the whole stream; they get no candidates and add
-                nothing to a RoI window's data term or support. Used to spend the search on
-                a sample of dense windows' events (see
+                later events are those of the whole stream; they get no candidates (nor a
+                per-event flow) and add nothing to a RoI window's data term or support.
+                Used to spend the search on a sample of dense windows' events (see
                 :func:`evtrack.flow.sampling.sampled_search`).
 
         Raises:
@@ -366,12 +366,13 @@ class TripletFlow(nn.Module):
             if isinstance(events, Events) and len(events) and until_us < events.t_end:
                 raise EventsError(f"flow input: until_us={until_us} µs is before the last "
                                   f"event (t={events.t_end} µs)")
-        self._check(events)
-        if search is not None:
+        if search is not None:  # checked before anything changes, as until_us
             search = torch.as_tensor(search)
-            if search.dtype != torch.bool or search.shape != (len(events),):
-                raise ValueError(f"flow input: search must be a ({len(events)},) bool tensor, "
+            n = len(events) if isinstance(events, Events) else -1
+            if search.dtype != torch.bool or search.shape != (n,):
+                raise ValueError(f"flow input: search must be a ({n},) bool tensor, "
                                  f"got {tuple(search.shape)} {search.dtype}")
+        self._check(events)
         parts = [FlowResult.empty(self.device, self._emitted, self.return_event_flow)]
         size = self.config.chunk_size
         pieces = [(events[start:start + size],

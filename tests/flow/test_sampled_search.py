@@ -174,8 +174,13 @@ def test_update_refuses_a_search_mask_of_the_wrong_shape(dense_texture):
     ev = dense_texture[:100]
     with pytest.raises(ValueError, match="search"):
         TripletFlow(roi_size=16).update(ev, search=torch.ones(99, dtype=torch.bool))
+    flow = TripletFlow(roi_size=16)
     with pytest.raises(ValueError, match="search"):
-        TripletFlow(roi_size=16).update(ev, search=torch.ones(100, dtype=torch.int64))
+        flow.update(ev, search=torch.ones(100, dtype=torch.int64))
+    # refused before anything changed: the same events are then taken
+    assert flow.events_seen == 0
+    flow.update(ev, search=torch.ones(100, dtype=torch.bool))
+    assert flow.events_seen == 100
 
 
 def test_compiled_and_tensor_samples_agree():
