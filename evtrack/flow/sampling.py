@@ -45,7 +45,7 @@ def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size:
     stream index (see the module docstring).
 
     Args:
-        x, y: (N,) integer pixel coordinates (non-negative).
+        x, y: (N,) integer pixel coordinates (non-negative; ``x < sensor_width``).
         t: (N,) int64 timestamps in µs, non-decreasing.
         first_seq: the flow's stream index of the first event (``TripletFlow.events_seen``
             before the call).
@@ -58,12 +58,21 @@ def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size:
         (N,) bool on ``t``'s device; all True where a window has at most ``per_window``
         events. On CPU with numba, one compiled pass; otherwise tensor operations (the
         same result).
+
+    Raises:
+        ValueError: ``per_window < 1``, or coordinates outside ``[0, sensor_width)`` (x) or
+            negative (y).
     """
     if per_window < 1:
         raise ValueError(f"sampled_search: per_window must be >= 1, got {per_window}")
     if int(t.shape[0]) == 0:
         return torch.zeros(0, dtype=torch.bool, device=t.device)
     cols = -(-int(sensor_width) // roi_size)
+    lo, hi = int(torch.minimum(x.min(), y.min())), int(x.max())
+    if lo < 0 or hi >= sensor_width:
+        raise ValueError(f"sampled_search: pixel coordinates must lie in [0, {sensor_width}) "
+                         f"horizontally and be non-negative; got x in [{int(x.min())}, {hi}], "
+                         f"y from {int(y.min())}")
     if t.device.type == "cpu" and jit_available():
         keep = _sample_compiled(x.numpy(), y.numpy(), t.numpy(), int(first_seq), int(roi_size),
                                 int(window_us), cols, int(per_window))

@@ -114,6 +114,13 @@ def test_sampled_search_bad_and_empty_input():
     with pytest.raises(ValueError, match="per_window"):
         sampled_search(one, one, one, 0, roi_size=8, window_us=100, sensor_width=32,
                        per_window=0)
+    outside = torch.tensor([3, 32])
+    with pytest.raises(ValueError, match=r"\[0, 32\)"):
+        sampled_search(outside, outside * 0, outside * 0, 0, roi_size=8, window_us=100,
+                       sensor_width=32, per_window=4)
+    with pytest.raises(ValueError, match="non-negative"):
+        sampled_search(outside * 0, -outside, outside * 0, 0, roi_size=8, window_us=100,
+                       sensor_width=32, per_window=4)
 
 
 @pytest.fixture(scope="module")
