@@ -30,13 +30,13 @@ import torch
 from torch import Tensor
 
 from evtrack.flow.registration import hash32
+from evtrack.flow.registration_compiled import _hash32
 from evtrack.jit import available as jit_available
 from evtrack.jit import njit
 
 __all__ = ["sampled_search"]
 
 _HASH_RANGE = 1 << 32
-_GOLDEN = 2654435761  # evtrack.flow.registration.hash32's multiplier
 
 
 def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size: int,
@@ -133,6 +133,5 @@ def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, per_window):
     bound = np.int64(per_window) << 32
     for i in range(n):
         c = count[key[i]]
-        h = (((first_seq + i) & 0x7FFFFFFF) * _GOLDEN) & 0xFFFFFFFF
-        keep[i] = c <= per_window or h * c < bound
+        keep[i] = c <= per_window or _hash32(first_seq + i) * c < bound
     return keep

@@ -9,7 +9,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 import torch
-from flow_reference import reference_candidates
+from flow_helpers import random_stream, reference_rows
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -23,15 +23,6 @@ if not compiled.available():
     pytest.skip("numba is not installed: the compiled backend cannot run", allow_module_level=True)
 
 FIELDS = ("event", "offset", "age_j", "age_i", "seq_j", "seq_i", "dt_us")
-
-
-def _reference_rows(x, y, t, p, cfg):
-    rows, _ = reference_candidates(
-        x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg.sensor_size, radius=cfg.radius,
-        history=cfg.history, refractory_us=cfg.refractory_us, tolerance_us=cfg.tolerance_us,
-        tolerance_permille=cfg.tolerance_permille, min_speed=cfg.min_speed,
-        max_speed=cfg.max_speed, max_span_us=cfg.max_span_us)
-    return rows
 
 
 def _search_in_chunks(cfg, x, y, t, p, cuts, strips=None, tight=False):
@@ -60,17 +51,13 @@ def _search_in_chunks(cfg, x, y, t, p, cuts, strips=None, tight=False):
        tight=st.booleans())
 def test_random_streams_equal_the_reference(seed, n, radius, history, refractory, max_gap,
                                             span, cuts, strips, tight):
-    rng = np.random.default_rng(seed)
     size = (9, 7)
-    t = torch.as_tensor(np.cumsum(rng.integers(0, max_gap + 1, n)))
-    x = torch.as_tensor(rng.integers(0, size[0], n))
-    y = torch.as_tensor(rng.integers(0, size[1], n))
-    p = torch.as_tensor(rng.choice([-1, 1], n))
+    x, y, t, p = random_stream(np.random.default_rng(seed), n, size, max_gap)
     cfg = FlowConfig(sensor_size=size, radius=radius, history=history, refractory_us=refractory,
                      tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6,
                      max_span_us=span)
     rows, flow = _search_in_chunks(cfg, x, y, t, p, [c for c in cuts if c <= n], strips, tight)
-    ref = _reference_rows(x, y, t, p, cfg)
+    ref = reference_rows(x, y, t, p, cfg)
     assert rows == [r[:7] for r in ref]
     if ref:
         torch.testing.assert_close(flow.double(), torch.tensor([r[7:] for r in ref],
@@ -83,7 +70,7 @@ def test_textured_scene_equals_the_reference_and_the_torch_search():
     ev = ev[:3000]
     cfg = FlowConfig(sensor_size=(40, 30))
     rows, flow = _search_in_chunks(cfg, ev.x, ev.y, ev.t, ev.p, [1, 700, 701, 2000])
-    ref = _reference_rows(ev.x, ev.y, ev.t, ev.p, cfg)
+    ref = reference_rows(ev.x, ev.y, ev.t, ev.p, cfg)
     assert len(ref) > 100 and rows == [r[:7] for r in ref]
     from evtrack.flow.candidates import CandidateSearch
 
@@ -112,7 +99,7 @@ def test_long_streams_move_the_time_base_without_changing_the_result(strips, cut
     t[1900:] += MAX_SPAN_US
     cfg = FlowConfig(sensor_size=(40, 30), refractory_us=40)
     rows, flow = _search_in_chunks(cfg, ev.x, ev.y, t, ev.p, cuts, strips)
-    ref = _reference_rows(ev.x, ev.y, t, ev.p, cfg)
+    ref = reference_rows(ev.x, ev.y, t, ev.p, cfg)
     assert any(r[0] >= 1400 for r in ref) and any(700 <= r[0] < 1400 for r in ref)
     assert rows == [r[:7] for r in ref]
 
@@ -136,7 +123,7 @@ def test_strips_equal_the_reference_on_a_textured_scene(strips, tight):
     cfg = FlowConfig(sensor_size=(40, 30), history=3)
     cuts = [1, 700, 701, 2000]
     rows, flow = _search_in_chunks(cfg, ev.x, ev.y, ev.t, ev.p, cuts, strips, tight)
-    ref = _reference_rows(ev.x, ev.y, ev.t, ev.p, cfg)
+    ref = reference_rows(ev.x, ev.y, ev.t, ev.p, cfg)
     assert len(ref) > 100 and rows == [r[:7] for r in ref]
     _, whole = _search_in_chunks(cfg, ev.x, ev.y, ev.t, ev.p, cuts, 1)
     assert torch.equal(flow, whole)
@@ -161,7 +148,7 @@ def test_strips_on_a_narrow_sweep_equal_the_reference(strips):
     cfg = FlowConfig(sensor_size=(w, h), history=2)
     cuts = list(range(25, len(t), 25))  # about one column per batch
     rows, _ = _search_in_chunks(cfg, x, y, t, p, cuts, strips)
-    ref = _reference_rows(x, y, t, p, cfg)
+    ref = reference_rows(x, y, t, p, cfg)
     assert len(ref) > 1000 and rows == [r[:7] for r in ref]
 
 

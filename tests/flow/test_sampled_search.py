@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from flow_reference import reference_candidates
+from flow_helpers import random_stream, reference_rows
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -16,16 +16,6 @@ from evtrack.flow.registration import hash32
 from evtrack.flow.scenes import translating_texture
 
 FIELDS = ("event", "offset", "age_j", "age_i", "seq_j", "seq_i", "dt_us")
-
-
-def _reference(x, y, t, p, cfg, search=None):
-    rows, _ = reference_candidates(
-        x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg.sensor_size, radius=cfg.radius,
-        history=cfg.history, refractory_us=cfg.refractory_us, tolerance_us=cfg.tolerance_us,
-        tolerance_permille=cfg.tolerance_permille, min_speed=cfg.min_speed,
-        max_speed=cfg.max_speed, max_span_us=cfg.max_span_us,
-        search=None if search is None else search.tolist())
-    return [r[:7] for r in rows]
 
 
 def _rows(cands):
@@ -53,15 +43,12 @@ def test_searching_a_sample_equals_the_reference_on_both_backends(
     torch search, in any chunking and any number of strips."""
     rng = np.random.default_rng(seed)
     size = (9, 7)
-    t = torch.as_tensor(np.cumsum(rng.integers(0, max_gap + 1, n)))
-    x = torch.as_tensor(rng.integers(0, size[0], n))
-    y = torch.as_tensor(rng.integers(0, size[1], n))
-    p = torch.as_tensor(rng.choice([-1, 1], n))
+    x, y, t, p = random_stream(rng, n, size, max_gap)
     mask = torch.as_tensor(rng.random(n) < keep)
     cfg = FlowConfig(sensor_size=size, radius=radius, history=history, refractory_us=refractory,
                      tolerance_us=5, tolerance_rel=0.2, min_speed=100.0, max_speed=1e6)
-    full = _reference(x, y, t, p, cfg)
-    sampled = _reference(x, y, t, p, cfg, mask)
+    full = [r[:7] for r in reference_rows(x, y, t, p, cfg)]
+    sampled = [r[:7] for r in reference_rows(x, y, t, p, cfg, mask)]
     # the reference's own sample: the full search's rows of the searched events
     assert sampled == [r for r in full if bool(mask[r[0]])]
     cuts = [c for c in cuts if c <= n]

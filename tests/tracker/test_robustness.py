@@ -208,13 +208,16 @@ def test_a_second_at_rest(rest_sequence, robust_runs) -> None:
 
 
 # ---------------------------------------------------------------------------- event bursts
-def _record_flow_calls(tracker: Tracker) -> list[tuple[int, int, int]]:
-    """Wrap the tracker's flow: record (events, first t, last t) of every call."""
-    calls: list[tuple[int, int, int]] = []
+def _record_flow_calls(tracker: Tracker) -> list[tuple[int, int, int, int]]:
+    """Wrap the tracker's flow: record (events, first t, last t, events searched) of every
+    call."""
+    calls: list[tuple[int, int, int, int]] = []
     update = tracker.flow.update
 
     def recorded(ev: Events, **kwargs):
-        calls.append((len(ev), int(ev.t[0]) if len(ev) else -1, int(ev.t[-1]) if len(ev) else -1))
+        search = kwargs.get("search")
+        calls.append((len(ev), int(ev.t[0]) if len(ev) else -1, int(ev.t[-1]) if len(ev) else -1,
+                      len(ev) if search is None else int(search.sum())))
         return update(ev, **kwargs)
 
     tracker.flow.update = recorded
@@ -289,19 +292,7 @@ def test_event_cap_bounds_the_work_per_step_whatever_the_chunking() -> None:
                                       "mask_margin_px": 4.0})
     outputs = []
     for chunks in ("one", "random"):
-        tracker = Tracker(config, camera=CAM, mesh=BIG_CUBE)
-        start = np.eye(4)
-        start[2, 3] = 0.6
-        tracker.reset(start, t_us=0)
-        calls = _record_flow_calls(tracker)
-        if chunks == "one":
-            tracker.push_events(ev)
-        else:
-            rng = np.random.default_rng(3)
-            cuts = np.sort(rng.choice(len(ev), 40, replace=False))
-            for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(ev)], strict=True):
-                tracker.push_events(ev[int(a):int(b)])
-        tracker.flush()
+        tracker, calls = _track_textured_object(config, ev, chunks, seed=3)
         st = tracker.stats
         assert st.burst_steps == 10
         assert st.events_thinned > 0
@@ -317,29 +308,23 @@ def test_event_cap_bounds_the_work_per_step_whatever_the_chunking() -> None:
     assert sa == sb
 
 
-def _track_textured_object(config: TrackerConfig, ev: Events, chunks: str):
+def _track_textured_object(config: TrackerConfig, ev: Events, chunks: str, seed: int):
+    """Track ``ev`` from the big cube's pose at 0.6 m, pushed in one chunk or in 41 random
+    ones; returns the tracker and its recorded flow calls (:func:`_record_flow_calls`)."""
     tracker = Tracker(config, camera=CAM, mesh=BIG_CUBE)
     start = np.eye(4)
     start[2, 3] = 0.6
     tracker.reset(start, t_us=0)
-    searched: list[int] = []
-    update = tracker.flow.update
-
-    def recorded(events: Events, **kwargs):
-        search = kwargs.get("search")
-        searched.append(len(events) if search is None else int(search.sum()))
-        return update(events, **kwargs)
-
-    tracker.flow.update = recorded
+    calls = _record_flow_calls(tracker)
     if chunks == "one":
         tracker.push_events(ev)
     else:
-        rng = np.random.default_rng(5)
+        rng = np.random.default_rng(seed)
         cuts = np.sort(rng.choice(len(ev), 40, replace=False))
         for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(ev)], strict=True):
             tracker.push_events(ev[int(a):int(b)])
     tracker.flush()
-    return tracker, sum(searched)
+    return tracker, calls
 
 
 def test_sampled_search_is_counted_and_independent_of_the_chunking() -> None:
@@ -350,8 +335,9 @@ def test_sampled_search_is_counted_and_independent_of_the_chunking() -> None:
     ev = _textured_object_with_burst()
     base = {"flow": {"roi_size": 16}, "max_events_per_step": 0, "mask_margin_px": 4.0}
     sampled = TrackerConfig.from_dict({**base, "search_per_roi_window": 6})
-    runs_ = [_track_textured_object(sampled, ev, chunks) for chunks in ("one", "random")]
-    (a, searched_a), (b, searched_b) = runs_
+    runs_ = [_track_textured_object(sampled, ev, chunks, seed=5) for chunks in ("one", "random")]
+    (a, calls_a), (b, calls_b) = runs_
+    searched_a, searched_b = (sum(c[3] for c in calls) for calls in (calls_a, calls_b))
     st = a.stats
     given = st.events_on_object - st.events_in_bursts
     assert 0 < st.events_unsearched < given
@@ -360,9 +346,9 @@ def test_sampled_search_is_counted_and_independent_of_the_chunking() -> None:
     sa, sb = a.stats.to_dict(), b.stats.to_dict()
     sa.pop("time_s"), sb.pop("time_s")
     assert sa == sb
-    whole, searched_whole = _track_textured_object(
-        TrackerConfig.from_dict({**base, "search_per_roi_window": 0}), ev, "one")
-    assert whole.stats.events_unsearched == 0 and searched_whole == given
+    whole, calls_whole = _track_textured_object(
+        TrackerConfig.from_dict({**base, "search_per_roi_window": 0}), ev, "one", seed=5)
+    assert whole.stats.events_unsearched == 0 and sum(c[3] for c in calls_whole) == given
     assert whole.stats.roi_flows > 0 and st.roi_flows > 0
     assert not torch.equal(whole.trajectory().twists, a.trajectory().twists)
 
