@@ -80,13 +80,16 @@ def _pose_source(seq: Sequence, weights: str | None):
 
 
 def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | None,
-         cap: int | None, pose_async: bool = True, sample: int | None = None) -> dict:
+         cap: int | None, pose_async: bool = True, sample: int | None = None,
+         search_budget: int | None = None) -> dict:
     torch.set_num_threads(threads)
     changes = {**config, "method": method, "torch_threads": threads, "pose_async": pose_async}
     if cap is not None:
         changes["max_events_per_step"] = cap
     if sample is not None:
         changes["search_per_roi_window"] = sample
+    if search_budget is not None:
+        changes["max_searched_per_step"] = search_budget
     cfg = TrackerConfig.from_dict(changes)
     source, source_name = _pose_source(seq, weights)
     tracker = Tracker.for_sequence(seq, cfg, source)
@@ -106,7 +109,8 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
     st = tracker.stats
     filt = st.time_s.get("velocity", 0.0) + st.time_s.get("pose", 0.0)
     row = {"method": method, "threads": threads, "cap": cfg.max_events_per_step,
-           "sample": cfg.search_per_roi_window,
+           "sample": cfg.search_per_roi_window, "budget": cfg.max_searched_per_step,
+           "unsearched": st.events_unsearched,
            "async": "on" if pose_async else "off", "pose_src": st.time_s.get("pose_source", 0.0),
            "thinned": st.events_thinned, "source": source_name, "events": st.events,
            "seq_s": span, "proc_s": wall, "rtf": wall / span, "ev_per_s": st.events / wall,
@@ -144,6 +148,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-per-window", type=int, nargs="+", default=[None], metavar="N",
                     help="search_per_roi_window values to compare (events searched per RoI "
                          "window, a hash sample; 0: all; default: the config's)")
+    ap.add_argument("--search-budget", type=int, nargs="+", default=[None], metavar="N",
+                    help="max_searched_per_step values to compare (events searched per "
+                         "velocity step, by cells of RoIs; 0: no budget; default: the config's)")
     ap.add_argument("--pose-async", nargs="+", choices=["on", "off"], default=["on"],
                     help="TrackerConfig.pose_async values to compare (on: the pose source in "
                          "the tracker's worker thread; default: on)")
@@ -164,16 +171,18 @@ def main(argv: list[str] | None = None) -> int:
         margin = args.mask_margin if args.mask_margin is not None else demo.mask_margin_px
         config = {"flow": {"roi_size": roi}, "mask_margin_px": margin,
                   "flow_batch_steps": args.batch_steps}
-        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample)
+        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample, budget)
                 for th in args.threads for cap in args.caps for sample in args.search_per_window
-                for mode in args.pose_async for m in args.methods]
+                for budget in args.search_budget for mode in args.pose_async
+                for m in args.methods]
     cam = seq.meta.event_camera
     print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, mask margin "
           f"{margin:g} px, "
           f"{rows[0]['events']} events over {rows[0]['seq_s']:.2f} s, pose source "
           f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every {args.batch_steps} steps, "
           f"OMP_WAIT_POLICY {wait_policy()}")
-    head = (f"{'method':<10} {'thr':>3} {'async':>5} {'cap':>6} {'sample':>6} {'thinned':>8} "
+    head = (f"{'method':<10} {'thr':>3} {'async':>5} {'cap':>6} {'sample':>6} {'budget':>6} "
+            f"{'unsearched':>10} {'thinned':>8} "
             f"{'proc s':>7} "
             f"{'rtf':>6} {'pose src':>8} "
             f"{'ev/s':>9} {'flow':>6} "
@@ -183,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     print("-" * len(head))
     for r in rows:
         print(f"{r['method']:<10} {r['threads']:>3} {r['async']:>5} {r['cap']:>6} "
-              f"{r['sample']:>6} {r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
+              f"{r['sample']:>6} {r['budget']:>6} {r['unsearched']:>10} "
+              f"{r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
               f"{r['pose_src']:>8.2f} "
               f"{r['ev_per_s']:>9.0f} {r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} "
               f"{r['frames']:>6.2f} {r['group_p50_ms']:>6.2f}ms {r['group_p95_ms']:>6.2f}ms "

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tracker_cpu.py --sequence DIR [DIR ...] [--repeats 2]
                                            [--variants reference blas strips mask groups kf
-                                                       depth eq3 sample]
+                                                       depth eq3 sample budget]
 
 Variants, cumulative (each adds one change to the one before):
 
@@ -22,8 +22,9 @@ Variants, cumulative (each adds one change to the one before):
 * ``eq3``: the tracker's Eq. 3 caps, 16 hypotheses from at most 32 events per RoI window
   (the flow's generic 48 from 64 before);
 * ``sample``: the flow searches a hash sample of about 64 events of each RoI window
-  (``search_per_roi_window``; every event still enters the search's history), the tracker's
-  default: all nine changes.
+  (``search_per_roi_window``; every event still enters the search's history);
+* ``budget``: of those, at most 3000 events per velocity step are searched, by whole cells of
+  2 x 2 RoIs (``max_searched_per_step``), the tracker's default: all ten changes.
 
 The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
@@ -33,18 +34,19 @@ variant, as are the later small-call savings of the flow (registration kernels w
 parallel loops, compiled group keys and counts), the NumPy gather of the event mask and the
 compiled row spans, and the pose source in ``track``'s worker thread (``pose_async``).
 
-All but ``groups``, ``eq3`` and ``sample`` give the same trajectory as the variant before up to
-float rounding (the strips bit for bit; the BLAS thread count and the mask's arithmetic can
-move an event on the mask's edge); ``groups`` masks 10 steps of events with the silhouette
-predicted at their first step (its errors on the benchmark sets: see
-``TrackerConfig.flow_batch_steps``); ``eq3`` solves Eq. 3 over fewer hypotheses (its errors:
-see ``evtrack.tracking_config``), ``sample`` the data term of fewer events in the crowded
-windows (see ``evtrack.tracker``). Each run is a fresh child process, the variants interleaved
-run by run so that the machine's load drifts over all alike; each child tracks the sequence
-twice and times the second run (the first loads the compiled kernels). Oracle poses (1 cm /
-0.03 rad noise), as in ``benchmarks/bench_tracker.py``. Printed per sequence and variant: the
-median processing time, the real-time factor (processing / sequence time) and the flow stage's
-time.
+All but ``groups``, ``eq3``, ``sample`` and ``budget`` give the same trajectory as the variant
+before up to float rounding (the strips bit for bit; the BLAS thread count and the mask's
+arithmetic can move an event on the mask's edge); ``groups`` masks 10 steps of events with the
+silhouette predicted at their first step (its errors on the benchmark sets: see
+``TrackerConfig.flow_batch_steps``); ``eq3`` solves Eq. 3 over fewer hypotheses (its errors: see
+``evtrack.tracking_config``), ``sample`` the data term of fewer events in the crowded windows
+(see ``evtrack.tracker``), ``budget`` the flows of fewer RoIs when the object's events exceed
+the budget (see ``TrackerConfig.max_searched_per_step``). Each run is a fresh child process, the
+variants interleaved run by run so that the machine's load drifts over all alike; each child
+tracks the sequence twice and times the second run (the first loads the compiled kernels).
+Oracle poses (1 cm / 0.03 rad noise), as in ``benchmarks/bench_tracker.py``. Printed per
+sequence and variant: the median processing time, the real-time factor (processing / sequence
+time) and the flow stage's time.
 
 ``--frames files memory`` runs each variant twice: with the RGB-D frames decoded from the
 sequence's PNG files while tracking (as ``Tracker.track`` on a recording does, in a reader
@@ -62,7 +64,8 @@ from pathlib import Path
 
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
-VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3", "sample")
+VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3", "sample",
+            "budget")
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int, frames: str) -> dict:
@@ -101,6 +104,8 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
         config["flow"] = {"max_hypotheses": 48, "max_events_per_roi": 64}
     if level < VARIANTS.index("sample"):
         config["search_per_roi_window"] = 0
+    if level < VARIANTS.index("budget"):
+        config["max_searched_per_step"] = 0
     return time_tracking(sequence, config, threads, frames)
 
 

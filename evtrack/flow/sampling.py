@@ -19,11 +19,23 @@ events) but are not searched themselves. Hence:
 * a sparser window loses data-term events, and a window of at most ``per_window`` events
   loses none.
 
+With a ``budget``, the events so chosen are then cut down to at most ``budget`` per call by
+whole cells of ``cell_rois`` x ``cell_rois`` RoIs: the cells are visited in one fixed
+pseudo-random order (the same hash of the cell's index) and each is taken, with all its chosen
+events, if they still fit in the budget (first fit); the others are left out. Every event still
+enters the history, so a taken cell's triplets and RoI flows are those of the whole stream
+however the taken cells change from call to call. A cell of several RoIs keeps RoIs whose
+neighbours are searched too (the trails that cross a RoI's border serve both sides). This bounds
+the search and the registration, the flow's dominant costs, per call whatever the event rate;
+the RoIs of the left-out cells give no flow in that call.
+
 The counts are those of the events given in one call, so the sample depends on how the
 stream was cut unless each call ends on a window boundary (as the tracker's step groups do).
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import torch
@@ -40,9 +52,10 @@ _HASH_RANGE = 1 << 32
 
 
 def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size: int,
-                   window_us: int, sensor_width: int, per_window: int) -> Tensor:
+                   window_us: int, sensor_width: int, per_window: int, budget: int = 0,
+                   cell_rois: int = 2) -> Tensor:
     """(N,) bool: about ``per_window`` events of each RoI window, by the hash of their
-    stream index (see the module docstring).
+    stream index, and at most ``budget`` in all, by cells of RoIs (see the module docstring).
 
     Args:
         x, y: (N,) integer pixel coordinates (non-negative; ``x < sensor_width``).
@@ -52,20 +65,24 @@ def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size:
         roi_size: the flow's RoI side in pixels.
         window_us: the flow's registration window in µs.
         sensor_width: sensor width in pixels (the RoI grid's column count follows from it).
-        per_window: events searched per RoI window at most, about; must be positive.
+        per_window: events searched per RoI window at most, about; 0: all of each window.
+        budget: events searched in this call at most, by whole cells; 0: no bound.
+        cell_rois: a budget cell's side in RoIs.
 
     Returns:
         (N,) bool on ``t``'s device; all True where a window has at most ``per_window``
-        events. On CPU with numba, one compiled pass; otherwise tensor operations (the
-        same result).
+        events and the call at most ``budget``. On CPU with numba, compiled passes;
+        otherwise tensor operations (the same result).
 
     Raises:
-        ValueError: ``per_window < 1``, or coordinates outside ``[0, sensor_width)`` (x) or
-            negative (y).
+        ValueError: ``per_window`` or ``budget`` negative, ``cell_rois < 1``, or coordinates
+            outside ``[0, sensor_width)`` (x) or negative (y).
     """
-    if per_window < 1:
-        raise ValueError(f"sampled_search: per_window must be >= 1, got {per_window}")
-    if int(t.shape[0]) == 0:
+    if per_window < 0 or budget < 0 or cell_rois < 1:
+        raise ValueError(f"sampled_search: per_window and budget must be >= 0 and cell_rois "
+                         f">= 1, got {per_window}, {budget}, {cell_rois}")
+    n = int(t.shape[0])
+    if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=t.device)
     cols = -(-int(sensor_width) // roi_size)
     lo, hi = int(torch.minimum(x.min(), y.min())), int(x.max())
@@ -73,17 +90,60 @@ def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size:
         raise ValueError(f"sampled_search: pixel coordinates must lie in [0, {sensor_width}) "
                          f"horizontally and be non-negative; got x in [{int(x.min())}, {hi}], "
                          f"y from {int(y.min())}")
+    if (per_window == 0 or n <= per_window) and (budget == 0 or n <= budget):
+        return torch.ones(n, dtype=torch.bool, device=t.device)
+    cell = roi_size * cell_rois
+    cell_cols = -(-int(sensor_width) // cell)
+    cell_rows = (int(y.max()) // cell) + 1
+    rank = _cell_rank(cell_cols * cell_rows)
     if t.device.type == "cpu" and jit_available():
         keep = _sample_compiled(x.numpy(), y.numpy(), t.numpy(), int(first_seq), int(roi_size),
-                                int(window_us), cols, int(per_window))
+                                int(window_us), cols, int(per_window), int(budget), cell,
+                                cell_cols, rank)
         return torch.from_numpy(keep)
-    return _sample_torch(x, y, t, int(first_seq), roi_size, window_us, cols, per_window)
+    keep = _sample_torch(x, y, t, int(first_seq), roi_size, window_us, cols, per_window)
+    if budget and int(keep.sum()) > budget:
+        keep &= _cells_within_torch(x, y, keep, budget, cell, cell_cols,
+                                    torch.tensor(rank, device=t.device))
+    return keep
+
+
+@functools.lru_cache(maxsize=8)
+def _cell_rank(n_cells: int) -> np.ndarray:
+    """(n_cells,) int64: each cell's place in the budget's fixed order (by the hash of the
+    cell index, ties by the index). Read-only: shared between calls."""
+    index = np.arange(n_cells, dtype=np.int64)
+    order = np.lexsort((index, hash32(torch.from_numpy(index)).numpy()))
+    rank = np.empty(n_cells, np.int64)
+    rank[order] = index
+    rank.flags.writeable = False
+    return rank
+
+
+def _cells_within_torch(x: Tensor, y: Tensor, keep: Tensor, budget: int, cell: int,
+                        cell_cols: int, rank: Tensor) -> Tensor:
+    """(N,) bool: the events of the cells taken by the budget (any device; the first-fit
+    pass over the cells' counts runs on the CPU)."""
+    c = (torch.div(y.to(torch.int64), cell, rounding_mode="floor") * cell_cols
+         + torch.div(x.to(torch.int64), cell, rounding_mode="floor"))
+    by_rank = torch.zeros(rank.shape[0], dtype=torch.int64, device=x.device)
+    by_rank.index_add_(0, rank[c[keep]], torch.ones_like(c[keep]))
+    counts = by_rank.cpu().numpy()
+    taken = np.zeros(counts.shape[0], np.bool_)  # first fit, in the cells' order
+    used = 0
+    for r in np.flatnonzero(counts).tolist():
+        if used + counts[r] <= budget:
+            used += int(counts[r])
+            taken[r] = True
+    return torch.from_numpy(taken).to(x.device)[rank[c]]
 
 
 def _sample_torch(x: Tensor, y: Tensor, t: Tensor, first_seq: int, roi_size: int,
                   window_us: int, cols: int, per_window: int) -> Tensor:
-    """:func:`sampled_search` by tensor operations (any device)."""
+    """:func:`sampled_search`'s per-window sample by tensor operations (any device)."""
     n = int(t.shape[0])
+    if per_window == 0:
+        return torch.ones(n, dtype=torch.bool, device=t.device)
     t = t.to(torch.int64)
     window = torch.div(t, window_us, rounding_mode="floor")
     w0 = int(window[0])
@@ -99,10 +159,11 @@ def _sample_torch(x: Tensor, y: Tensor, t: Tensor, first_seq: int, roi_size: int
 
 
 @njit
-def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, per_window):
+def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, per_window, budget, cell,
+                     cell_cols, rank):
     """:func:`sampled_search` in passes over NumPy arrays: the RoI of each event by lookup
     tables, its window by the time-sorted order (a division only where a window starts),
-    the counts, then the test."""
+    the counts, the per-window test, then the budget's cells."""
     n = t.shape[0]
     w0 = t[0] // window_us
     n_windows = t[n - 1] // window_us - w0 + 1
@@ -117,21 +178,48 @@ def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, per_window):
     col_of = np.empty(cols * roi_size, np.int64)
     for v in range(cols * roi_size):
         col_of[v] = v // roi_size
-    key = np.empty(n, np.int64)
-    count = np.zeros(n_windows * per, np.int64)
-    base = np.int64(0)
-    next_start = (w0 + 1) * window_us
-    for i in range(n):
-        if t[i] >= next_start:
-            w = t[i] // window_us
-            base = (w - w0) * per
-            next_start = (w + 1) * window_us
-        k = base + row_base[y[i]] + col_of[x[i]]
-        key[i] = k
-        count[k] += 1
-    keep = np.empty(n, np.bool_)
-    bound = np.int64(per_window) << 32
-    for i in range(n):
-        c = count[key[i]]
-        keep[i] = c <= per_window or _hash32(first_seq + i) * c < bound
+    keep = np.ones(n, np.bool_)
+    if per_window > 0:
+        key = np.empty(n, np.int64)
+        count = np.zeros(n_windows * per, np.int64)
+        base = np.int64(0)
+        next_start = (w0 + 1) * window_us
+        for i in range(n):
+            if t[i] >= next_start:
+                w = t[i] // window_us
+                base = (w - w0) * per
+                next_start = (w + 1) * window_us
+            k = base + row_base[y[i]] + col_of[x[i]]
+            key[i] = k
+            count[k] += 1
+        bound = np.int64(per_window) << 32
+        for i in range(n):
+            c = count[key[i]]
+            keep[i] = c <= per_window or _hash32(first_seq + i) * c < bound
+    if budget > 0:
+        cell_col = np.empty(cols * roi_size, np.int64)
+        for v in range(cols * roi_size):
+            cell_col[v] = v // cell
+        cell_row = np.empty(y_max + 1, np.int64)
+        for v in range(y_max + 1):
+            cell_row[v] = (v // cell) * cell_cols
+        by_rank = np.zeros(rank.shape[0], np.int64)
+        ranks = np.empty(n, np.int64)
+        total = 0
+        for i in range(n):
+            if keep[i]:
+                r = rank[cell_row[y[i]] + cell_col[x[i]]]
+                ranks[i] = r
+                by_rank[r] += 1
+                total += 1
+        if total > budget:
+            taken = np.zeros(by_rank.shape[0], np.bool_)  # first fit, in the cells' order
+            used = 0
+            for r in range(by_rank.shape[0]):
+                if by_rank[r] and used + by_rank[r] <= budget:
+                    used += by_rank[r]
+                    taken[r] = True
+            for i in range(n):
+                if keep[i] and not taken[ranks[i]]:
+                    keep[i] = False
     return keep

@@ -98,9 +98,11 @@ def test_sampled_search_bad_and_empty_input():
     assert sampled_search(empty, empty, empty, 0, roi_size=8, window_us=100, sensor_width=32,
                           per_window=4).shape == (0,)
     one = torch.zeros(1, dtype=torch.int64)
-    with pytest.raises(ValueError, match="per_window"):
-        sampled_search(one, one, one, 0, roi_size=8, window_us=100, sensor_width=32,
-                       per_window=0)
+    for bad in ({"per_window": -1}, {"per_window": 4, "budget": -1},
+                {"per_window": 4, "cell_rois": 0}):
+        with pytest.raises(ValueError, match="per_window and budget"):
+            sampled_search(one, one, one, 0, roi_size=8, window_us=100, sensor_width=32,
+                           **bad)
     outside = torch.tensor([3, 32])
     with pytest.raises(ValueError, match=r"\[0, 32\)"):
         sampled_search(outside, outside * 0, outside * 0, 0, roi_size=8, window_us=100,
@@ -177,7 +179,7 @@ def test_update_refuses_a_search_mask_of_the_wrong_shape(dense_texture):
     assert flow.events_seen == 100
 
 
-def test_compiled_and_tensor_samples_agree():
+def test_compiled_and_tensor_samples_agree(monkeypatch):
     """The compiled CPU pass and the tensor form give the same sample (int16 coordinates, as
     :class:`~evtrack.events.Events` holds them; windows and RoIs of every density)."""
     from evtrack.flow import sampling
@@ -196,3 +198,121 @@ def test_compiled_and_tensor_samples_agree():
                                       13, per_window)
         assert fast.dtype == torch.bool and torch.equal(fast, slow)
         assert 0 < int(fast.sum()) < n or per_window == 300
+    monkeypatch.setattr(sampling, "jit_available", lambda: False)  # the tensor form throughout
+    for per_window, budget, cell_rois in ((0, 5000, 2), (10, 1000, 1), (300, 20, 3),
+                                          (0, n, 2), (10, 1, 2)):
+        args = dict(roi_size=16, window_us=1000, sensor_width=200, per_window=per_window,
+                    budget=budget, cell_rois=cell_rois)
+        slow = sampled_search(x, y, t, 987_654, **args)
+        monkeypatch.setattr(sampling, "jit_available", lambda: True)
+        fast = sampled_search(x, y, t, 987_654, **args)
+        monkeypatch.setattr(sampling, "jit_available", lambda: False)
+        assert torch.equal(fast, slow), args
+        assert int(fast.sum()) <= budget
+
+
+def _cell_order(n_cells: int) -> list[int]:
+    """The budget's cell order, independently: by the hash of the cell index, then the
+    index."""
+    return sorted(range(n_cells), key=lambda c: (int(hash32(torch.tensor(c))), c))
+
+
+@pytest.mark.parametrize("per_window", [0, 8])
+@pytest.mark.parametrize("budget", [1, 150, 900, 5000])
+def test_budget_takes_whole_cells_in_the_hash_order(per_window, budget):
+    """With ``budget``, the searched events are those of the per-window sample in the cells
+    that a first fit over the fixed cell order takes: whole cells, at most ``budget`` events,
+    and every left-out cell holding sampled events would not have fitted when visited."""
+    rng = np.random.default_rng(budget)
+    n, width, height, roi, cell_rois = 4000, 80, 60, 8, 2
+    x = torch.as_tensor(rng.integers(0, width, n))
+    y = torch.as_tensor(np.minimum(rng.exponential(20, n), height - 1).astype(np.int64))
+    t = torch.sort(torch.as_tensor(rng.integers(0, 3000, n))).values
+    args = dict(roi_size=roi, window_us=1000, sensor_width=width, per_window=per_window)
+    sample = (sampled_search(x, y, t, 77, **args) if per_window
+              else torch.ones(n, dtype=torch.bool))
+    keep = sampled_search(x, y, t, 77, budget=budget, cell_rois=cell_rois, **args)
+    side = roi * cell_rois
+    cols = -(-width // side)
+    cell = (y // side * cols + x // side).tolist()
+    per_cell = np.bincount(np.asarray(cell)[sample.numpy()], minlength=cols * 4)
+    taken, used = set(), 0
+    for c in _cell_order(cols * (max(cell) // cols + 1)):
+        if int(sample.sum()) <= budget or (per_cell[c] and used + per_cell[c] <= budget):
+            taken.add(c)
+            used += int(per_cell[c])
+    assert int(keep.sum()) <= budget
+    expected = [bool(sample[i]) and c in taken for i, c in enumerate(cell)]
+    assert keep.tolist() == expected
+    if budget >= int(sample.sum()):
+        assert torch.equal(keep, sample)
+    else:
+        assert 0 <= int(keep.sum()) < int(sample.sum())
+
+
+@pytest.mark.parametrize("backend", ["torch", "compiled"])
+def test_budget_keeps_the_flow_of_the_rois_of_taken_cells(dense_texture, backend):
+    """All events enter the history, so a RoI whose cell the budget takes registers exactly
+    the flow of the whole search (its events are all searched, and their triplets are the
+    whole stream's), and a RoI of a left-out cell registers none: the budget trades RoIs, not
+    their accuracy."""
+    if backend == "compiled":
+        compiled = pytest.importorskip("evtrack.flow.compiled")
+        if not compiled.available():
+            pytest.skip("numba is not installed")
+    ev = dense_texture
+    cfg = FlowConfig(roi_size=12, window_us=2000, max_events_per_roi=16, max_hypotheses=16,
+                     min_support=2, backend=backend)
+    full = TripletFlow(cfg)(ev)
+    flow = TripletFlow(cfg)
+    step = 4000
+    parts, budget, shares = [], 8000, []  # ~24k events per call, ~2k per cell
+    for t0 in range(0, int(ev.t_end) + 1, step):
+        piece = ev[(ev.t >= t0) & (ev.t < t0 + step)]
+        search = sampled_search(piece.x, piece.y, piece.t, flow.events_seen, roi_size=12,
+                                window_us=2000, sensor_width=96, per_window=0, budget=budget,
+                                cell_rois=2)
+        assert int(search.sum()) <= budget
+        shares.append(float(search.float().mean()) if len(piece) else 1.0)
+        parts.append(flow.update(piece, until_us=t0 + step, search=search))
+    parts.append(flow.flush())
+    cut = FlowResult.cat(parts)
+    assert max(shares) < 0.6  # the budget did cut
+    key_full = {(w, r): i for i, (w, r) in enumerate(zip(full.window.tolist(),
+                                                         full.roi.tolist(), strict=True))}
+    assert 0 < len(cut) < len(full)
+    for j, (w, r) in enumerate(zip(cut.window.tolist(), cut.roi.tolist(), strict=True)):
+        i = key_full[(w, r)]
+        assert torch.equal(cut.flow[j], full.flow[i])
+        assert cut.cost[j] == full.cost[i] and cut.support[j] == full.support[i]
+
+
+@pytest.mark.parametrize("jit", [True, False])
+def test_budget_edges(monkeypatch, jit):
+    """A cell whose events fill the budget exactly is taken; one event more and it is not,
+    but a later cell of the order that fits still is (first fit)."""
+    from evtrack.flow import sampling
+
+    if jit and not sampling.jit_available():
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(sampling, "jit_available", lambda: jit)
+    order = _cell_order(4)  # a 32 x 32 sensor of 16 px cells (8 px RoIs, 2 x 2)
+    first, second = order[0], order[1]
+
+    def events_in(cells_counts):
+        xs, ys = [], []
+        for c, k in cells_counts:
+            xs += [(c % 2) * 16 + 3] * k
+            ys += [(c // 2) * 16 + 5] * k
+        x, y = torch.tensor(xs), torch.tensor(ys)
+        return x, y, torch.arange(len(xs), dtype=torch.int64)
+
+    args = dict(roi_size=8, window_us=10_000, sensor_width=32, per_window=0, cell_rois=2)
+    x, y, t = events_in([(second, 6), (first, 10)])
+    first_events = torch.tensor([False] * 6 + [True] * 10)
+    keep = sampled_search(x, y, t, 0, budget=10, **args)  # the first exactly, not the second
+    assert torch.equal(keep, first_events)
+    keep = sampled_search(x, y, t, 0, budget=9, **args)  # not the first: the second fits
+    assert torch.equal(keep, ~first_events)
+    assert int(sampled_search(x, y, t, 0, budget=16, **args).sum()) == 16
+    assert int(sampled_search(x, y, t, 0, budget=5, **args).sum()) == 0

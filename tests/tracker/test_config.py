@@ -78,6 +78,8 @@ def test_partial_sections_keep_the_other_defaults() -> None:
     ({"use_flow_normal_flags": 1}, "use_flow_normal_flags"),
     ({"search_per_roi_window": -1}, "search_per_roi_window"),
     ({"search_per_roi_window": 2.5}, "search_per_roi_window"),
+    ({"max_searched_per_step": -1}, "max_searched_per_step"),
+    ({"max_searched_per_step": "all"}, "max_searched_per_step"),
 ])
 def test_errors_name_the_field(data, match) -> None:
     with pytest.raises(ConfigError, match=match):
