@@ -23,8 +23,8 @@ Variants, cumulative (each adds one change to the one before):
   (the flow's generic 48 from 64 before);
 * ``sample``: the flow searches a hash sample of about 64 events of each RoI window
   (``search_per_roi_window``; every event still enters the search's history);
-* ``budget``: of those, at most 3000 events per velocity step are searched, by whole cells of
-  2 x 2 RoIs (``max_searched_per_step``), the tracker's default: all ten changes.
+* ``budget``: of those, at most 2500 events per velocity step are searched, by whole RoIs
+  (``max_searched_per_step``), the tracker's default: all ten changes.
 
 The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per

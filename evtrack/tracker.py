@@ -57,14 +57,14 @@ four YCB objects' benchmark set (4 kHz, oracle poses) the full method's RMSE mov
 6.28 -> 10.12 cm), 64 did not (6.45 cm).
 
 Search budget (``max_searched_per_step``): of the events so chosen, at most that many per
-velocity step (over a step group) are searched, by whole cells of 2 x 2 RoIs taken in a fixed
-hash order (``budget`` of :func:`~evtrack.flow.sampling.sampled_search`). Unlike thinning
-(below), the left-out cells' events still enter the history: a taken cell's RoI flows are those
-of the whole search however the taken cells change from group to group, and only the left-out
-cells' RoIs give no flow. It bounds the search and the registration per step whatever the event
-rate. On the cracker box `faster` (~5k sampled events per ms) the default 3000 took the flow
-from ~3 s to ~2 s of the 2 s sequence, at 4.04 cm / 5.02 deg against 3.90 / 4.98; the other
-YCB benchmark sequences do not reach it after their first pose.
+velocity step (over a step group) are searched, by whole RoIs visited in a fixed hash order and
+taken while they fit (``budget`` of :func:`~evtrack.flow.sampling.sampled_search`). Unlike
+thinning (below), the left-out RoIs' events still enter the history: a taken RoI's flow is the
+one it would have without the budget however the taken RoIs change from group to group, and
+only the left-out RoIs give no flow. It bounds the search and the registration per step
+whatever the event rate. On the cracker box `faster` (~5k sampled events per ms) the default
+2500 took the flow from ~2.9 s to ~1.8 s of the 2 s sequence, at 3.90 cm / 4.74 deg against
+3.90 / 4.98; the other YCB benchmark sequences do not reach it after their first pose.
 
 Event bursts: a step whose events outside the object's predicted silhouette (plus
 ``mask_margin_px``) exceed ``burst_rate_hz`` per pixel over the image outside it is an event
@@ -161,6 +161,12 @@ _THIN_CELL_ROIS = 2
 """Event thinning keeps or drops cells of this many RoIs square: a kept RoI then has kept
 neighbours on most sides, whose events its border events' triplets need (with cells of one
 RoI the kept RoIs' flows were twice as far off on a translating texture)."""
+
+_SEARCH_CELL_ROIS = 1
+"""The search budget takes or leaves out cells of this many RoIs square. Its left-out events
+still enter the flow's history, so, unlike thinning, a taken RoI's flow does not depend on its
+neighbours; single RoIs use the budget best (cracker box `faster`, 2000 events per step: 4.13
+cm / 5.23 deg with single RoIs, 4.69 / 5.12 with cells of 2 x 2)."""
 
 _THIN_RATIO = 0.75
 """Each event-thinning level keeps this share of the previous level's RoI cells."""
@@ -914,7 +920,7 @@ class Tracker:
                                             roi_size=fc.roi_size, window_us=fc.window_us,
                                             sensor_width=self.camera.width,
                                             per_window=cfg.search_per_roi_window,
-                                            budget=budget, cell_rois=_THIN_CELL_ROIS)
+                                            budget=budget, cell_rois=_SEARCH_CELL_ROIS)
                     st.events_unsearched += int(len(search) - int(search.sum()))
                 res = _StepFlows(self.flow.update(ev, until_us=t_end, search=search), t0, step,
                                  (t_end - t0) // step, self.vkf.twist.dtype, self.device)

@@ -267,16 +267,17 @@ class TrackerConfig:
             stream, and a window whose sample holds ``flow.max_events_per_roi``
             candidate-bearing events registers the same flow as unsampled. 0: search all.
         max_searched_per_step: at most this many of those events per velocity step (on
-            average over a step group) are searched, by whole cells of 2 x 2 RoIs taken in a
-            fixed hash order (:func:`~evtrack.flow.sampling.sampled_search`'s ``budget``);
-            the other cells' events still enter the history, so a taken cell's RoI flows are
-            those of the whole search and only the left-out cells' RoIs give no flow. It
-            bounds the flow's search and registration, its dominant costs, whatever the event
-            rate. 0: no bound. On the four YCB objects' benchmark set (4 kHz, oracle poses)
-            only the cracker box `faster` (8.6 M events/s, ~5k sampled events per ms) reaches
-            3000: 3.90 cm / 4.98 deg -> 4.04 / 5.02 (2500: 4.16 / 5.16; 2000: 4.81 / 5.41);
-            the tomato can `regular`'s first 200 ms (all events, before the first pose) move
-            a little (5.53 -> 5.08 deg); the other sequences are unchanged.
+            average over a step group) are searched, by whole RoIs visited in a fixed hash
+            order and taken while they fit (:func:`~evtrack.flow.sampling.sampled_search`'s
+            ``budget``); the other RoIs' events still enter the history, so a taken RoI's flow
+            is the one it would have without the budget and only the left-out RoIs give no
+            flow. It bounds the flow's search and registration, its dominant costs, whatever
+            the event rate. 0: no bound. On the four YCB objects' benchmark set (4 kHz, oracle
+            poses) only the cracker box `faster` (8.6 M events/s, ~5k sampled events per ms)
+            reaches 2500 after its first pose: 3.90 cm / 4.98 deg without a budget, 3.90 /
+            4.74 with 2500 (3000: 4.16 / 4.90; 2000: 4.13 / 5.23; 1500: 4.46 / 4.78; 1000:
+            5.24 / 5.84); the tomato can `regular`'s first 200 ms (all events, before the
+            first pose) move a little (5.53 -> 4.91 deg); the other sequences are unchanged.
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed
             outside the image (less than ``min_visible_fraction`` of its hull area inside) for
             this long; the pose filter then waits for the next pose to re-initialise.
@@ -402,7 +403,7 @@ class TrackerConfig:
     burst_rate_hz: float = 100.0
     max_events_per_step: int = 20_000
     search_per_roi_window: int = 64
-    max_searched_per_step: int = 3000
+    max_searched_per_step: int = 2500
     lost_after_ms: float = 100.0
     min_visible_fraction: float = 0.05
     lost_after_misses: int = 3

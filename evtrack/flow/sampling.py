@@ -23,11 +23,11 @@ With a ``budget``, the events so chosen are then cut down to at most ``budget`` 
 whole cells of ``cell_rois`` x ``cell_rois`` RoIs: the cells are visited in one fixed
 pseudo-random order (the same hash of the cell's index) and each is taken, with all its chosen
 events, if they still fit in the budget (first fit); the others are left out. Every event still
-enters the history, so a taken cell's triplets and RoI flows are those of the whole stream
-however the taken cells change from call to call. A cell of several RoIs keeps RoIs whose
-neighbours are searched too (the trails that cross a RoI's border serve both sides). This bounds
-the search and the registration, the flow's dominant costs, per call whatever the event rate;
-the RoIs of the left-out cells give no flow in that call.
+enters the history, so a taken cell's triplets and RoI flows are those it would have without the
+budget, however the taken cells change from call to call (unlike thinning the events, which
+leaves the kept pixels' trails with gaps), and a RoI's flow does not depend on whether its
+neighbours are searched. This bounds the search and the registration, the flow's dominant costs,
+per call whatever the event rate; the RoIs of the left-out cells give no flow in that call.
 
 The counts are those of the events given in one call, so the sample depends on how the
 stream was cut unless each call ends on a window boundary (as the tracker's step groups do).

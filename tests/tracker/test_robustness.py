@@ -399,9 +399,10 @@ def test_search_budget_bounds_the_searched_events_whatever_the_chunking() -> Non
 
 def test_search_budget_keeps_the_error_bounded(fast_sequence, runs) -> None:
     """A search budget of half the fast sequence's events per step (on this small sensor a
-    few cells hold most of them) still tracks it close to the whole search: measured 5.81 cm /
-    14.67 deg with 67 % of the flow's events unsearched and 35 % of the RoI flows, against
-    4.27 / 12.37 (2026-11-27). Bounds: whole + 2.5 cm and + 4 deg."""
+    few RoIs hold most of them) still tracks it close to the whole search: measured 5.66 cm /
+    13.37 deg with 62 % of the flow's events unsearched and 39 % of the RoI flows, against
+    4.27 / 12.37 (2026-11-27; with cells of 2 x 2 RoIs 5.81 / 14.67). Bounds: whole + 2.5 cm
+    and + 4 deg."""
     whole, _ = make_tracker(fast_sequence, method="full", search_per_roi_window=0,
                             max_searched_per_step=0)
     gt = fast_sequence.ground_truth
