@@ -522,9 +522,10 @@ class Tracker:
         else:
             filt = PoseUKF(1, cfg.pose_ukf, device=self.device)
         self.ukf = filt
-        # before the first pose the flow runs on all events (sensor depth only), so that a late
-        # first pose is carried to the present by the measured motion
-        self._velocity_before_pose = (cfg.velocity_before_pose and cfg.depth_source == "sensor"
+        # before the first pose the flow runs on all events, so that a late first pose is
+        # carried to the present by the measured motion (with sensor depth also measured
+        # then; model depth needs the pose: its steps wait for remeasure_on_pose)
+        self._velocity_before_pose = (cfg.velocity_before_pose
                                       and self.method in ("full", "velocity"))
         # ... and the steps measured so are measured again once that pose is there
         self._remeasure_on_pose = self._velocity_before_pose and cfg.remeasure_on_pose
@@ -1036,6 +1037,8 @@ class Tracker:
         if len(uv) == 0 or (poly is None and pose is not None):
             return self.vkf.predict(dt)
         if pose is None:  # before the first pose: plain patch medians, no fallback
+            if not isinstance(self.depth, SensorDepth):
+                return self.vkf.predict(dt)  # model depth needs a pose (see _remeasure)
             z = self._unranged_depth(uv)
         elif isinstance(self.depth, SensorDepth):
             z = self._step_depth(flows, k, poly, pose)
@@ -1108,12 +1111,16 @@ class Tracker:
             return self._vkf_update(dt, step.uv[inside], z, step.flow[sel.to(step.flow.device)],
                                     step.normal[sel.to(step.normal.device)])
 
+        if isinstance(self.depth, ModelDepth):
+            self.depth.invalidate()  # rendered again at the replayed poses and times
         try:
             with _Timer(self.stats.time_s, "velocity"):
                 self.timeline.remeasure(t_pose, twist_of)
         finally:
             if saved is not None:
                 self.depth.map, self.depth.t_us = saved
+            elif isinstance(self.depth, ModelDepth):
+                self.depth.invalidate()  # the live steps render at the present pose
 
     def _pose_explains_events(self, t_pose: int, kept: dict[int, _UnposedStep]) -> bool:
         """Whether at least ``remeasure_min_inside`` of the kept RoI flows (of at least

@@ -357,17 +357,22 @@ class TrackerConfig:
         velocity_before_pose: before the first pose (and after losing the object) run the
             flow and the velocity filter on all events, with the sensor depth's patch medians,
             so that the first pose, which arrives ``pose_latency_ms`` late, is carried to the
-            present by the measured motion (``full`` and ``velocity`` with sensor depth).
-        remeasure_on_pose: with ``velocity_before_pose``, keep those steps' RoI flows and
-            depth frames, and once the late pose has started the track, measure the steps
-            since that pose again at the poses the filter then has (RoIs inside the
-            silhouette, depths in its range, the object's centre as pivot) and carry the pose
-            to the present with these twists. Without a pose, neither the object's depth
-            range nor its centre is known: stale depth frames put many RoIs on the
-            background and the motion about the camera's origin confounds translation with
-            rotation. Measured again at a wrong pose, though, the steps lose their RoIs and
-            take depths out of the object's range, which carries the wrong pose further off:
-            see ``remeasure_min_inside``.
+            present by the measured motion (``full`` and ``velocity``). Model depth needs a
+            pose: with ``depth_source: model`` the flow runs but the velocity filter only
+            predicts, and the steps wait for ``remeasure_on_pose``.
+        remeasure_on_pose: with ``velocity_before_pose``, keep those steps' RoI flows and depth
+            frames (model depth: rendered at the timeline's poses then; on the benchmark set, 4
+            kHz, oracle poses, this took ``depth_source: model`` from 11.82 cm / 25.15 deg to
+            7.06 / 17.56 on `faster` and from 3.04 / 8.22 to 2.70 / 6.49 on `regular`,
+            2026-11-27: without it the first pose, 200 ms old, is held still and the track
+            starts far off), and once the late pose has started the track, measure the steps
+            since that pose again at the poses the filter then has (RoIs inside the silhouette,
+            depths in its range, the object's centre as pivot) and carry the pose to the present
+            with these twists. Without a pose, neither the object's depth range nor its centre
+            is known: stale depth frames put many RoIs on the background and the motion about
+            the camera's origin confounds translation with rotation. Measured again at a wrong
+            pose, though, the steps lose their RoIs and take depths out of the object's range,
+            which carries the wrong pose further off: see ``remeasure_min_inside``.
         remeasure_min_inside: the steps are measured again only when at least this fraction
             of the RoI flows (of at least 5 supporting events) of the 50 ms after the pose
             lie in the silhouette (with
