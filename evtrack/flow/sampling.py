@@ -85,27 +85,41 @@ def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size:
     if n == 0:
         return torch.zeros(0, dtype=torch.bool, device=t.device)
     cols = -(-int(sensor_width) // roi_size)
-    lo, hi = int(torch.minimum(x.min(), y.min())), int(x.max())
-    if lo < 0 or hi >= sensor_width:
+    on_cpu = t.device.type == "cpu"
+    xs, ys = (x.numpy(), y.numpy()) if on_cpu else (x, y)  # NumPy's reductions: faster here
+    x_lo, x_hi, y_lo, y_max = (int(v) for v in (xs.min(), xs.max(), ys.min(), ys.max()))
+    if min(x_lo, y_lo) < 0 or x_hi >= sensor_width:
         raise ValueError(f"sampled_search: pixel coordinates must lie in [0, {sensor_width}) "
-                         f"horizontally and be non-negative; got x in [{int(x.min())}, {hi}], "
-                         f"y from {int(y.min())}")
+                         f"horizontally and be non-negative; got x in [{x_lo}, {x_hi}], "
+                         f"y from {y_lo}")
     if (per_window == 0 or n <= per_window) and (budget == 0 or n <= budget):
         return torch.ones(n, dtype=torch.bool, device=t.device)
-    cell = roi_size * cell_rois
-    cell_cols = -(-int(sensor_width) // cell)
-    cell_rows = (int(y.max()) // cell) + 1
-    rank = _cell_rank(cell_cols * cell_rows)
-    if t.device.type == "cpu" and jit_available():
-        keep = _sample_compiled(x.numpy(), y.numpy(), t.numpy(), int(first_seq), int(roi_size),
-                                int(window_us), cols, int(per_window), int(budget), cell,
-                                cell_cols, rank)
+    rows = y_max // roi_size + 1
+    if on_cpu and jit_available():
+        keep = _sample_compiled(xs, ys, t.numpy(), int(first_seq), int(roi_size),
+                                int(window_us), cols, rows, int(per_window), int(budget),
+                                _roi_rank(cols, rows, int(cell_rois)))
         return torch.from_numpy(keep)
     keep = _sample_torch(x, y, t, int(first_seq), roi_size, window_us, cols, per_window)
     if budget and int(keep.sum()) > budget:
+        cell = roi_size * cell_rois
+        cell_cols = -(-int(sensor_width) // cell)
+        rank = _cell_rank(cell_cols * (y_max // cell + 1))
         keep &= _cells_within_torch(x, y, keep, budget, cell, cell_cols,
                                     torch.tensor(rank, device=t.device))
     return keep
+
+
+@functools.lru_cache(maxsize=64)
+def _roi_rank(cols: int, rows: int, cell_rois: int) -> np.ndarray:
+    """(rows * cols,) int64: the budget's order of each RoI's cell (:func:`_cell_rank` of the
+    cell holding RoI ``row * cols + col``). Read-only: shared between calls."""
+    cell_cols = -(-cols // cell_rois)
+    rank = _cell_rank(cell_cols * (-(-rows // cell_rois)))
+    row, col = np.divmod(np.arange(rows * cols, dtype=np.int64), cols)
+    out = rank[(row // cell_rois) * cell_cols + col // cell_rois]
+    out.flags.writeable = False
+    return out
 
 
 @functools.lru_cache(maxsize=8)
@@ -159,26 +173,27 @@ def _sample_torch(x: Tensor, y: Tensor, t: Tensor, first_seq: int, roi_size: int
 
 
 @njit
-def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, per_window, budget, cell,
-                     cell_cols, rank):
+def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, rows, per_window, budget,
+                     roi_rank):
     """:func:`sampled_search` in passes over NumPy arrays: the RoI of each event by lookup
-    tables, its window by the time-sorted order (a division only where a window starts),
-    the counts, the per-window test, then the budget's cells."""
+    tables and its window by the time-sorted order (a division only where a window starts)
+    with the windows' counts; the per-window test with the budget's counts per cell; then,
+    over budget, the first fit and the cut."""
     n = t.shape[0]
     w0 = t[0] // window_us
     n_windows = t[n - 1] // window_us - w0 + 1
-    y_max = 0
-    for i in range(n):
-        y_max = max(y_max, np.int64(y[i]))
-    rows = y_max // roi_size + 1
     per = rows * cols
-    row_base = np.empty(y_max + 1, np.int64)
-    for v in range(y_max + 1):
+    row_base = np.empty(rows * roi_size, np.int64)
+    for v in range(rows * roi_size):
         row_base[v] = (v // roi_size) * cols
     col_of = np.empty(cols * roi_size, np.int64)
     for v in range(cols * roi_size):
         col_of[v] = v // roi_size
+    with_budget = budget > 0
+    roi = np.empty(n if with_budget else 0, np.int64)
     keep = np.ones(n, np.bool_)
+    by_rank = np.zeros(roi_rank.shape[0] if with_budget else 0, np.int64)
+    total = 0
     if per_window > 0:
         key = np.empty(n, np.int64)
         count = np.zeros(n_windows * per, np.int64)
@@ -189,37 +204,36 @@ def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, per_window, 
                 w = t[i] // window_us
                 base = (w - w0) * per
                 next_start = (w + 1) * window_us
-            k = base + row_base[y[i]] + col_of[x[i]]
-            key[i] = k
-            count[k] += 1
+            r = row_base[y[i]] + col_of[x[i]]
+            if with_budget:
+                roi[i] = r
+            key[i] = base + r
+            count[base + r] += 1
         bound = np.int64(per_window) << 32
         for i in range(n):
             c = count[key[i]]
-            keep[i] = c <= per_window or _hash32(first_seq + i) * c < bound
-    if budget > 0:
-        cell_col = np.empty(cols * roi_size, np.int64)
-        for v in range(cols * roi_size):
-            cell_col[v] = v // cell
-        cell_row = np.empty(y_max + 1, np.int64)
-        for v in range(y_max + 1):
-            cell_row[v] = (v // cell) * cell_cols
-        by_rank = np.zeros(rank.shape[0], np.int64)
-        ranks = np.empty(n, np.int64)
-        total = 0
+            kept = (c <= per_window) | (_hash32(first_seq + i) * c < bound)
+            keep[i] = kept
+            if with_budget:  # branch-free in the event: the sample is random
+                by_rank[roi_rank[roi[i]]] += kept
+                total += kept
+    elif with_budget:
         for i in range(n):
-            if keep[i]:
-                r = rank[cell_row[y[i]] + cell_col[x[i]]]
-                ranks[i] = r
-                by_rank[r] += 1
-                total += 1
-        if total > budget:
-            taken = np.zeros(by_rank.shape[0], np.bool_)  # first fit, in the cells' order
-            used = 0
-            for r in range(by_rank.shape[0]):
-                if by_rank[r] and used + by_rank[r] <= budget:
-                    used += by_rank[r]
-                    taken[r] = True
-            for i in range(n):
-                if keep[i] and not taken[ranks[i]]:
-                    keep[i] = False
+            r = row_base[y[i]] + col_of[x[i]]
+            roi[i] = r
+            by_rank[roi_rank[r]] += 1
+        total = n
+    if with_budget and total > budget:
+        # by_rank is indexed by cell rank (< the RoIs' count); first fit, in the cells' order
+        taken = np.zeros(by_rank.shape[0], np.bool_)
+        used = 0
+        for r in range(by_rank.shape[0]):
+            if by_rank[r] and used + by_rank[r] <= budget:
+                used += by_rank[r]
+                taken[r] = True
+        taken_roi = np.empty(roi_rank.shape[0], np.bool_)
+        for r in range(roi_rank.shape[0]):
+            taken_roi[r] = taken[roi_rank[r]]
+        for i in range(n):
+            keep[i] = keep[i] & taken_roi[roi[i]]
     return keep
