@@ -181,6 +181,10 @@ _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
 #: µs after a late first pose whose kept RoI flows must lie in its silhouette (see
 #: Tracker._pose_explains_events)
 _REMEASURE_CHECK_US = 50_000
+#: with model depth the unposed steps only predict: the timeline holds the late pose still over
+#: them, so only the earliest RoI flows after it are checked, this many (the first steps of a
+#: group with any), which a moving object's events have not yet left
+_REMEASURE_CHECK_MODEL_ROIS = 20
 #: fewer RoI flows than this in that span: no check
 _REMEASURE_CHECK_MIN_ROIS = 10
 #: only RoI flows of at least this many supporting events count in the check: the weakly
@@ -1126,14 +1130,18 @@ class Tracker:
         """Whether at least ``remeasure_min_inside`` of the kept RoI flows (of at least
         ``_REMEASURE_CHECK_MIN_SUPPORT`` supporting events) of the ``_REMEASURE_CHECK_US``
         after ``t_pose`` lie in the silhouette (with the mask margin) at the timeline's pose
-        of their step (carried from the pose by the unposed twists); True when they are fewer
-        than ``_REMEASURE_CHECK_MIN_ROIS``. Measured again at a wrong pose, the steps lose
-        their RoIs and take depths out of the object's range, which carries the wrong pose
-        further off than the unposed twists do."""
+        of their step (carried from the pose by the unposed twists; with model depth, held
+        still: only the steps up to the first ``_REMEASURE_CHECK_MODEL_ROIS`` such RoI flows);
+        True when they are fewer than ``_REMEASURE_CHECK_MIN_ROIS``. Measured again at a
+        wrong pose, the steps lose their RoIs and take depths out of the object's range, which
+        carries the wrong pose further off than the unposed twists do."""
         inside = total = 0
+        held_still = not isinstance(self.depth, SensorDepth)
         for t_end, step in kept.items():
             if not t_pose < t_end <= t_pose + _REMEASURE_CHECK_US or not len(step.uv):
                 continue
+            if held_still and total >= _REMEASURE_CHECK_MODEL_ROIS:
+                break
             pose = self._past_pose(t_end)
             if pose is None:
                 continue

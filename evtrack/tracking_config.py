@@ -363,7 +363,7 @@ class TrackerConfig:
         remeasure_on_pose: with ``velocity_before_pose``, keep those steps' RoI flows and depth
             frames (model depth: rendered at the timeline's poses then; on the benchmark set, 4
             kHz, oracle poses, this took ``depth_source: model`` from 11.82 cm / 25.15 deg to
-            7.06 / 17.56 on `faster` and from 3.04 / 8.22 to 2.70 / 6.49 on `regular`,
+            6.44 / 16.63 on `faster` and from 3.04 / 8.22 to 2.70 / 6.49 on `regular`,
             2026-11-27: without it the first pose, 200 ms old, is held still and the track
             starts far off), and once the late pose has started the track, measure the steps
             since that pose again at the poses the filter then has (RoIs inside the silhouette,
