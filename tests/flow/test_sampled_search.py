@@ -119,6 +119,18 @@ def dense_texture():
     return events
 
 
+def _whole_and_fresh_flow(ev, backend: str, roi_size: int):
+    """The flow config of the dense-texture tests on ``backend`` (skips without numba for
+    "compiled"), the whole search's result on ``ev``, and a fresh flow to feed in calls."""
+    if backend == "compiled":
+        compiled = pytest.importorskip("evtrack.flow.compiled")
+        if not compiled.available():
+            pytest.skip("numba is not installed")
+    cfg = FlowConfig(roi_size=roi_size, window_us=2000, max_events_per_roi=16,
+                     max_hypotheses=16, min_support=2, backend=backend)
+    return cfg, TripletFlow(cfg)(ev), TripletFlow(cfg)
+
+
 @pytest.mark.parametrize("backend", ["torch", "compiled"])
 def test_dense_windows_register_the_same_flow_when_sampled(dense_texture, backend):
     """With ``search`` from :func:`sampled_search`, every window whose sampled support still
@@ -126,15 +138,8 @@ def test_dense_windows_register_the_same_flow_when_sampled(dense_texture, backen
     search (the data term takes the smallest hashes, which are all searched); the sample
     searches well under half of the events; sparser windows keep at most their support (and
     may pass or fail the consensus test differently: their data term differs)."""
-    if backend == "compiled":
-        compiled = pytest.importorskip("evtrack.flow.compiled")
-        if not compiled.available():
-            pytest.skip("numba is not installed")
     ev = dense_texture
-    cfg = FlowConfig(roi_size=24, window_us=2000, max_events_per_roi=16, max_hypotheses=16,
-                     min_support=2, backend=backend)
-    full = TripletFlow(cfg)(ev)
-    flow = TripletFlow(cfg)
+    cfg, full, flow = _whole_and_fresh_flow(ev, backend, roi_size=24)
     step = 4000  # calls end on window boundaries, as the tracker's groups do
     parts = []
     for t0 in range(0, int(ev.t_end) + 1, step):
@@ -256,15 +261,8 @@ def test_budget_keeps_the_flow_of_the_rois_of_taken_cells(dense_texture, backend
     the flow of the whole search (its events are all searched, and their triplets are the
     whole stream's), and a RoI of a left-out cell registers none: the budget trades RoIs, not
     their accuracy."""
-    if backend == "compiled":
-        compiled = pytest.importorskip("evtrack.flow.compiled")
-        if not compiled.available():
-            pytest.skip("numba is not installed")
     ev = dense_texture
-    cfg = FlowConfig(roi_size=12, window_us=2000, max_events_per_roi=16, max_hypotheses=16,
-                     min_support=2, backend=backend)
-    full = TripletFlow(cfg)(ev)
-    flow = TripletFlow(cfg)
+    cfg, full, flow = _whole_and_fresh_flow(ev, backend, roi_size=12)
     step = 4000
     parts, budget, shares = [], 8000, []  # ~24k events per call, ~2k per cell
     for t0 in range(0, int(ev.t_end) + 1, step):
