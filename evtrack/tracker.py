@@ -182,8 +182,8 @@ _HASH_MULTIPLIER = np.uint64(0x9E3779B97F4A7C15)
 #: Tracker._pose_explains_events)
 _REMEASURE_CHECK_US = 50_000
 #: with model depth the unposed steps only predict: the timeline holds the late pose still over
-#: them, so only the earliest RoI flows after it are checked, this many (the first steps of a
-#: group with any), which a moving object's events have not yet left
+#: them, so only the earliest RoI flows after it are checked (whole steps in time order, until
+#: at least this many), which a moving object's events have not yet left
 _REMEASURE_CHECK_MODEL_ROIS = 20
 #: fewer RoI flows than this in that span: no check
 _REMEASURE_CHECK_MIN_ROIS = 10
@@ -1137,7 +1137,7 @@ class Tracker:
         carries the wrong pose further off than the unposed twists do."""
         inside = total = 0
         held_still = not isinstance(self.depth, SensorDepth)
-        for t_end, step in kept.items():
+        for t_end, step in kept.items():  # in time order (kept as the steps ran)
             if not t_pose < t_end <= t_pose + _REMEASURE_CHECK_US or not len(step.uv):
                 continue
             if held_still and total >= _REMEASURE_CHECK_MODEL_ROIS:
