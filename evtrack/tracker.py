@@ -162,12 +162,6 @@ _THIN_CELL_ROIS = 2
 neighbours on most sides, whose events its border events' triplets need (with cells of one
 RoI the kept RoIs' flows were twice as far off on a translating texture)."""
 
-_SEARCH_CELL_ROIS = 1
-"""The search budget takes or leaves out cells of this many RoIs square. Its left-out events
-still enter the flow's history, so, unlike thinning, a taken RoI's flow does not depend on its
-neighbours; single RoIs use the budget best (cracker box `faster`, 2000 events per step: 4.13
-cm / 5.23 deg with single RoIs, 4.69 / 5.12 with cells of 2 x 2)."""
-
 _THIN_RATIO = 0.75
 """Each event-thinning level keeps this share of the previous level's RoI cells."""
 
@@ -925,7 +919,7 @@ class Tracker:
                                             roi_size=fc.roi_size, window_us=fc.window_us,
                                             sensor_width=self.camera.width,
                                             per_window=cfg.search_per_roi_window,
-                                            budget=budget, cell_rois=_SEARCH_CELL_ROIS)
+                                            budget=budget)
                     st.events_unsearched += int(len(search) - int(search.sum()))
                 res = _StepFlows(self.flow.update(ev, until_us=t_end, search=search), t0, step,
                                  (t_end - t0) // step, self.vkf.twist.dtype, self.device)
