@@ -40,6 +40,7 @@ VARIANTS = {
     "worker+nchw": ["data.num_workers=1", "model.channels_last=false"],
     "main+nchw": ["data.num_workers=0", "model.channels_last=false"],
     "main+nhwc": ["data.num_workers=0", "model.channels_last=true"],
+    "worker+nhwc": ["data.num_workers=1", "model.channels_last=true"],
 }
 
 
