@@ -71,8 +71,8 @@ class DecodeConfig:
             (the field is ~unit length where the network is sure).
         min_points: fewest keypoints (corners + centroid) for a pose (>= 4).
         ransac: run EPnP inside RANSAC (needs >= 6 points, else plain EPnP). On by default:
-            with the shipped demo weights, held-out regular frames gave ADD 0.85 against 0.73
-            without it (median 0.81 cm / 2.55 deg against 1.06 / 2.91;
+            with the shipped demo weights, three held-out regular sequences gave ADD 0.85
+            against 0.73 without it (median 0.81 cm / 2.55 deg against 1.06 / 2.91;
             ``benchmarks/bench_pose_accuracy.py --decode ransac --decode strongest``), in the
             same time per frame. OpenCV seeds its sampler on every call: the same maps give the same
             pose, but its choice of inliers can follow the last bits of the maps.
