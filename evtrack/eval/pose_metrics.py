@@ -13,7 +13,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["add_distance", "adds_distance", "object_diameter", "PoseAccuracy", "pose_accuracy"]
+__all__ = ["add_distance", "adds_distance", "object_diameter", "PoseAccuracy", "pose_accuracy",
+           "pooled_rate_interval"]
 
 
 def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -98,3 +99,39 @@ def pose_accuracy(
         adds_pass=adds_ok / n if n else float("nan"),
         threshold_m=threshold,
     )
+
+
+def pooled_rate_interval(passed: np.ndarray, frames: np.ndarray, level: float = 0.9,
+                         resamples: int = 4000, seed: int = 0) -> tuple[float, float]:
+    """Bootstrap interval of a pass rate pooled over sequences, resampling whole sequences.
+
+    Frames of one sequence are far from independent (a pose the network finds hard can fill a
+    whole second), so the interval resamples sequences with replacement and pools each
+    resample's frames: ``sum(passed) / sum(frames)`` over the drawn sequences.
+
+    Args:
+        passed: (S,) frames that passed, per sequence.
+        frames: (S,) frames, per sequence (each >= 1).
+        level: central probability of the interval, in (0, 1).
+        resamples: bootstrap resamples.
+        seed: random seed (the interval is reproducible).
+
+    Returns:
+        ``(low, high)``: the ``(1 - level) / 2`` and ``(1 + level) / 2`` quantiles of the pooled
+        rate over the resamples.
+    """
+    passed = np.asarray(passed, dtype=np.float64).reshape(-1)
+    frames = np.asarray(frames, dtype=np.float64).reshape(-1)
+    if passed.shape != frames.shape or len(frames) == 0:
+        raise ValueError(f"need one (passed, frames) pair per sequence, got {passed.shape} and "
+                         f"{frames.shape}")
+    if np.any(frames < 1) or np.any(passed < 0) or np.any(passed > frames):
+        raise ValueError("each sequence needs frames >= 1 and 0 <= passed <= frames")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    if resamples < 1:
+        raise ValueError(f"resamples must be >= 1, got {resamples}")
+    draw = np.random.default_rng(seed).integers(0, len(frames), size=(resamples, len(frames)))
+    rates = passed[draw].sum(axis=1) / frames[draw].sum(axis=1)
+    low, high = np.quantile(rates, [(1.0 - level) / 2.0, (1.0 + level) / 2.0])
+    return float(low), float(high)

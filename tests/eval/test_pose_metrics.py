@@ -11,6 +11,7 @@ from evtrack.eval.pose_metrics import (
     add_distance,
     adds_distance,
     object_diameter,
+    pooled_rate_interval,
     pose_accuracy,
 )
 
@@ -67,3 +68,49 @@ def test_pose_accuracy_counts_missed_detections_as_failures():
     assert acc.add_pass == 0.5 and acc.adds_pass == 0.5
     with pytest.raises(ValueError):
         pose_accuracy([None], truths, pts)
+
+
+def _exact_bootstrap_quantile(passed, frames, p):
+    """The p-quantile (smallest atom with CDF >= p) of the pooled rate over all S^S equally
+    likely resamples of S sequences, by enumeration."""
+    atoms = sorted(sum(passed[i] for i in d) / sum(frames[i] for i in d)
+                   for d in itertools.product(range(len(frames)), repeat=len(frames)))
+    return atoms[int(np.ceil(p * len(atoms))) - 1]
+
+
+@pytest.mark.parametrize("passed, frames, level", [
+    ([0, 60], [60, 60], 0.9),        # atoms 0 (1/4), 0.5 (1/2), 1 (1/4)
+    ([0, 60], [60, 60], 0.4),        # both quantiles inside the 0.5 atom
+    ([60, 0, 15], [60, 60, 30], 0.5),
+])
+def test_pooled_rate_interval_matches_the_enumerated_bootstrap(passed, frames, level):
+    low, high = pooled_rate_interval(np.array(passed), np.array(frames), level=level,
+                                     resamples=20000)
+    atoms = {sum(passed[i] for i in d) / sum(frames[i] for i in d)
+             for d in itertools.product(range(len(frames)), repeat=len(frames))}
+    # the quantiles fall on atoms away from the CDF's jumps for these cases
+    for value, p in ((low, (1 - level) / 2), (high, (1 + level) / 2)):
+        assert min(abs(value - a) for a in atoms) < 1e-9
+        assert value == pytest.approx(_exact_bootstrap_quantile(passed, frames, p))
+
+
+def test_pooled_rate_interval_resamples_sequences_not_frames():
+    # six sequences, half passing every frame, half none: the pooled rate is 0.5, and
+    # resampling sequences leaves it wide; resampling 360 independent frames would give ~0.46-0.54
+    passed, frames = np.array([60, 0, 60, 0, 60, 0]), np.full(6, 60)
+    low, high = pooled_rate_interval(passed, frames)
+    assert low <= 0.2 and high >= 0.8
+    # identical sequences: no spread
+    assert pooled_rate_interval(np.full(4, 30), np.full(4, 60)) == (0.5, 0.5)
+    # reproducible
+    assert pooled_rate_interval(passed, frames, seed=3) == pooled_rate_interval(passed, frames,
+                                                                                seed=3)
+
+
+@pytest.mark.parametrize("passed, frames, kwargs", [
+    ([1, 2], [3], {}), ([], [], {}), ([4], [3], {}), ([1], [0], {}), ([1], [3], {"level": 1.0}),
+    ([1], [3], {"resamples": 0}),
+])
+def test_pooled_rate_interval_rejects_bad_input(passed, frames, kwargs):
+    with pytest.raises(ValueError):
+        pooled_rate_interval(np.array(passed), np.array(frames), **kwargs)
