@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evtrack.events import Events, concatenate
-from evtrack.io.reader import rewindow
+from evtrack.io.reader import _window_bounds, rewindow
 
 
 def _stream(ts: list[int]) -> Events:
@@ -49,3 +49,28 @@ def test_count_windows_match(ts, cuts, count):
     got = list(rewindow(_chunks(ev, cuts), count=count))
     want = list(ev.windows(count=count))
     assert len(got) == len(want) and all(g == w for g, w in zip(got, want, strict=True))
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    ts=st.lists(st.integers(0, 100_000), min_size=1, max_size=80),
+    window=st.integers(1, 5000),
+    lead=st.integers(0, 3000),
+)
+def test_window_bounds_equal_the_per_event_division(ts, window, lead):
+    """Both branches (binary search of the window edges, and the per-event pass when the chunk
+    spans more windows than events) give the cuts of ``(t - start) // window``."""
+    t = np.sort(np.array(ts, np.int64))
+    start = int(t[0]) - lead
+    widx = (t - start) // window
+    expected = [0, *(np.flatnonzero(widx[1:] != widx[:-1]) + 1).tolist(), len(t)]
+    assert _window_bounds(t, start, window) == expected
+
+
+def test_window_bounds_take_both_branches():
+    dense = np.arange(0, 10_000, 3, dtype=np.int64)          # 3334 events in 10 windows
+    gap = np.array([0, 1, 5_000_000, 5_000_001], np.int64)   # 4 events over 5001 windows
+    for t, window in ((dense, 1000), (gap, 1000)):
+        widx = (t - 0) // window
+        cuts = (np.flatnonzero(widx[1:] != widx[:-1]) + 1).tolist()
+        assert _window_bounds(t, 0, window) == [0, *cuts, len(t)]
