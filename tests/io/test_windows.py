@@ -67,7 +67,9 @@ def test_window_bounds_equal_the_per_event_division(ts, window, lead):
     assert _window_bounds(t, start, window) == expected
 
 
-def test_window_bounds_take_both_branches():
+def test_window_bounds_on_inputs_of_either_branch():
+    """A dense chunk (fewer windows than events: the binary search) and a chunk with a long gap
+    (more windows than events: the per-event pass)."""
     dense = np.arange(0, 10_000, 3, dtype=np.int64)          # 3334 events in 10 windows
     gap = np.array([0, 1, 5_000_000, 5_000_001], np.int64)   # 4 events over 5001 windows
     for t, window in ((dense, 1000), (gap, 1000)):
