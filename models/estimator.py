@@ -2,8 +2,10 @@
 
 ``estimator(rgb_uint8_hwc) -> list[PoseDetection]``. The base class does what every backend
 shares: input checks, resizing by ``input_scale``, normalisation with the weights record's
-mean/std, padding to a multiple of the output stride, decoding and PnP. A backend only
-implements :meth:`PoseEstimator.run_network` on a normalised float32 batch.
+mean/std, padding to a multiple of the output stride, decoding and PnP, then a second pass
+on a crop around each detection (``DecodeConfig.crop_refine``, :mod:`evtrack.models.crop_refine`;
+one more network call per image, on all its crops at once). A backend only implements
+:meth:`PoseEstimator.run_network` on a normalised float32 batch (any image size).
 """
 
 from __future__ import annotations
@@ -19,7 +21,8 @@ from torch import nn
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
-from evtrack.models.cuboid import Cuboid
+from evtrack.models.crop_refine import crop_window, warp_crop
+from evtrack.models.cuboid import CENTROID_INDEX, Cuboid
 from evtrack.models.decode import DecodeConfig, PoseDetection, decode_poses
 from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD, WeightsRecord
 
@@ -153,13 +156,71 @@ class PoseEstimator(abc.ABC):
             return []
         K, dist = self._intrinsics(camera, images[0].shape)
         belief, affinity, scale = self.predict_maps(images)
-        return [
+        detections = [
             decode_poses(
                 belief[i], affinity[i], self.cuboid, K, dist, stride=self.output_stride,
                 config=self.decode, pixel_scale=scale, object_name=self.object_name,
             )
             for i in range(len(images))
         ]
+        if self.decode.crop_refine > 0:
+            detections = self._refine_in_crops(images, detections, K, dist, scale[0])
+        return detections
+
+    def crop_size(self, image_width: int, input_scale: float | None = None) -> int:
+        """Side (pixels) of the second pass's crops for images ``image_width`` pixels wide:
+        ``decode.crop_refine`` of the network's input width, a multiple of the output stride
+        (at least two cells)."""
+        scale = self.input_scale if input_scale is None else input_scale
+        cells = round(self.decode.crop_refine * image_width * scale / self.output_stride)
+        return max(2, int(cells)) * self.output_stride
+
+    def _refine_in_crops(
+        self, images: Sequence[np.ndarray], detections: list[list[PoseDetection]],
+        K: np.ndarray, dist: np.ndarray | None, input_scale: float,
+    ) -> list[list[PoseDetection]]:
+        """The second pass (see ``DecodeConfig.crop_refine``): one network call on a crop
+        around every detection of every image; a detection whose crop finds the object takes
+        the crop's pose (the crop's instance nearest its centre), keypoints mapped back to
+        the image; the others stay as they were. Most confident first again."""
+        size = self.crop_size(images[0].shape[1], input_scale)
+        fill = tuple(255.0 * m for m in self.mean)
+        jobs, crops = [], []
+        for i, dets in enumerate(detections):
+            for j, det in enumerate(dets):
+                window = crop_window(det.pose.numpy(), self.cuboid, K, dist, size,
+                                     self.decode.crop_margin)
+                if window is None:
+                    continue
+                crop = warp_crop(images[i], window, fill)
+                jobs.append((i, j, window))
+                crops.append(preprocess(crop, self.mean, self.std, 1.0, self.output_stride)[0])
+        if not crops:
+            return detections
+        belief, affinity = self.run_network(np.stack(crops))
+        belief, affinity = np.asarray(belief, np.float32), np.asarray(affinity, np.float32)
+        refined = [list(dets) for dets in detections]
+        centre = np.full(2, (size - 1) / 2)
+        for (i, j, window), b, a in zip(jobs, belief, affinity, strict=True):
+            K_crop = window.intrinsics(K)
+            found = decode_poses(b, a, self.cuboid, K_crop, dist, stride=self.output_stride,
+                                 config=self.decode, object_name=self.object_name)
+            if not found:
+                continue
+            best = min(found, key=lambda d: float(np.linalg.norm(
+                self.cuboid.project(d.pose.numpy(), K_crop, dist)[CENTROID_INDEX] - centre)))
+            refined[i][j] = PoseDetection(
+                pose=best.pose,
+                confidence=best.confidence,
+                keypoints=torch.from_numpy(window.to_image(best.keypoints.numpy())),
+                keypoint_scores=best.keypoint_scores,
+                reprojection_error_px=best.reprojection_error_px / window.scale,
+                num_points=best.num_points,
+                object_name=best.object_name,
+            )
+        for dets in refined:
+            dets.sort(key=lambda d: -d.confidence)
+        return refined
 
     def __call__(
         self, rgb: np.ndarray, camera: PinholeCamera | np.ndarray | None = None

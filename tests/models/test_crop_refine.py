@@ -1,0 +1,221 @@
+"""The estimator's second pass on a crop around each detection (``DecodeConfig.crop_refine``).
+
+The 'network' here reads its input: the test image holds one coloured dot per keypoint (the
+projection of the true pose, distortion included), and the network puts a belief peak where
+it finds each dot, with a fixed error of a few of *its own* pixels per keypoint, as a real
+network has. A crop that enlarges the object divides that error by the zoom factor, so the
+second pass must land nearer the truth; wrong crop intrinsics or a wrong map back to the
+image would land far from it.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError
+from evtrack.models import Cuboid, DecodeConfig, PoseEstimator
+from evtrack.models.crop_refine import crop_window, warp_crop
+
+CUBOID = Cuboid((0.08, 0.12, 0.05))
+STRIDE = 8
+# a fixed error per keypoint in the network's pixels (the same in every pass)
+KEYPOINT_ERROR = np.array([[2.0, -1.5], [-2.0, 1.0], [1.5, 2.0], [-1.0, -2.0], [2.0, 1.5],
+                           [-1.5, -1.0], [1.0, -2.0], [-2.0, 2.0], [0.5, -0.5]])
+
+
+def _code(k: int) -> int:
+    return 40 + 20 * k
+
+
+def pose_at(translation, euler=(0.4, -0.6, 0.3)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", euler).as_matrix()
+    T[:3, 3] = translation
+    return T
+
+
+def paint(camera: PinholeCamera, poses: list[np.ndarray]) -> np.ndarray:
+    """A black image with a 5x5 dot per keypoint of each pose: red = 40 + 20 k, green 255."""
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    dist = None if camera.dist is None else camera.dist.numpy()
+    for pose in poses:
+        for k, (u, v) in enumerate(CUBOID.project(pose, camera.K().numpy(), dist)):
+            x, y = int(round(u)), int(round(v))
+            image[max(0, y - 2):y + 3, max(0, x - 2):x + 3] = (_code(k), 255, 0)
+    return image
+
+
+class DotNetwork(PoseEstimator):
+    """Finds the dots in its input and answers with belief peaks (plus ``KEYPOINT_ERROR``)
+    and affinity fields towards the centroid, one instance per cluster of dots."""
+
+    calls: list[tuple[int, ...]]
+
+    def run_network(self, batch):
+        self.calls = [*getattr(self, "calls", []), batch.shape]
+        b, _, h, w = batch.shape
+        mean, std = np.asarray(self.mean)[:, None, None], np.asarray(self.std)[:, None, None]
+        rgb = (batch * std + mean) * 255.0
+        gy, gx = np.mgrid[0:h // STRIDE, 0:w // STRIDE]
+        px, py = gx * STRIDE + (STRIDE - 1) / 2, gy * STRIDE + (STRIDE - 1) / 2
+        belief = np.zeros((b, 9, h // STRIDE, w // STRIDE), np.float32)
+        affinity = np.zeros((b, 16, h // STRIDE, w // STRIDE), np.float32)
+        for i in range(b):
+            red, green = rgb[i, 0], rgb[i, 1]
+            found = {}  # keypoint -> (M, 2) dots, one per connected blob of its colour
+            for k in range(9):
+                hit = ((np.abs(red - _code(k)) < 4) & (green > 250)).astype(np.uint8)
+                n, labels = cv2.connectedComponents(hit)
+                found[k] = np.array([[xs.mean(), ys.mean()] for xs, ys in (
+                    np.nonzero(labels.T == j) for j in range(1, n))]).reshape(-1, 2)
+                found[k] = found[k] + KEYPOINT_ERROR[k]
+            centroids = found[8]
+            for k, points in found.items():
+                for u, v in points:
+                    belief[i, k] = np.maximum(
+                        belief[i, k], np.exp(-((px - u) ** 2 + (py - v) ** 2) / 2 / 4.0**2))
+                    if k < 8 and len(centroids):
+                        d = centroids[np.argmin(np.hypot(*(centroids - (u, v)).T))] - (u, v)
+                        d /= np.linalg.norm(d)
+                        disc = np.hypot(px - u, py - v) < 12
+                        affinity[i, 2 * k][disc], affinity[i, 2 * k + 1][disc] = d
+        return belief, affinity
+
+
+def errors(det, truth: np.ndarray) -> tuple[float, float]:
+    """(translation error m, rotation error deg)."""
+    pose = det.pose.numpy()
+    rot = Rotation.from_matrix(pose[:3, :3].T @ truth[:3, :3]).magnitude()
+    return float(np.linalg.norm(pose[:3, 3] - truth[:3, 3])), float(np.degrees(rot))
+
+
+CAM = PinholeCamera(400.0, 400.0, 159.5, 119.5, 320, 240)
+CAM_DIST = PinholeCamera(400.0, 400.0, 159.5, 119.5, 320, 240,
+                         dist=np.array([-0.25, 0.08, 0.001, -0.0005, 0.0]))
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+def test_the_crop_pass_divides_the_keypoint_error_by_the_zoom(camera):
+    truth = pose_at((0.03, -0.02, 0.9))  # far: the box spans ~60 px of 320
+    image = paint(camera, [truth])
+    one = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_refine=0.0))
+    two = DotNetwork(camera, CUBOID)
+    (first,) = one(image)
+    (second,) = two(image)
+    assert len(one.calls) == 1 and len(two.calls) == 2
+    size = two.crop_size(camera.width)
+    assert two.calls[1] == (1, 3, size, size) and size == 160  # 0.5 of 320
+    t1, r1 = errors(first, truth)
+    t2, r2 = errors(second, truth)
+    assert t1 > 0.005  # the first pass's error is a real one (several mm at 0.9 m)
+    zoom = crop_window(first.pose.numpy(), CUBOID, camera.K().numpy(),
+                       None if camera.dist is None else camera.dist.numpy(), size, 1.3).scale
+    assert zoom > 1.6
+    assert t2 < 0.75 * t1 and r2 < r1
+    # keypoints come back in image pixels, near the true projections (error / zoom)
+    dist = None if camera.dist is None else camera.dist.numpy()
+    projected = CUBOID.project(truth, camera.K().numpy(), dist)
+    off = np.linalg.norm(second.keypoints.numpy() - projected, axis=1)
+    assert off.max() < np.linalg.norm(KEYPOINT_ERROR, axis=1).max() / zoom + 1.0
+    assert second.reprojection_error_px < first.reprojection_error_px
+
+
+def test_a_close_object_is_shrunk_and_the_crop_may_leave_the_image():
+    truth = pose_at((0.05, 0.02, 0.32))  # close and off-centre: the crop reaches past the edge
+    image = paint(CAM, [truth])
+    est = DotNetwork(CAM, CUBOID)
+    (det,) = est(image)
+    window = crop_window(det.pose.numpy(), CUBOID, CAM.K().numpy(), None, est.crop_size(320), 1.3)
+    corners = window.to_image(np.array([[0.0, 0.0], [159.0, 159.0]]))
+    assert window.scale < 1.0 and (corners[1] > [320, 240]).any() or (corners[0] < 0).any()
+    t, r = errors(det, truth)
+    assert t < 0.01 and r < 3.0
+
+
+def test_each_image_and_instance_gets_its_own_crop():
+    a, b = pose_at((-0.1, 0.0, 0.8)), pose_at((0.1, 0.03, 0.8), euler=(-0.2, 0.5, 1.0))
+    images = [paint(CAM, [a, b]), paint(CAM, [b])]
+    est = DotNetwork(CAM, CUBOID)
+    out = est.estimate_batch(images)
+    one = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0)).estimate_batch(images)
+    assert [len(d) for d in out] == [2, 1]
+    assert len(est.calls) == 2 and est.calls[1][0] == 3  # one network call for three crops
+    for dets, first, truths in ((out[0], one[0], [a, b]), (out[1], one[1], [b])):
+        for truth in truths:
+            refined = sorted(errors(d, truth)[0] for d in dets)
+            assert refined[0] < min(errors(d, truth)[0] for d in first)  # its own crop
+            assert refined[1:] == [] or refined[1] > 0.15  # the other took the other object
+
+
+class BlindInCrops(DotNetwork):
+    """Finds nothing in crops (a second pass that fails)."""
+
+    def run_network(self, batch):
+        belief, affinity = super().run_network(batch)
+        if batch.shape[2:] != (240, 320):
+            belief[:] = 0.0
+        return belief, affinity
+
+
+def test_a_crop_without_the_object_keeps_the_first_pose():
+    truth = pose_at((0.0, 0.0, 0.7))
+    image = paint(CAM, [truth])
+    (first,) = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0))(image)
+    blind = BlindInCrops(CAM, CUBOID)
+    (kept,) = blind(image)
+    assert len(blind.calls) == 2
+    np.testing.assert_array_equal(kept.pose.numpy(), first.pose.numpy())
+    np.testing.assert_array_equal(kept.keypoints.numpy(), first.keypoints.numpy())
+
+
+def test_crop_intrinsics_see_the_crop_as_the_camera_sees_the_image():
+    """``A K`` with the same distortion projects a point where the affine map puts its image
+    projection: the crop's pinhole model is exact, not an approximation."""
+    rng = np.random.default_rng(0)
+    K, dist = CAM_DIST.K().numpy(), CAM_DIST.dist.numpy()
+    window = crop_window(pose_at((0.02, 0.01, 0.6)), CUBOID, K, dist, 96, 1.3)
+    cube = Cuboid((0.3, 0.2, 0.1))
+    for _ in range(5):
+        pose = pose_at(rng.uniform(-0.05, 0.05, 3) + [0, 0, 0.7], rng.uniform(-1, 1, 3))
+        in_image = cube.project(pose, K, dist)
+        in_crop = cube.project(pose, window.intrinsics(K), dist)
+        np.testing.assert_allclose(in_crop, in_image * window.scale + window.offset, atol=1e-9)
+        np.testing.assert_allclose(window.to_image(in_crop), in_image, atol=1e-9)
+
+
+def test_crop_window_centres_the_box_and_warp_follows_it():
+    K = CAM.K().numpy()
+    pose = pose_at((0.01, 0.0, 0.6))
+    window = crop_window(pose, CUBOID, K, None, 64, 1.5)
+    uv = CUBOID.project(pose, K)[:8] * window.scale + window.offset
+    np.testing.assert_allclose((uv.min(0) + uv.max(0)) / 2, [31.5, 31.5], atol=1e-9)
+    assert (uv.max(0) - uv.min(0)).max() == pytest.approx(64 / 1.5)
+    # the warp moves a pixel where the window says (bilinear: exact at an integer target)
+    image = np.zeros((240, 320, 3), np.uint8)
+    image[100:141, 150:191] = 200
+    crop = warp_crop(image, window, (7, 7, 7))
+    ys, xs = np.nonzero(crop[:, :, 0] == 200)
+    back = window.to_image(np.stack([xs, ys], 1))
+    assert ((back >= [149.5, 99.5]) & (back <= [190.5, 140.5])).all()
+    # behind the camera or degenerate: no window
+    behind = pose.copy()
+    behind[2, 3] = -0.6
+    assert crop_window(behind, CUBOID, K, None, 64, 1.3) is None
+    nan = pose.copy()
+    nan[0, 3] = np.nan
+    assert crop_window(nan, CUBOID, K, None, 64, 1.3) is None
+
+
+def test_crop_settings_are_checked():
+    with pytest.raises(ConfigError, match="crop_refine"):
+        DecodeConfig(crop_refine=-0.1)
+    with pytest.raises(ConfigError, match="crop_refine"):
+        DecodeConfig(crop_refine=float("nan"))
+    with pytest.raises(ConfigError, match="crop_margin"):
+        DecodeConfig(crop_margin=0.9)
+    est = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.01))
+    assert est.crop_size(320) == 2 * STRIDE  # at least two output cells
