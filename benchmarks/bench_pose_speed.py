@@ -9,10 +9,15 @@ PnP cost on ideal maps of one object, and the same on a GPU when one is availabl
 onnxruntime CUDA when its provider is there). Weights are random: latency does not depend on
 their values.
 
+Last, the whole estimator on a simulated 640x480 frame of the demo object with its shipped
+weights (``estimator(rgb)``: preprocessing, network, decoding, PnP), in one pass and with the
+second pass on a crop around the detection (``DecodeConfig.crop_refine``, the default), torch
+eager and onnxruntime alternating as above.
+
 Target (issue 6): onnxruntime CPU <= 40 ms per 640x480 frame.
 
     python benchmarks/bench_pose_speed.py [--models dope_lite_small dope_lite_base]
-        [--threads 2] [--repeats 30]
+        [--threads 2] [--repeats 30] [--no-estimator]
 """
 
 from __future__ import annotations
@@ -102,6 +107,8 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS))
     parser.add_argument("--threads", type=int, default=2, help="CPU threads (torch and ORT)")
     parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--no-estimator", action="store_true",
+                        help="skip the end-to-end estimator timing (it simulates one frame)")
     args = parser.parse_args()
 
     import onnxruntime as ort
@@ -166,6 +173,44 @@ def main() -> None:
                           args.repeats)
         print(f"decode + PnP (one instance, ideal maps) at {w}x{h}: {med:.2f} ms "
               f"(min {low:.2f})")
+    if not args.no_estimator:
+        print()
+        time_estimators(args.threads, args.repeats)
+
+
+def time_estimators(threads: int, repeats: int) -> None:
+    """The shipped demo weights end to end on one simulated 640x480 frame: one pass against
+    the default second pass on a crop, torch eager and onnxruntime alternating."""
+    from evtrack import Sequence
+    from evtrack.cli import main as evtrack_main
+    from evtrack.demo import DEMO_OBJECT
+    from evtrack.eval.pose_setup import find_object_weights
+    from evtrack.models import DecodeConfig, OnnxPoseEstimator, TorchPoseEstimator, load_model
+
+    weights = find_object_weights(DEMO_OBJECT)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "seq"
+        if evtrack_main(["simulate", "--object", DEMO_OBJECT, "--speed", "regular", "--seed",
+                         "1000", "--duration", "0.1", "--out", str(folder), "--quiet"]) != 0:
+            raise SystemExit("simulating the demo object failed")
+        seq = Sequence.load(folder)
+        image, cam = seq.rgb(3), seq.meta.rgb_camera
+        net, _ = load_model(weights)
+        onnx = export_onnx(net, Path(tmp) / "pose.onnx")
+        print(f"estimator end to end, {DEMO_OBJECT} ({weights.name}), one {cam.width}x"
+              f"{cam.height} frame: median (min) ms")
+        print(f"{'passes':<34} {'torch eager ms':>20} {'onnxruntime ms':>20}  detections")
+        passes = (("one pass", 0.0), ("+ crop pass (default)", DecodeConfig().crop_refine))
+        for label, crop in passes:
+            decode = DecodeConfig(crop_refine=crop)
+            est_t = TorchPoseEstimator(net, cam, decode=decode)
+            est_o = OnnxPoseEstimator(onnx, cam, threads=threads,
+                                      providers=["CPUExecutionProvider"], decode=decode)
+            (t_med, t_min), (o_med, o_min) = timeit_pair(
+                lambda: est_t(image), lambda: est_o(image), repeats)  # noqa: B023
+            found = len(est_o(image))
+            print(f"{label:<34} {t_med:>11.1f} ({t_min:>6.1f}) {o_med:>11.1f} ({o_min:>6.1f})  "
+                  f"{found}")
 
 
 if __name__ == "__main__":

@@ -95,11 +95,13 @@ class DecodeConfig:
             (:mod:`evtrack.models.crop_refine`); the crop's pose replaces the first when the
             crop finds the object. 0: one pass. Used by :class:`PoseEstimator`, not by
             :func:`decode_poses`. 0.5 by default: with the shipped coded-box weights, six
-            held-out regular sequences gave ADD 0.928 against 0.733 in one pass (median
-            0.62 cm / 2.16 deg against 0.91 / 2.81), faster 0.786 against 0.756; the cracker
-            box's weights (320x240) 0.854 -> 0.892 and 0.787 -> 0.871 on the two benchmark
-            sets' sequences; 0.45 and 0.55 were no better over both objects. It costs a
-            network call on a quarter to a third of a 640x480 image's pixels.
+            held-out sequences per preset (``bench_pose_accuracy.py --one-pass``) gave regular
+            ADD 0.939 against 0.733 in one pass (median 0.60 cm / 2.16 deg against 0.91 /
+            2.81), faster 0.800 against 0.756; the cracker box's weights (320x240) on the
+            two benchmark sets' cracker sequences regular 0.838 against 0.796, faster 0.971
+            against 0.854. Other sides were no better over both objects (see
+            ``models/weights/README.md``). It costs a network call on a quarter to a third
+            of a 640x480 image's pixels.
         crop_margin: side of that crop / longer side of the projected cuboid's bounding box
             (>= 1): 1.3 (1.5 was better on the coded box's regular sequences, 0.947, worse
             on its faster ones and on the cracker box).
