@@ -96,6 +96,6 @@ def crop_window(pose: np.ndarray, cuboid: Cuboid, K: np.ndarray, dist: np.ndarra
 def warp_crop(image: np.ndarray, window: CropWindow, fill: tuple[float, float, float]
               ) -> np.ndarray:
     """The (size, size, 3) crop of an (H, W, 3) uint8 image (bilinear; ``fill`` outside it)."""
-    return cv2.warpAffine(image, window.affine, (window.size, window.size),
+    return cv2.warpAffine(np.ascontiguousarray(image), window.affine, (window.size, window.size),
                           flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=tuple(float(v) for v in fill))
