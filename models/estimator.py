@@ -182,7 +182,9 @@ class PoseEstimator(abc.ABC):
         """The second pass (see ``DecodeConfig.crop_refine``): one network call on a crop
         around every detection of every image; a detection whose crop finds the object takes
         the crop's pose (the crop's instance nearest its centre), keypoints mapped back to
-        the image; the others stay as they were. Most confident first again."""
+        the image and its reprojection error in image pixels; its confidence is the crop's
+        (the reprojection term measured in the crop's pixels, where every object has about
+        one size). The others stay as they were. Most confident first again."""
         size = self.crop_size(images[0].shape[1], input_scale)
         fill = tuple(255.0 * m for m in self.mean)
         jobs, crops = [], []

@@ -106,16 +106,31 @@ class RandomCrop:
     (or when no instance has a known centroid) the window is placed uniformly. Parts of the
     window outside the image are filled with a random flat colour.
 
+    With probability ``zoom_p`` an instance-centred window is instead the view of the pose
+    estimator's second pass (``DecodeConfig.crop_refine``): the image is scaled so that the
+    instance's projected cuboid (the bounding box of its corner keypoints) spans a uniform
+    ``zoom_box`` fraction of the crop width, and centred on that box up to ``zoom_offset``
+    of the crop side (the first pass's errors). The estimator's default crop is half the
+    network's input width with the box at 1 / 1.3 = 0.77 of it, so a stage trained at 640x480
+    for it uses 320x320 crops and a ``zoom_box`` around 0.77.
+
     Attributes:
         size: ``(height, width)`` of the crop in pixels, multiples of 8.
         object_p: probability of centring on an instance.
         max_offset: largest offset of the instance centroid from the crop centre, fraction of the
             crop side.
+        zoom_p: probability that an instance-centred crop is a zoomed one (0: never).
+        zoom_box: ``(low, high)``: the zoomed instance's box side, fraction of the crop width.
+        zoom_offset: largest offset of the zoomed box's centre from the crop centre, fraction
+            of the crop side.
     """
 
     size: tuple[int, int] = (160, 160)
     object_p: float = 0.85
     max_offset: float = 0.3
+    zoom_p: float = 0.0
+    zoom_box: tuple[float, float] = (0.65, 0.9)
+    zoom_offset: float = 0.05
 
     def __post_init__(self) -> None:
         h, w = (int(v) for v in self.size)
@@ -126,6 +141,15 @@ class RandomCrop:
             raise ConfigError(f"data.augment.crop.object_p must be in [0, 1], got {self.object_p}")
         if self.max_offset < 0:
             raise ConfigError(f"data.augment.crop.max_offset must be >= 0, got {self.max_offset}")
+        if not 0.0 <= self.zoom_p <= 1.0:
+            raise ConfigError(f"data.augment.crop.zoom_p must be in [0, 1], got {self.zoom_p}")
+        lo, hi = (float(v) for v in self.zoom_box)
+        if not 0.0 < lo <= hi:
+            raise ConfigError(f"data.augment.crop.zoom_box must be (low, high) with "
+                              f"0 < low <= high, got {self.zoom_box}")
+        if self.zoom_offset < 0:
+            raise ConfigError(f"data.augment.crop.zoom_offset must be >= 0, got "
+                              f"{self.zoom_offset}")
 
     def __call__(self, sample: PoseSample, rng: np.random.Generator) -> PoseSample:
         ch, cw = (int(v) for v in self.size)
@@ -133,7 +157,12 @@ class RandomCrop:
         centroids = sample.keypoints[:, -1, :] if sample.num_instances else np.zeros((0, 2))
         known = np.flatnonzero(np.isfinite(centroids).all(axis=1))
         if known.size and rng.random() < self.object_p:
-            c = centroids[int(rng.choice(known))].astype(np.float64)
+            index = int(rng.choice(known))
+            if self.zoom_p > 0 and rng.random() < self.zoom_p:
+                zoomed = self._zoomed(sample, index, rng)
+                if zoomed is not None:
+                    return zoomed
+            c = centroids[index].astype(np.float64)
             off = rng.uniform(-self.max_offset, self.max_offset, 2) * (cw, ch)
             x0 = int(round(c[0] + off[0] - cw / 2))
             y0 = int(round(c[1] + off[1] - ch / 2))
@@ -151,6 +180,32 @@ class RandomCrop:
         K = shift @ np.asarray(sample.K, dtype=np.float64)
         kps = (sample.keypoints.astype(np.float64) - (x0, y0)).astype(np.float32)
         return sample.replace(image=out, K=K, keypoints=kps)
+
+    def _zoomed(self, sample: PoseSample, index: int, rng: np.random.Generator
+                ) -> PoseSample | None:
+        """The zoomed crop around instance ``index`` (``None``: fewer than two of its corners
+        are known, or they coincide)."""
+        ch, cw = (int(v) for v in self.size)
+        corners = sample.keypoints[index, :8].astype(np.float64)
+        corners = corners[np.isfinite(corners).all(axis=1)]
+        if len(corners) < 2:
+            return None
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        side = float((hi - lo).max())
+        if not side > 1.0:
+            return None
+        s = rng.uniform(*self.zoom_box) * cw / side
+        off = rng.uniform(-self.zoom_offset, self.zoom_offset, 2) * (cw, ch)
+        centre = (lo + hi) / 2
+        # pixel centres at integer coordinates: the box centre goes to ((cw - 1) / 2, ...) + off
+        b = np.array([(cw - 1) / 2, (ch - 1) / 2]) + off - s * centre
+        A = np.array([[s, 0.0, b[0]], [0.0, s, b[1]]])
+        fill = tuple(float(v) for v in rng.integers(0, 256, 3))
+        image = cv2.warpAffine(sample.image, A, (cw, ch), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
+        K = np.vstack([A, [0.0, 0.0, 1.0]]) @ np.asarray(sample.K, dtype=np.float64)
+        kps = (sample.keypoints.astype(np.float64) * s + b).astype(np.float32)
+        return sample.replace(image=image, K=K, keypoints=kps)
 
 
 @dataclass(frozen=True)

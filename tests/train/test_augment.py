@@ -138,3 +138,55 @@ def test_crop_config_is_validated_and_runs_first():
         RandomCrop(size=(100, 160))
     with pytest.raises(ConfigError, match="object_p"):
         RandomCrop(object_p=1.5)
+
+
+def test_zoomed_crop_shows_the_instance_as_the_estimators_second_pass(sample):
+    """``zoom_p=1``: the instance's corner box spans ``zoom_box`` of the crop width, centred
+    within ``zoom_offset``; keypoints stay projections through the new ``K``; the content moves
+    with them."""
+    crop = RandomCrop(size=(64, 64), object_p=1.0, zoom_p=1.0, zoom_box=(0.7, 0.8),
+                      zoom_offset=0.05)
+    for seed in range(10):
+        out = crop(sample, np.random.default_rng(seed))
+        out.check()
+        assert out.image.shape == (64, 64, 3)
+        np.testing.assert_allclose(out.keypoints, reprojection(out), atol=1e-3)
+        corners = out.keypoints[0, :8]
+        side = (corners.max(0) - corners.min(0)).max()
+        assert 0.7 * 64 - 1e-3 <= side <= 0.8 * 64 + 1e-3
+        centre = (corners.max(0) + corners.min(0)) / 2
+        assert np.abs(centre - 31.5).max() <= 0.05 * 64 + 1e-6
+    # the zoomed window is an affine map of the image: a bright dot follows its keypoint
+    from evtrack.train import PoseSample
+
+    img = np.zeros((96, 128, 3), np.uint8)
+    img[29:32, 59:62] = 255  # a dot at (60, 30)
+    kp = np.array([[[50, 20], [70, 20], [50, 40], [70, 40], [50, 20], [70, 20], [50, 40],
+                    [70, 40], [60, 30]]], np.float32)
+    s = PoseSample(img, np.eye(3), np.eye(4)[None], kp)
+    out = RandomCrop(size=(64, 64), object_p=1.0, zoom_p=1.0, zoom_box=(0.5, 0.5),
+                     zoom_offset=0.0)(s, np.random.default_rng(0))
+    np.testing.assert_allclose(out.keypoints[0, 8], (31.5, 31.5), atol=1e-4)
+    np.testing.assert_allclose(out.K[0, 0], 32 / 20)  # the 20 px box spans half of 64 px
+    assert out.image[31:33, 31:33].mean() > 200
+
+
+def test_zoomed_crop_needs_two_known_corners_and_checks_its_settings(sample):
+    from evtrack.train import PoseSample
+
+    kp = np.full((1, 9, 2), np.nan, np.float32)
+    kp[0, 8] = (40, 30)  # only the centroid is known: an ordinary crop around it
+    s = PoseSample(np.zeros((96, 128, 3), np.uint8), np.eye(3), np.eye(4)[None], kp)
+    out = RandomCrop(size=(32, 32), object_p=1.0, max_offset=0.0, zoom_p=1.0)(
+        s, np.random.default_rng(0))
+    np.testing.assert_allclose(out.keypoints[0, 8], (16, 16), atol=0.51)
+    np.testing.assert_allclose(out.K[:2, :2], np.eye(2))  # not scaled
+    with pytest.raises(ConfigError, match="zoom_p"):
+        RandomCrop(zoom_p=1.5)
+    with pytest.raises(ConfigError, match="zoom_box"):
+        RandomCrop(zoom_box=(0.9, 0.5))
+    with pytest.raises(ConfigError, match="zoom_offset"):
+        RandomCrop(zoom_offset=-0.1)
+    cfg = AugmentConfig.from_dict({"crop": {"size": [320, 320], "zoom_p": 0.6,
+                                            "zoom_box": [0.68, 0.86]}})
+    assert cfg.crop.zoom_box == (0.68, 0.86) and AugmentConfig.from_dict(cfg.to_dict()) == cfg
