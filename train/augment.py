@@ -143,8 +143,8 @@ class RandomCrop:
             raise ConfigError(f"data.augment.crop.max_offset must be >= 0, got {self.max_offset}")
         if not 0.0 <= self.zoom_p <= 1.0:
             raise ConfigError(f"data.augment.crop.zoom_p must be in [0, 1], got {self.zoom_p}")
-        lo, hi = (float(v) for v in self.zoom_box)
-        if not 0.0 < lo <= hi:
+        box = tuple(self.zoom_box)
+        if len(box) != 2 or not 0.0 < float(box[0]) <= float(box[1]):
             raise ConfigError(f"data.augment.crop.zoom_box must be (low, high) with "
                               f"0 < low <= high, got {self.zoom_box}")
         if self.zoom_offset < 0:

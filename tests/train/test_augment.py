@@ -185,6 +185,8 @@ def test_zoomed_crop_needs_two_known_corners_and_checks_its_settings(sample):
         RandomCrop(zoom_p=1.5)
     with pytest.raises(ConfigError, match="zoom_box"):
         RandomCrop(zoom_box=(0.9, 0.5))
+    with pytest.raises(ConfigError, match="zoom_box"):
+        RandomCrop(zoom_box=(0.5, 0.6, 0.7))
     with pytest.raises(ConfigError, match="zoom_offset"):
         RandomCrop(zoom_offset=-0.1)
     cfg = AugmentConfig.from_dict({"crop": {"size": [320, 320], "zoom_p": 0.6,
