@@ -15,7 +15,7 @@ box fills the view; one with a steady 2.5 cm error in depth), 0.733 on all six. 
 therefore also print a 90 % interval of ADD from a bootstrap over whole sequences
 (:func:`evtrack.eval.pose_metrics.pooled_rate_interval`). The estimator's second pass on a crop
 around each detection (``DecodeConfig.crop_refine``, the default since 2026-11-27) takes the
-six to 0.939; ``--one-pass`` prints the one-pass rows beside it.
+six to 0.942; ``--one-pass`` prints the one-pass rows beside it.
 
     python benchmarks/bench_pose_accuracy.py            # the shipped demo weights (coded_box)
     python benchmarks/bench_pose_accuracy.py --weights W.pt --sequence DIR [--sequence DIR ...]

@@ -27,22 +27,22 @@ import numpy as np
 
 from evtrack.models.cuboid import Cuboid
 
-__all__ = ["CropWindow", "crop_window", "warp_crop"]
+__all__ = ["CropWindow", "box_window", "crop_window", "warp_crop"]
 
 
 @dataclass(frozen=True)
 class CropWindow:
-    """A square crop of an image, resized: crop pixel ``u' = scale * u + offset``.
+    """A crop of an image, resized: crop pixel ``u' = scale * u + offset``.
 
     Attributes:
         scale: crop pixels per image pixel.
         offset: (2,) ``(tx, ty)`` crop pixels.
-        size: side of the crop, pixels.
+        size: ``(width, height)`` of the crop, pixels.
     """
 
     scale: float
     offset: tuple[float, float]
-    size: int
+    size: tuple[int, int]
 
     @property
     def affine(self) -> np.ndarray:
@@ -55,8 +55,28 @@ class CropWindow:
         return np.vstack([self.affine, [0.0, 0.0, 1.0]]) @ np.asarray(K, np.float64)
 
     def to_image(self, points: np.ndarray) -> np.ndarray:
-        """(N, 2) crop pixels -> image pixels (NaN stays NaN)."""
+        """(..., 2) crop pixels -> image pixels (NaN stays NaN)."""
         return (np.asarray(points, np.float64) - np.asarray(self.offset)) / self.scale
+
+    def to_crop(self, points: np.ndarray) -> np.ndarray:
+        """(..., 2) image pixels -> crop pixels (NaN stays NaN)."""
+        return np.asarray(points, np.float64) * self.scale + np.asarray(self.offset)
+
+
+def box_window(lo: np.ndarray, hi: np.ndarray, size: tuple[int, int], box_side: float,
+               shift: tuple[float, float] = (0.0, 0.0)) -> CropWindow:
+    """The crop of ``size = (width, height)`` pixels in which the box ``[lo, hi]`` (image
+    pixels) has its longer side ``box_side`` crop pixels and its centre at the crop's centre
+    plus ``shift`` (pixel centres at integer coordinates: the centre is ``((w - 1) / 2, (h -
+    1) / 2)``). The estimator's second pass and the training crops that imitate it
+    (``RandomCrop.zoom_p``) both place their crops with it. The box must be wider than 0."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    scale = float(box_side) / float((hi - lo).max())
+    centre = (lo + hi) / 2
+    w, h = (int(v) for v in size)
+    tx = (w - 1) / 2 + shift[0] - scale * centre[0]
+    ty = (h - 1) / 2 + shift[1] - scale * centre[1]
+    return CropWindow(scale, (float(tx), float(ty)), (w, h))
 
 
 def crop_window(pose: np.ndarray, cuboid: Cuboid, K: np.ndarray, dist: np.ndarray | None,
@@ -82,20 +102,15 @@ def crop_window(pose: np.ndarray, cuboid: Cuboid, K: np.ndarray, dist: np.ndarra
     if not np.isfinite(uv).all():
         return None
     lo, hi = uv.min(axis=0), uv.max(axis=0)
-    side = margin * float((hi - lo).max())
-    if not side >= 1.0:
+    if not margin * float((hi - lo).max()) >= 1.0:
         return None
-    scale = size / side
-    centre = (lo + hi) / 2
-    offset = (size / 2 - scale * centre[0], size / 2 - scale * centre[1])
-    # pixel centres at integer coordinates: the crop's centre is (size - 1) / 2
-    offset = (offset[0] - 0.5, offset[1] - 0.5)
-    return CropWindow(scale, (float(offset[0]), float(offset[1])), int(size))
+    return box_window(lo, hi, (size, size), size / margin)
 
 
 def warp_crop(image: np.ndarray, window: CropWindow, fill: tuple[float, float, float]
               ) -> np.ndarray:
-    """The (size, size, 3) crop of an (H, W, 3) uint8 image (bilinear; ``fill`` outside it)."""
-    return cv2.warpAffine(np.ascontiguousarray(image), window.affine, (window.size, window.size),
+    """The (height, width, 3) crop of an (H, W, 3) uint8 image (bilinear; ``fill`` outside
+    it)."""
+    return cv2.warpAffine(np.ascontiguousarray(image), window.affine, window.size,
                           flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=tuple(float(v) for v in fill))

@@ -96,8 +96,8 @@ class DecodeConfig:
             crop finds the object. 0: one pass. Used by :class:`PoseEstimator`, not by
             :func:`decode_poses`. 0.5 by default: with the shipped coded-box weights, six
             held-out sequences per preset (``bench_pose_accuracy.py --one-pass``) gave regular
-            ADD 0.939 against 0.733 in one pass (median 0.60 cm / 2.16 deg against 0.91 /
-            2.81), faster 0.800 against 0.756; the cracker box's weights (320x240) on the
+            ADD 0.942 against 0.733 in one pass (median 0.62 cm / 2.20 deg against 0.91 /
+            2.81), faster 0.792 against 0.756; the cracker box's weights (320x240) on the
             two benchmark sets' cracker sequences regular 0.838 against 0.796, faster 0.971
             against 0.854. Other sides were no better over both objects (see
             ``models/weights/README.md``). It costs a network call on a quarter to a third

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from evtrack.errors import ConfigError
+from evtrack.models.crop_refine import box_window, warp_crop
 from evtrack.train.samples import PoseSample
 
 __all__ = [
@@ -191,20 +192,15 @@ class RandomCrop:
         if len(corners) < 2:
             return None
         lo, hi = corners.min(axis=0), corners.max(axis=0)
-        side = float((hi - lo).max())
-        if not side > 1.0:
+        if not float((hi - lo).max()) > 1.0:
             return None
-        s = rng.uniform(*self.zoom_box) * cw / side
+        side = rng.uniform(*self.zoom_box) * cw
         off = rng.uniform(-self.zoom_offset, self.zoom_offset, 2) * (cw, ch)
-        centre = (lo + hi) / 2
-        # pixel centres at integer coordinates: the box centre goes to ((cw - 1) / 2, ...) + off
-        b = np.array([(cw - 1) / 2, (ch - 1) / 2]) + off - s * centre
-        A = np.array([[s, 0.0, b[0]], [0.0, s, b[1]]])
+        window = box_window(lo, hi, (cw, ch), side, (float(off[0]), float(off[1])))
         fill = tuple(float(v) for v in rng.integers(0, 256, 3))
-        image = cv2.warpAffine(sample.image, A, (cw, ch), flags=cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
-        K = np.vstack([A, [0.0, 0.0, 1.0]]) @ np.asarray(sample.K, dtype=np.float64)
-        kps = (sample.keypoints.astype(np.float64) * s + b).astype(np.float32)
+        image = warp_crop(sample.image, window, fill)
+        K = window.intrinsics(sample.K)
+        kps = window.to_crop(sample.keypoints).astype(np.float32)
         return sample.replace(image=image, K=K, keypoints=kps)
 
 
