@@ -22,8 +22,8 @@
 # Exits non-zero if any run failed, after all have finished.
 # Measured (2026-11-27, one H200 with 16 cores, CORES=15, the three objects without shipped
 # weights): 112 s to render their 2048 + 128 samples each (the processes' start included),
-# then ~8 steps of 32 per second
-# per run (the loaders, not the GPU, are the limit); models/weights/README.md has the results.
+# then ~8 steps of 32 per second per run (the loaders, not the GPU, are the limit);
+# models/weights/README.md has the results.
 set -euo pipefail
 
 cores=${CORES:-$(nproc)}
