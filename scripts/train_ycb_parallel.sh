@@ -5,11 +5,12 @@
 #
 # Usage (from the repository root, after ./scripts/install.sh):
 #   scripts/train_ycb_parallel.sh                      # all cores, 2 h of training each
-#   CORES=8 MAX_TIME=00:01:00:00 scripts/train_ycb_parallel.sh --set data.train_samples=16384
+#   CORES=8 MAX_TIME=00:01:00:00 scripts/train_ycb_parallel.sh --set data.train_samples=4096
+#   (the cache holds ~0.9 MB per 640x480 sample: 4096 renders are ~3.7 GB per object)
 #
 # Environment:
-#   CORES      CPU cores to use in all (default: nproc); each run gets CORES/4, split into
-#              render processes (first) and loader workers (then)
+#   CORES      CPU cores to use in all (default: nproc); each run gets CORES / (number of
+#              configs), split into render processes (first) and loader workers (then)
 #   MAX_TIME   training time of each run, Lightning's DD:HH:MM:SS (default 00:02:00:00); the
 #              learning rate follows it (optim.schedule_by: time), so a run of any budget
 #              anneals to the end of its cosine; rendering the cache comes before and is not
