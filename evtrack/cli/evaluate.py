@@ -24,7 +24,9 @@ e.g. the output of 'evtrack simulate-benchmark'. Every sequence needs ground tru
 Pose source: a pose network per object, found in --weights-dir (searched recursively, e.g.
 runs/pose) or in the shipped zoo (models/weights); or --oracle: the ground-truth pose with
 Gaussian noise, which tests the tracker but says nothing about a pose network (the tables say
-ORACLE). Each method on a sequence is tracked independently with the same pose-source seed.
+ORACLE); or --oracle-where-missing: the network for the objects that have weights, the oracle
+for the others (the caption names them). Each method on a sequence is tracked independently
+with the same pose-source seed.
 """
 
 EPILOG = """\
@@ -32,6 +34,7 @@ examples:
   evtrack simulate-benchmark --out bench
   evtrack evaluate --benchmark bench --out bench-results --oracle --ablation --jobs 2
   evtrack evaluate --benchmark bench --weights-dir runs/pose --methods full pose --video
+  evtrack evaluate --benchmark bench --oracle-where-missing --jobs 2
 """
 
 
@@ -62,9 +65,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           "default: the shipped zoo)")
     src.add_argument("--oracle", action="store_true",
                      help="ground-truth poses with noise instead of a pose network")
+    p.add_argument("--oracle-where-missing", action="store_true",
+                   help="objects without pose-network weights get the oracle instead of an "
+                        "error (the others keep their network; the caption names them)")
     p.add_argument("--oracle-noise", type=float, nargs=2, default=None,
                    metavar=("METRES", "RADIANS"),
-                   help="oracle noise per axis (default: 0.01 m, 0.03 rad)")
+                   help="oracle noise per axis (default: 0.01 m, 0.03 rad; with --oracle or "
+                        "--oracle-where-missing)")
     p.add_argument("--seed", type=int, default=0, help="seed of the oracle's noise (default 0)")
     p.add_argument("--depth-refine", action="store_true",
                    help="refine each network pose on the RGB-D depth frame (ICP with the "
@@ -88,22 +95,26 @@ def pose_spec(args: argparse.Namespace):
     """The :class:`~evtrack.eval.pose_setup.PoseSourceSpec` of the options."""
     from evtrack.eval.pose_setup import PoseSourceSpec
 
-    if args.oracle_noise is not None and not args.oracle:
-        raise ConfigError("--oracle-noise needs --oracle")
+    fallback = getattr(args, "oracle_where_missing", False)
+    if args.oracle_noise is not None and not (args.oracle or fallback):
+        raise ConfigError("--oracle-noise needs --oracle or --oracle-where-missing")
+    noise = args.oracle_noise or (0.01, 0.03)
     if args.oracle:
-        noise = args.oracle_noise or (0.01, 0.03)
         return PoseSourceSpec("oracle", oracle_std_translation=noise[0],
                               oracle_std_rotation=noise[1], seed=args.seed,
-                              depth_refine=getattr(args, "depth_refine", False))
+                              depth_refine=getattr(args, "depth_refine", False),
+                              oracle_fallback=fallback)
     if args.weights_dir is not None and not args.weights_dir.is_dir():
         raise ConfigError(f"--weights-dir {args.weights_dir}: folder not found")
     return PoseSourceSpec("network", weights_dir=args.weights_dir, seed=args.seed,
-                          depth_refine=getattr(args, "depth_refine", False))
+                          depth_refine=getattr(args, "depth_refine", False),
+                          oracle_std_translation=noise[0], oracle_std_rotation=noise[1],
+                          oracle_fallback=fallback)
 
 
 def run(args: argparse.Namespace) -> int:
     from evtrack.eval.benchmark import pose_warnings, run_benchmark, run_specs
-    from evtrack.eval.pose_setup import resolve_weights
+    from evtrack.eval.pose_setup import pose_caption, resolve_weights
     from evtrack.eval.report import write_report
     from evtrack.eval.sequences import find_sequences, require_ground_truth
     from evtrack.tracking_config import TrackerConfig
@@ -117,18 +128,21 @@ def run(args: argparse.Namespace) -> int:
     base = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     sequences = find_sequences(args.benchmark)
     require_ground_truth(sequences)
-    weights = resolve_weights(spec, [s.object_name for s in sequences])
+    objects = [s.object_name for s in sequences]
+    weights = resolve_weights(spec, objects)
+    caption = pose_caption(spec, weights, objects)
     bench = args.benchmark.resolve()
     out = args.out or bench.parent / f"{bench.name}-results"
     print(f"evaluating {len(sequences)} sequence(s) x {len(runs)} run(s) "
-          f"[{', '.join(r.name for r in runs)}]; pose source: {spec.label}")
+          f"[{', '.join(r.name for r in runs)}]; pose source: {caption}")
     for name, path in weights.items():
         print(f"  weights for {name}: {path}")
     results = run_benchmark(sequences, runs, base, spec, weights, out, jobs=args.jobs,
                             torch_threads=args.threads, progress=not args.quiet)
     info = {"benchmark": str(args.benchmark), "tracker_config": base.to_dict(),
-            "weights": {k: str(v) for k, v in weights.items()}}
-    files = write_report(results, sequences, runs, out, caption=spec.label, info=info,
+            "weights": {k: str(weights[k]) if k in weights else "oracle"
+                        for k in sorted(set(objects))} if spec.kind == "network" else {}}
+    files = write_report(results, sequences, runs, out, caption=caption, info=info,
                          video=args.video, progress=not args.quiet)
     print()
     print(files.markdown)

@@ -6,6 +6,9 @@
 * ``oracle``: the sequence's ground-truth pose plus Gaussian noise
   (:class:`~evtrack.pose_sources.OraclePoseSource`). **Not an estimator**: tables made with it
   measure the filters and the velocity pipeline, not a pose network, and say so.
+* ``network`` with ``oracle_fallback``: the network where an object has weights, the oracle
+  for the objects without (a benchmark whose objects do not all have a trained network yet);
+  :func:`pose_caption` names the objects that got the oracle.
 
 Every run of every method on a sequence gets a fresh pose source built from the same
 :class:`PoseSourceSpec` (same seed), so the methods see identical pose measurements.
@@ -21,7 +24,7 @@ from evtrack.errors import ConfigError
 from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource, PoseSource
 
 __all__ = ["PoseSourceSpec", "find_object_weights", "training_hint", "make_pose_source",
-           "resolve_weights"]
+           "pose_caption", "resolve_weights"]
 
 
 @dataclass(frozen=True)
@@ -38,6 +41,8 @@ class PoseSourceSpec:
         depth_refine: refine the network's poses on the RGB-D depth frames
             (:class:`~evtrack.models.DepthRefiner` with the sequence's mesh); the paper's
             pose estimator uses RGB only.
+        oracle_fallback: with ``kind="network"``, objects without weights get the oracle
+            (with the oracle settings above) instead of an error.
     """
 
     kind: str = "network"
@@ -47,8 +52,12 @@ class PoseSourceSpec:
     oracle_std_rotation: float = 0.03
     seed: int = 0
     depth_refine: bool = False
+    oracle_fallback: bool = False
 
     def __post_init__(self) -> None:
+        if self.oracle_fallback and self.kind != "network":
+            raise ConfigError("--oracle-where-missing falls back from a pose network to the "
+                              "oracle; with --oracle every object gets the oracle already")
         if self.depth_refine and self.kind != "network":
             raise ConfigError("--depth-refine refines a pose network's poses; not with --oracle")
         if self.kind not in ("network", "oracle"):
@@ -59,13 +68,17 @@ class PoseSourceSpec:
                 raise ConfigError(f"--oracle-noise: {name} must be finite and >= 0, got {value}")
 
     @property
+    def oracle_label(self) -> str:
+        """The oracle's settings, for captions."""
+        cm = 100 * self.oracle_std_translation
+        return (f"ORACLE (ground-truth poses + Gaussian noise {cm:g} cm, "
+                f"{math.degrees(self.oracle_std_rotation):.3g} deg per axis, seed {self.seed})")
+
+    @property
     def label(self) -> str:
         """One line for table captions."""
         if self.kind == "oracle":
-            cm = 100 * self.oracle_std_translation
-            return (f"ORACLE (ground-truth poses + Gaussian noise {cm:g} cm, "
-                    f"{math.degrees(self.oracle_std_rotation):.3g} deg per axis, seed "
-                    f"{self.seed}): measures the tracker's filters, not a pose network")
+            return f"{self.oracle_label}: measures the tracker's filters, not a pose network"
         refine = " + depth refinement (ICP on the RGB-D depth)" if self.depth_refine else ""
         if self.weights is not None:
             return f"pose network {self.weights}{refine}"
@@ -122,14 +135,35 @@ def find_object_weights(object_name: str, folder: str | Path | None = None,
 
 
 def resolve_weights(spec: PoseSourceSpec, objects: list[str]) -> dict[str, Path]:
-    """The weights file of each object (empty for the oracle); raises before any work."""
+    """The weights file of each object (empty for the oracle); raises before any work.
+
+    With ``spec.oracle_fallback`` an object without weights is left out (it gets the oracle,
+    see :func:`make_pose_source`) instead of raising.
+    """
     if spec.kind == "oracle":
         return {}
     if spec.weights is not None:
         if not Path(spec.weights).is_file():
             raise ConfigError(f"--weights {spec.weights}: file not found")
         return {name: Path(spec.weights) for name in objects}
-    return {name: find_object_weights(name, spec.weights_dir) for name in sorted(set(objects))}
+    found = {}
+    for name in sorted(set(objects)):
+        try:
+            found[name] = find_object_weights(name, spec.weights_dir)
+        except ConfigError:
+            if not spec.oracle_fallback:
+                raise
+    return found
+
+
+def pose_caption(spec: PoseSourceSpec, weights: dict[str, Path], objects: list[str]) -> str:
+    """The table caption: :attr:`PoseSourceSpec.label`, and with ``oracle_fallback`` the
+    objects (of ``objects``) that got the oracle for want of weights."""
+    missing = sorted(set(objects) - set(weights)) if spec.kind == "network" else []
+    if not missing:
+        return spec.label
+    return (f"{spec.label}; {spec.oracle_label} for {', '.join(missing)} (no weights): those "
+            "rows measure the tracker's filters, not a pose network")
 
 
 def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
@@ -142,6 +176,10 @@ def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
         weights: the network's weights file (from :func:`resolve_weights`).
     """
     if spec.kind == "oracle":
+        return OraclePoseSource.from_sequence(
+            sequence, std_translation=spec.oracle_std_translation,
+            std_rotation=spec.oracle_std_rotation, seed=spec.seed)
+    if weights is None and spec.oracle_fallback:
         return OraclePoseSource.from_sequence(
             sequence, std_translation=spec.oracle_std_translation,
             std_rotation=spec.oracle_std_rotation, seed=spec.seed)

@@ -12,6 +12,7 @@ from eval_helpers import reference_errors, save_tiny_weights
 
 from evtrack import Sequence
 from evtrack.cli import main
+from evtrack.errors import ConfigError
 from evtrack.eval.benchmark import run_benchmark, run_one, run_specs
 from evtrack.eval.pose_setup import PoseSourceSpec, resolve_weights
 from evtrack.eval.sequences import find_sequences
@@ -117,6 +118,45 @@ def test_missing_weights_is_a_clear_error(tiny_benchmark, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_oracle_where_missing_gives_the_oracle_to_objects_without_weights(
+        evaluated, tiny_benchmark, tiny_tracker_yaml, tmp_path, capsys):
+    """No weights for 'box': its runs get the oracle, the same trajectory as with --oracle
+    (same seed), and the caption, the console and the manifest say so."""
+    save_tiny_weights(tmp_path / "w" / "can.pt", object_name="can")
+    out = tmp_path / "o"
+    code = main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--weights-dir",
+                 str(tmp_path / "w"), "--oracle-where-missing", "--config",
+                 str(tiny_tracker_yaml), "--methods", "pose", "--out", str(out), "--quiet"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "ORACLE" in printed and "for box (no weights)" in printed
+    assert "for box (no weights)" in (out / "results.md").read_text()
+    assert yaml.safe_load((out / "results.yaml").read_text())["weights"] == {"box": "oracle"}
+    a = Trajectory.load(out / "trajectories" / "box_faster" / "pose.h5")
+    b = Trajectory.load(evaluated / "trajectories" / "box_faster" / "pose.h5")
+    assert np.array_equal(a.poses.numpy(), b.poses.numpy(), equal_nan=True)
+
+
+def test_oracle_where_missing_keeps_the_network_where_there_are_weights(tiny_benchmark,
+                                                                         tmp_path):
+    from evtrack.eval.pose_setup import make_pose_source, pose_caption
+    from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
+
+    weights = save_tiny_weights(tmp_path / "w" / "box.pt")
+    spec = PoseSourceSpec("network", weights_dir=tmp_path / "w", oracle_fallback=True)
+    found = resolve_weights(spec, ["box", "can", "box"])
+    assert found == {"box": weights}
+    caption = pose_caption(spec, found, ["box", "can"])
+    assert caption.startswith("pose network") and "ORACLE" in caption and "for can" in caption
+    assert pose_caption(spec, found, ["box"]) == spec.label  # nothing missing: no oracle
+    seq = Sequence.load(tiny_benchmark / "box_regular")
+    assert isinstance(make_pose_source(spec, seq, weights), NetworkPoseSource)
+    assert isinstance(make_pose_source(spec, seq, None), OraclePoseSource)
+    # without the fallback a missing object stays an error
+    with pytest.raises(ConfigError, match="no pose-network weights for object 'can'"):
+        resolve_weights(PoseSourceSpec("network", weights_dir=tmp_path / "w"), ["box", "can"])
+
+
 def test_bad_benchmark_folders(tmp_path, tiny_benchmark, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
@@ -148,6 +188,8 @@ def test_bad_options(tiny_benchmark, capsys):
     assert "must be finite and >= 0" in capsys.readouterr().err
     assert main(["evaluate", "--benchmark", bench, "--oracle", "--depth-refine"]) == 1
     assert "--depth-refine refines a pose network's poses" in capsys.readouterr().err
+    assert main(["evaluate", "--benchmark", bench, "--oracle", "--oracle-where-missing"]) == 1
+    assert "with --oracle every object gets the oracle already" in capsys.readouterr().err
     assert main(["evaluate", "--benchmark", bench, "--oracle", "--jobs", "0"]) == 1
     assert "--jobs must be >= 1" in capsys.readouterr().err
     with pytest.raises(SystemExit):

@@ -88,7 +88,8 @@ def test_shipped_ycb_weights_locate_their_object_in_held_out_renders(index, ycb_
     # 003_cracker_box measures median 2.5 cm / 5.3 deg on these 12 frames at 320x240, the
     # potted meat can 2.4-2.6 cm / 6.2-7.0 deg, the tomato can 1.6-1.9 cm / 7.0-8.7 deg (the
     # range: 1 or 2 threads); the tomato can's network after 50 CPU minutes more than its
-    # first GPU run (not shipped) 2.8-4.4 cm / 7.8-10.9 deg; the potted meat can's network after 108 s of training (corner identity 0.40, not shipped)
-    # 8.6 cm / 54 deg: a network that mixes its corners up fails the rotation bound
+    # first GPU run (not shipped) 2.8-4.4 cm / 7.8-10.9 deg; the potted meat can's network
+    # after 108 s of training (corner identity 0.40, not shipped) 8.6 cm / 54 deg: a network
+    # that mixes its corners up fails the rotation bound
     assert np.median(dt) < 0.04, np.round(dt, 3)
     assert np.median(dr) < 9.0, np.round(dr, 1)
