@@ -95,7 +95,7 @@ def pose_spec(args: argparse.Namespace):
     """The :class:`~evtrack.eval.pose_setup.PoseSourceSpec` of the options."""
     from evtrack.eval.pose_setup import PoseSourceSpec
 
-    fallback = getattr(args, "oracle_where_missing", False)
+    fallback = args.oracle_where_missing
     if args.oracle_noise is not None and not (args.oracle or fallback):
         raise ConfigError("--oracle-noise needs --oracle or --oracle-where-missing")
     noise = args.oracle_noise or (0.01, 0.03)

@@ -175,11 +175,7 @@ def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
         sequence: the sequence (its ground truth for the oracle, its RGB camera for a network).
         weights: the network's weights file (from :func:`resolve_weights`).
     """
-    if spec.kind == "oracle":
-        return OraclePoseSource.from_sequence(
-            sequence, std_translation=spec.oracle_std_translation,
-            std_rotation=spec.oracle_std_rotation, seed=spec.seed)
-    if weights is None and spec.oracle_fallback:
+    if spec.kind == "oracle" or (weights is None and spec.oracle_fallback):
         return OraclePoseSource.from_sequence(
             sequence, std_translation=spec.oracle_std_translation,
             std_rotation=spec.oracle_std_rotation, seed=spec.seed)
