@@ -63,6 +63,27 @@ def roi_depth(depth_map: np.ndarray, uv: np.ndarray, offsets: np.ndarray,
     h, w = depth_map.shape
     with np.errstate(invalid="ignore"):  # NaN pixels: no patch (as out of the map)
         centre = np.rint(uv).astype(np.int64)
+    if len(centre) >= _DEDUPE_MIN_POINTS:
+        # a step group asks for its RoIs at every step: the same centres, ~3x over
+        reach = int(np.abs(offsets).max(initial=0)) + 1  # a centre further out sees nothing
+        cx = np.clip(centre[:, 0], -reach, w + reach)
+        cy = np.clip(centre[:, 1], -reach, h + reach)
+        key = (cy + reach) * (w + 2 * reach + 1) + (cx + reach)
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        if len(first) < len(centre):
+            return _patch_depths(depth_map, np.stack([cx, cy], 1)[first], offsets,
+                                 z_range)[inverse.reshape(-1)]
+    return _patch_depths(depth_map, centre, offsets, z_range)
+
+
+#: :func:`roi_depth` looks each distinct pixel up once from this many points on.
+_DEDUPE_MIN_POINTS = 16
+
+
+def _patch_depths(depth_map: np.ndarray, centre: np.ndarray, offsets: np.ndarray,
+                  z_range: tuple[float, float] | None) -> np.ndarray:
+    """:func:`roi_depth` of (N, 2) int64 pixel centres."""
+    h, w = depth_map.shape
     if COMPILED and numba_available():  # without numba the NumPy form is the faster
         lo, hi = z_range if z_range is not None else (-math.inf, math.inf)
         return _patch_medians(np.ascontiguousarray(depth_map), centre,

@@ -225,6 +225,24 @@ def test_roi_depth_equals_a_nanmedian_reference(depth_form: str) -> None:
     assert np.isnan(roi_depth(depth, np.array([[np.nan, 20.0]]), off)[0])  # no pixel
 
 
+def test_roi_depth_of_repeated_points_equals_one_by_one(depth_form: str) -> None:
+    """A batch repeating its points (a step group's RoIs at every step: each distinct pixel is
+    looked up once), with points far outside the map and NaN, gives each point's own lookup."""
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(0.2, 2.0, (40, 50)).astype(np.float32)
+    depth[rng.random((40, 50)) < 0.2] = np.nan
+    off = patch_offsets(3, 1)
+    grid = rng.uniform(-2, 52, (20, 2))
+    uv = np.concatenate([grid[rng.integers(0, 20, 120)], grid[:3] + 0.2,  # same pixels
+                         [[1e6, 5.0], [-1e6, -1e6], [np.nan, 3.0], [3.0, np.nan], [-4.0, 20.0],
+                          [55.0, 20.0], [20.0, 44.0]]])
+    for z_range in (None, (0.5, 1.5)):
+        got = roi_depth(depth, uv, off, z_range)
+        one_by_one = np.array([roi_depth(depth, p[None], off, z_range)[0] for p in uv])
+        np.testing.assert_array_equal(got, one_by_one)
+    assert np.isfinite(got[:120]).any() and np.isnan(got[-7:-2]).all()
+
+
 def test_sensor_depth_reprojection_against_rendering(box) -> None:
     """Depth rendered in an RGB camera, carried into a different event camera, equals the
     depth rendered in the event camera (away from the silhouette's edge)."""
