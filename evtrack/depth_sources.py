@@ -21,6 +21,7 @@ uses its fallback (the predicted depth of the object's origin) and counts it.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -30,7 +31,11 @@ from evtrack.errors import ConfigError
 from evtrack.jit import available as numba_available
 from evtrack.jit import njit
 
-__all__ = ["DepthSource", "SensorDepth", "ModelDepth", "patch_offsets", "roi_depth"]
+if TYPE_CHECKING:
+    from evtrack.silhouette import SilhouettePolygon
+
+__all__ = ["DepthSource", "SensorDepth", "ModelDepth", "patch_offsets", "roi_depth",
+           "silhouette_depth_share"]
 
 _CENTRE = np.zeros((1, 2), np.int64)
 
@@ -145,6 +150,45 @@ def _row_medians(values: np.ndarray, counts: np.ndarray) -> np.ndarray:
     lo = values[rows, (k - 1) // 2]
     hi = values[rows, k // 2]
     return np.where(counts > 0, (lo + hi) / 2.0, np.nan)
+
+
+def silhouette_depth_share(depth_map: np.ndarray, polygon: SilhouettePolygon,
+                           tolerance_m: float, stride_px: int = 4) -> tuple[float, int]:
+    """How well a depth map supports an object pose: of the valid depths (finite, > 0) at the
+    pixels inside the pose's silhouette, sampled every ``stride_px`` pixels on the image grid,
+    the share within the object's depth range at the pose (``polygon.z_range``) widened by
+    ``tolerance_m`` on both sides.
+
+    Args:
+        depth_map: (H, W) metres in the silhouette's camera, NaN or <= 0 where missing.
+        polygon: the object's silhouette at the pose
+            (:meth:`evtrack.silhouette.Silhouette.polygon`).
+        tolerance_m: metres added to both ends of the depth range.
+        stride_px: sampling step in pixels.
+
+    Returns:
+        ``(share, count)``: the share in [0, 1] and the number of valid depths it is taken
+        over (``(nan, 0)`` when there is none).
+    """
+    h, w = depth_map.shape
+    lo = np.floor(polygon.vertices.min(0)).astype(int)
+    hi = np.ceil(polygon.vertices.max(0)).astype(int)
+    x0, y0 = max(0, lo[0]), max(0, lo[1])
+    x1, y1 = min(w - 1, hi[0]), min(h - 1, hi[1])
+    if x0 > x1 or y0 > y1:
+        return math.nan, 0
+    # on the image's grid (multiples of the stride), so the samples do not follow the pose
+    xs = np.arange(-(-x0 // stride_px) * stride_px, x1 + 1, stride_px)
+    ys = np.arange(-(-y0 // stride_px) * stride_px, y1 + 1, stride_px)
+    gx, gy = (g.ravel() for g in np.meshgrid(xs, ys))
+    inside = polygon.contains_pixels(gx, gy, 0.0, (w, h))
+    z = depth_map[gy[inside], gx[inside]].astype(np.float64)
+    z = z[np.isfinite(z) & (z > 0)]
+    if not len(z):
+        return math.nan, 0
+    z_lo, z_hi = polygon.z_range
+    within = (z >= z_lo - tolerance_m) & (z <= z_hi + tolerance_m)
+    return float(within.mean()), int(len(z))
 
 
 class DepthSource:

@@ -118,7 +118,7 @@ from torch import Tensor
 from evtrack.blas_threads import BlasThreads
 from evtrack.camera import PinholeCamera
 from evtrack.depth_range import DepthRange
-from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth
+from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth, silhouette_depth_share
 from evtrack.errors import ConfigError, EventsError
 from evtrack.eval.metrics import position_errors, rotation_errors
 from evtrack.events import Events, concatenate
@@ -146,6 +146,9 @@ __all__ = ["Tracker", "TrackerStats"]
 _FRAME_JITTER_US = 1000
 """A frame up to this much before a pose-source slot still takes that slot (frame timestamps
 are rounded to µs, so 60 FPS frames fall a few µs either side of the 5 Hz grid)."""
+
+_POSE_DEPTH_MIN_PIXELS = 16
+"""Fewest valid depth pixels in a pose's silhouette to judge it (``pose_depth_min_share``)."""
 
 _DEPTH_TOLERANCE_M = 0.05
 """Depths within this distance outside the object's predicted depth range still count as the
@@ -214,6 +217,8 @@ class TrackerStats:
             pose below ``pose_min_confidence``.
         poses_rejected: poses rejected by the gate; reinitialisations: filter re-inits after
             rejections; lost: times the object was declared lost.
+        poses_implausible: poses dropped before the filter because the sensor depth of their
+            frame contradicts them (``TrackerConfig.pose_depth_min_share``).
         twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
             measured on kept frame pairs when a late pose started the track.
         steps_remeasured: velocity steps measured again, with RoI flows, once a late pose
@@ -247,6 +252,7 @@ class TrackerStats:
     poses_late: int = 0
     pose_misses: int = 0
     poses_rejected: int = 0
+    poses_implausible: int = 0
     reinitialisations: int = 0
     lost: int = 0
     twist_measurements: int = 0
@@ -588,6 +594,7 @@ class Tracker:
         self._out_of_view_us = 0
         self._misses = 0  # pose-source misses in a row
         self._rejected_pose: tuple[int, Tensor] | None = None  # the last pose, if gated
+        self._pose_depth: dict[int, np.ndarray] = {}  # pose frames' depth maps, by frame time
         self._held: np.ndarray | None = None
         self._unposed: dict[int, _UnposedStep] = {}  # by step end (µs), see _remeasure
         self._out_t: list[int] = []
@@ -775,6 +782,7 @@ class Tracker:
             self.ge.set_frame(t_us, image, self.pose(t_us) if self.initialized else None)
         if self._wants_pose(t_us):
             self.stats.pose_calls += 1
+            self._keep_pose_depth(t_us)
             available = t_us + self.config.pose_latency_us
             uses_depth = self._source_uses_depth
             if depth_map is None and depth is not None and uses_depth:
@@ -795,6 +803,41 @@ class Tracker:
                 self.stats.pose_misses += 1
                 self._schedule(max(available, self._t), _Miss(t_us))
                 self._apply_due(self._t)
+
+    def _keep_pose_depth(self, t_us: int) -> None:
+        """Keep the sensor depth map of the pose call on the frame at ``t_us`` (the frame's
+        own or the latest within ``max_depth_age_ms``) until its pose arrives, for
+        :meth:`_depth_contradicts`; forget those older than the kept past."""
+        if not self.config.pose_depth_min_share or not isinstance(self.depth, SensorDepth):
+            return
+        oldest = t_us - self.config.history_ms * 1e3
+        for t_old in [t for t in self._pose_depth if t < oldest]:
+            del self._pose_depth[t_old]
+        if self.depth.map is not None and self._depth_fresh(self.depth.t_us, t_us):
+            self._pose_depth[t_us] = self.depth.map
+
+    def _depth_fresh(self, t_depth: int | None, t_us: int) -> bool:
+        return t_depth is not None and abs(t_us - t_depth) <= self.config.max_depth_age_ms * 1e3
+
+    def _depth_contradicts(self, m: PoseMeasurement) -> bool:
+        """Whether the sensor depth of the pose's frame contradicts the pose (see
+        ``TrackerConfig.pose_depth_min_share``); False when it cannot tell."""
+        share_min = self.config.pose_depth_min_share
+        depth = self._pose_depth.pop(m.t_us, None)
+        if depth is None and isinstance(self.depth, SensorDepth) and self.depth.map is not None \
+                and self._depth_fresh(self.depth.t_us, m.t_us):
+            depth = self.depth.map  # a pose pushed by the caller: the depth nearest in time
+        if not share_min or depth is None:
+            return False
+        pose = m.pose.detach().cpu().numpy()
+        poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
+        if poly is None:
+            return False
+        scale = getattr(self.depth, "scale", 1.0)
+        if scale != 1.0:  # a map at a fraction of the camera's resolution
+            poly = dataclasses.replace(poly, vertices=(poly.vertices + 0.5) * scale - 0.5)
+        share, count = silhouette_depth_share(depth, poly, self.config.pose_depth_tolerance_m)
+        return count >= _POSE_DEPTH_MIN_PIXELS and share < share_min
 
     def _call_pose_source(self, t_us: int, image: np.ndarray | Callable[[], np.ndarray],
                           depth: np.ndarray | None) -> PoseMeasurement | None:
@@ -1217,6 +1260,9 @@ class Tracker:
             self._lose(t_now)
 
     def _fuse_pose(self, m: PoseMeasurement) -> None:
+        if self._depth_contradicts(m):
+            self.stats.poses_implausible += 1  # neither a found pose nor a miss
+            return
         self._misses = 0
         if self.method == "velocity" and self.initialized:
             return  # the velocity baseline uses poses only to (re-)initialise

@@ -352,6 +352,18 @@ class TrackerConfig:
             row, agreeing or not).
         reinit_agree_m, reinit_agree_m_per_s, reinit_agree_deg, reinit_agree_deg_per_s: see
             ``reinit_on_agreement``.
+        pose_depth_min_share: a pose-source pose is dropped (counted in
+            ``TrackerStats.poses_implausible``) when, of the valid sensor-depth pixels inside
+            its silhouette (the depth frame of the pose's RGB frame, sampled every 4 px), fewer
+            than this share lie in the object's depth range at that pose widened by
+            ``pose_depth_tolerance_m``: the depth shows that the object is not where the pose
+            puts it. A network can only see what is visible, so a right pose has most of its
+            silhouette at its own depth; occluders count against it, hence a share below 1.
+            It stops gross network errors (e.g. a bottle seen from below, turned half a turn
+            and pushed a metre back: shares 0-0.33, right poses 0.6-1.0 on the benchmark)
+            from re-initialising the filter. 0: off; no check without a sensor depth frame
+            within ``max_depth_age_ms`` or with fewer than 16 valid pixels.
+        pose_depth_tolerance_m: see ``pose_depth_min_share``.
         history_ms: how far back the pose filter keeps its past states for late poses; a pose
             older than that is dropped and counted.
         velocity_before_pose: before the first pose (and after losing the object) run the
@@ -436,6 +448,8 @@ class TrackerConfig:
     reinit_agree_m_per_s: float = 1.0
     reinit_agree_deg: float = 10.0
     reinit_agree_deg_per_s: float = 180.0
+    pose_depth_min_share: float = 0.5
+    pose_depth_tolerance_m: float = 0.06
     history_ms: float = 1000.0
     velocity_before_pose: bool = True
     remeasure_on_pose: bool = True
@@ -467,7 +481,8 @@ class TrackerConfig:
                       else 1)
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
                      "pose_min_confidence", "burst_rate_hz", "reinit_agree_m",
-                     "reinit_agree_m_per_s", "reinit_agree_deg", "reinit_agree_deg_per_s"):
+                     "reinit_agree_m_per_s", "reinit_agree_deg", "reinit_agree_deg_per_s",
+                     "pose_depth_tolerance_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"tracker config field {name!r} must be finite and >= 0, "
@@ -487,7 +502,7 @@ class TrackerConfig:
                 raise ConfigError(f"tracker config field {name!r} needs depth_source 'sensor' "
                                   f"(got {self.depth_source!r}): it measures on the RGB-D "
                                   "depth frames")
-        for name in ("min_visible_fraction", "remeasure_min_inside"):
+        for name in ("min_visible_fraction", "remeasure_min_inside", "pose_depth_min_share"):
             value = getattr(self, name)
             if not 0 <= value <= 1:
                 raise ConfigError(f"tracker config field {name!r} must be in [0, 1], "

@@ -243,6 +243,33 @@ def test_roi_depth_of_repeated_points_equals_one_by_one(depth_form: str) -> None
     assert np.isfinite(got[:120]).any() and np.isnan(got[-7:-2]).all()
 
 
+def test_silhouette_depth_share_counts_the_depths_in_the_pose_range() -> None:
+    """A 40 x 40 px object at 1.0 m before a wall at 2.0 m: a pose there is fully supported,
+    a pose on the wall not at all, an occluder over half of the object halves the share; the
+    samples lie on the image's 4-px grid inside the polygon; no depth: no judgement."""
+    from evtrack.depth_sources import silhouette_depth_share
+    from evtrack.silhouette import SilhouettePolygon
+
+    depth = np.full((120, 160), 2.0, np.float32)
+    depth[40:80, 60:100] = 1.0
+    square = np.array([[60.0, 40.0], [99.0, 40.0], [99.0, 79.0], [60.0, 79.0]])
+    on_object = SilhouettePolygon(square, (0.98, 1.05), 1.0)
+    share, count = silhouette_depth_share(depth, on_object, 0.06)
+    assert share == 1.0 and count == 10 * 10  # columns 60..96 and rows 40..76, every 4 px
+    on_wall = SilhouettePolygon(square - [50.0, 0.0], (0.98, 1.05), 1.0)
+    assert silhouette_depth_share(depth, on_wall, 0.06)[0] == 0.0
+    assert silhouette_depth_share(depth, on_wall, 1.0)[0] == 1.0  # the tolerance widens it
+    occluded = depth.copy()
+    occluded[40:60, 60:100] = 0.5  # the upper half, nearer
+    assert silhouette_depth_share(occluded, on_object, 0.06)[0] == 0.5
+    holes = depth.copy()
+    holes[40:60, 60:100] = np.nan  # missing depth is not counted
+    assert silhouette_depth_share(holes, on_object, 0.06) == (1.0, 50)
+    assert np.isnan(silhouette_depth_share(np.full_like(depth, np.nan), on_object, 0.06)[0])
+    outside = SilhouettePolygon(square + [500.0, 0.0], (0.98, 1.05), 0.0)
+    assert silhouette_depth_share(depth, outside, 0.06)[1] == 0
+
+
 def test_sensor_depth_reprojection_against_rendering(box) -> None:
     """Depth rendered in an RGB camera, carried into a different event camera, equals the
     depth rendered in the event camera (away from the silhouette's edge)."""

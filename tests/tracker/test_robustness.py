@@ -104,31 +104,41 @@ def robust_runs() -> _Runs:
 
 
 # ---------------------------------------------------------------------------- pose outliers
-def test_pose_outliers_are_rejected_against_the_clean_run(rest_sequence, robust_runs) -> None:
+@pytest.mark.parametrize("depth_check", [True, False], ids=["depth-check", "gate-only"])
+def test_pose_outliers_are_rejected_against_the_clean_run(rest_sequence, robust_runs,
+                                                          depth_check) -> None:
     """10% of the poses replaced by random ones (random rotation, translation moved up to
-    ±0.3 m per axis): every outlier and no inlier is rejected, and a rejected outlier changes
-    nothing: the run equals, to 1e-12, the run in which the same frames gave no pose at all.
-    The error is then that of the clean run minus the information of the lost poses.
+    ±0.3 m per axis): every outlier and no inlier is rejected, before the filter by the depth
+    check (``pose_depth_min_share``, the default) or, without it, by the filter's gate; and a
+    rejected outlier changes nothing: the run
+    equals, to 1e-12, the run in which the same frames gave no pose at all. The error is then
+    that of the clean run minus the information of the lost poses.
 
     Measured: 4 outliers of 15 poses (308 ms in motion, 908 and 1008 ms in a row at rest,
-    1308 ms), 4 rejected, none in the clean run; RMSE 4.37 cm / 10.96 deg against 3.37 / 9.22
+    1308 ms), 4 rejected (by the depth check: all 4; by the gate alone: all 4), none in the
+    clean run; RMSE 4.37 cm / 10.96 deg against 3.37 / 9.22
     clean (the pose lost at 308 ms, in fast motion, costs the difference). Bounds: clean +
     1.5 cm and + 3 deg; one accepted outlier would cost tens of cm and degrees (its rotation
     is off by 120 deg on average)."""
     seq = rest_sequence
     clean, clean_tracker, _ = robust_runs.get(seq, "clean", ORACLE_NOISE, seed=OUTLIER_SEED)
-    traj, tracker, source = robust_runs.get(seq, "outliers",
+    share = TrackerConfig().pose_depth_min_share if depth_check else 0.0
+    traj, tracker, source = robust_runs.get(seq, f"outliers-{depth_check}",
                                             {**ORACLE_NOISE, "outlier_rate": 0.1},
-                                            seed=OUTLIER_SEED)
+                                            seed=OUTLIER_SEED, pose_depth_min_share=share)
     end = int(traj.t_us[-1])
     outliers = set(source.outliers)
     assert len([t for t in outliers if t + LATENCY_US <= end]) >= 3
     assert tracker.stats.poses == clean_tracker.stats.poses
-    assert tracker.stats.poses_rejected == len([t for t in outliers if t + LATENCY_US <= end])
-    assert clean_tracker.stats.poses_rejected == 0
+    fused_by_end = len([t for t in outliers if t + LATENCY_US <= end])
+    caught = tracker.stats.poses_implausible if depth_check else tracker.stats.poses_rejected
+    assert caught == fused_by_end
+    assert tracker.stats.poses_rejected + tracker.stats.poses_implausible == fused_by_end
+    assert clean_tracker.stats.poses_rejected == clean_tracker.stats.poses_implausible == 0
     assert tracker.stats.reinitialisations == 0 and tracker.stats.lost == 0
     # the reference: the same inlier poses, nothing at the outliers' frames
-    ref_tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED, method="full")
+    ref_tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED, method="full",
+                                       pose_depth_min_share=share)
 
     def without_outliers(t_us, rgb, depth):
         return None if t_us in outliers else oracle(t_us, rgb, depth)
@@ -152,10 +162,13 @@ def test_agreeing_rejected_poses_reinitialise_at_the_second(rest_sequence, agree
     ``reinit_on_agreement`` the second shifted pose agrees with the first (same shift, the
     object at rest) and re-initialises the filter: 2 rejected, 1 re-initialisation, and the
     rest are fused. Without it the filter's ``reinit_after`` (3 in the tracker) takes the
-    third. Both end on the shifted poses."""
+    third. Both end on the shifted poses. (The depth frames, which show the object where it
+    is, would contradict poses shifted in a sequence whose filter has not drifted: the depth
+    check is off here; ``test_depth_contradicting_poses_are_dropped`` has it on.)"""
     seq = rest_sequence
     shift = np.array([0.0, 0.0, 0.4])
-    tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED, reinit_on_agreement=agreement)
+    tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED, reinit_on_agreement=agreement,
+                                   pose_depth_min_share=0.0)
 
     def shifted(t_us, rgb, depth):
         m = oracle(t_us, rgb, depth)
@@ -760,3 +773,32 @@ def test_low_confidence_detections_are_misses_and_lose_the_object() -> None:
     assert tracker.status == STATUS_LOST and tracker.stats.lost == 1
     assert tracker.stats.poses == 1 and tracker.stats.pose_misses == 2
     np.testing.assert_allclose(tracker.pose(), _pose(), atol=1e-9)  # held
+
+
+def test_depth_contradicting_poses_are_dropped(rest_sequence) -> None:
+    """The shifted poses of ``test_agreeing_rejected_poses_reinitialise_at_the_second`` (0.4 m
+    farther from 0.8 s, the object at rest) against depth frames that show the object where
+    it is: with the depth check (the default ``pose_depth_min_share``) none of them reaches
+    the filter, so nothing is rejected or re-initialised and the track stays on the object,
+    where the unchecked filter ends 0.4 m off."""
+    seq = rest_sequence
+    tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED)
+    shifted_times: list[int] = []
+
+    def shifted(t_us, rgb, depth):
+        m = oracle(t_us, rgb, depth)
+        if m is None or t_us < 800_000:
+            return m
+        shifted_times.append(t_us)
+        pose = m.pose.clone()
+        pose[:3, 3] += torch.tensor([0.0, 0.0, 0.4], dtype=pose.dtype)
+        return PoseMeasurement(m.t_us, pose, m.cov, m.confidence)
+
+    tracker.pose_source = shifted
+    traj = tracker.track(seq)
+    fused_by_end = [t for t in shifted_times if t + LATENCY_US <= int(traj.t_us[-1])]
+    assert len(fused_by_end) >= 3
+    assert tracker.stats.poses_implausible == len(fused_by_end)
+    assert tracker.stats.poses_rejected == tracker.stats.reinitialisations == 0
+    truth = torch.as_tensor(seq.ground_truth.pose_at(traj.t_us[-1:]))[0]
+    assert float(torch.linalg.vector_norm(traj.poses[-1, :3, 3] - truth[:3, 3])) < 0.03
