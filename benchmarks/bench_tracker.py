@@ -136,11 +136,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, nargs="+", default=[2, 1])
     ap.add_argument("--methods", nargs="+", default=["full", "pose"])
     ap.add_argument("--roi-size", type=int, default=None,
-                    help="flow RoI size (default: the demo's, 32 px at 640 px, scaled)")
+                    help="flow RoI size (default: with --sequence the tracker's, 12 px, as "
+                         "`evtrack evaluate` runs it; on the simulated sequence the demo's, "
+                         "32 px at 640 px, scaled)")
     ap.add_argument("--batch-steps", type=int, default=TrackerConfig().flow_batch_steps,
                     metavar="N", help="flow_batch_steps: velocity steps per flow call")
     ap.add_argument("--mask-margin", type=float, default=None, metavar="PX",
-                    help="mask_margin_px (default: the tracker's, scaled to the width)")
+                    help="mask_margin_px (default: the tracker's; on the simulated sequence "
+                         "scaled to its width)")
     ap.add_argument("--weights", help="pose-network weights (default: the oracle)")
     ap.add_argument("--caps", type=int, nargs="+", default=[None], metavar="N",
                     help="max_events_per_step values to compare (0: no cap; default: the "
@@ -164,11 +167,12 @@ def main(argv: list[str] | None = None) -> int:
             w, h = (int(v) for v in args.size.lower().split("x"))
             seq = _simulate((w, h), args.duration, args.save_sequence or Path(tmp))
         width = seq.meta.event_camera.width
-        # the demo's pixel settings, scaled to the width (RoI 32 px and the tracker's default
-        # mask margin at 640 px), unless given
-        demo = demo_tracker_config(width)
-        roi = args.roi_size or demo.flow.roi_size
-        margin = args.mask_margin if args.mask_margin is not None else demo.mask_margin_px
+        # a given sequence: the tracker's defaults, as `evtrack evaluate` tracks it; the
+        # simulated one: the demo's pixel settings, scaled to the width (RoI 32 px and the
+        # tracker's default mask margin at 640 px); either unless given
+        pixels = TrackerConfig() if args.sequence is not None else demo_tracker_config(width)
+        roi = args.roi_size or pixels.flow.roi_size
+        margin = args.mask_margin if args.mask_margin is not None else pixels.mask_margin_px
         config = {"flow": {"roi_size": roi}, "mask_margin_px": margin,
                   "flow_batch_steps": args.batch_steps}
         rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample, budget)

@@ -40,6 +40,10 @@ next pose re-initialises it (meanwhile the last pose is held and flagged). The p
 re-initialises itself after ``reinit_after`` gated poses in a row
 (:class:`~evtrack.filters.PoseUKF`), and on the second of two gated poses in a row that agree
 with each other (``reinit_on_agreement``: the filter has drifted off, the poses have not).
+Before any of that, a pose whose frame's sensor depth contradicts it (less than
+``pose_depth_min_share`` of the valid depths inside its silhouette lie in its depth range) is
+dropped and counted (``poses_implausible``): a network's gross errors, which can agree with
+each other, then never re-initialise the filter.
 
 Sampled search (``search_per_roi_window``): of a RoI window with more events than that, the
 flow searches only a hash sample of about that many for candidates
