@@ -25,6 +25,8 @@ Columns:
         ``--caps`` compares the speed and the error of several budgets.
     sample: ``search_per_roi_window`` (events of a RoI window searched for candidates, a hash
         sample; 0: all): ``--search-per-window`` compares several.
+    rt, min bgt: ``realtime_load`` (0: off) and the lowest search budget per step it set
+        (0: none); ``--realtime-load 0 0.9`` compares the deterministic default with live use.
 
 Timings on a shared machine are noisy; rerun when it is quiet.
 """
@@ -81,7 +83,7 @@ def _pose_source(seq: Sequence, weights: str | None):
 
 def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | None,
          cap: int | None, pose_async: bool = True, sample: int | None = None,
-         search_budget: int | None = None) -> dict:
+         search_budget: int | None = None, realtime_load: float | None = None) -> dict:
     torch.set_num_threads(threads)
     changes = {**config, "method": method, "torch_threads": threads, "pose_async": pose_async}
     if cap is not None:
@@ -90,6 +92,8 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
         changes["search_per_roi_window"] = sample
     if search_budget is not None:
         changes["max_searched_per_step"] = search_budget
+    if realtime_load is not None:
+        changes["realtime_load"] = realtime_load
     cfg = TrackerConfig.from_dict(changes)
     source, source_name = _pose_source(seq, weights)
     tracker = Tracker.for_sequence(seq, cfg, source)
@@ -110,7 +114,8 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
     filt = st.time_s.get("velocity", 0.0) + st.time_s.get("pose", 0.0)
     row = {"method": method, "threads": threads, "cap": cfg.max_events_per_step,
            "sample": cfg.search_per_roi_window, "budget": cfg.max_searched_per_step,
-           "unsearched": st.events_unsearched,
+           "unsearched": st.events_unsearched, "rt": cfg.realtime_load,
+           "budget_min": st.search_budget_min,
            "async": "on" if pose_async else "off", "pose_src": st.time_s.get("pose_source", 0.0),
            "thinned": st.events_thinned, "source": source_name, "events": st.events,
            "seq_s": span, "proc_s": wall, "rtf": wall / span, "ev_per_s": st.events / wall,
@@ -154,6 +159,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search-budget", type=int, nargs="+", default=[None], metavar="N",
                     help="max_searched_per_step values to compare (events searched per "
                          "velocity step, by cells of RoIs; 0: no budget; default: the config's)")
+    ap.add_argument("--realtime-load", type=float, nargs="+", default=[None], metavar="L",
+                    help="TrackerConfig.realtime_load values to compare (the search budget "
+                         "follows the processing load, live use; 0: off, the default)")
     ap.add_argument("--pose-async", nargs="+", choices=["on", "off"], default=["on"],
                     help="TrackerConfig.pose_async values to compare (on: the pose source in "
                          "the tracker's worker thread; default: on)")
@@ -175,10 +183,10 @@ def main(argv: list[str] | None = None) -> int:
         margin = args.mask_margin if args.mask_margin is not None else pixels.mask_margin_px
         config = {"flow": {"roi_size": roi}, "mask_margin_px": margin,
                   "flow_batch_steps": args.batch_steps}
-        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample, budget)
+        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample, budget, rt)
                 for th in args.threads for cap in args.caps for sample in args.search_per_window
-                for budget in args.search_budget for mode in args.pose_async
-                for m in args.methods]
+                for budget in args.search_budget for rt in args.realtime_load
+                for mode in args.pose_async for m in args.methods]
     cam = seq.meta.event_camera
     print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, mask margin "
           f"{margin:g} px, "
@@ -186,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every {args.batch_steps} steps, "
           f"OMP_WAIT_POLICY {wait_policy()}")
     head = (f"{'method':<10} {'thr':>3} {'async':>5} {'cap':>6} {'sample':>6} {'budget':>6} "
+            f"{'rt':>4} {'min bgt':>7} "
             f"{'unsearched':>10} {'thinned':>8} "
             f"{'proc s':>7} "
             f"{'rtf':>6} {'pose src':>8} "
@@ -196,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     print("-" * len(head))
     for r in rows:
         print(f"{r['method']:<10} {r['threads']:>3} {r['async']:>5} {r['cap']:>6} "
-              f"{r['sample']:>6} {r['budget']:>6} {r['unsearched']:>10} "
+              f"{r['sample']:>6} {r['budget']:>6} {r['rt']:>4g} {r['budget_min']:>7} "
+              f"{r['unsearched']:>10} "
               f"{r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
               f"{r['pose_src']:>8.2f} "
               f"{r['ev_per_s']:>9.0f} {r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} "

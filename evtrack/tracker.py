@@ -151,6 +151,19 @@ _FRAME_JITTER_US = 1000
 """A frame up to this much before a pose-source slot still takes that slot (frame timestamps
 are rounded to µs, so 60 FPS frames fall a few µs either side of the 5 Hz grid)."""
 
+_LOAD_SMOOTHING = 0.1
+"""``realtime_load``: weight of the newest step group in the smoothed load (~10 groups) ..."""
+_LOAD_CLIP = 2.0
+"""... whose single groups count at most this many times the target (a one-off spike, such as
+the first pose's catch-up, is not a trend)."""
+_BACKLOG_GROUPS = 5
+"""``realtime_load``: the backlog (processing time beyond the target) that starts cutting the
+search budget, in step groups' stream time (50 ms at the default 10 x 1 ms)."""
+_BUDGET_CUT = 0.9
+_BUDGET_RAISE = 1.05
+"""Factors of ``realtime_load``'s budget per step group: a cut while the backlog is over
+``_BACKLOG_GROUPS``, a raise while there is none."""
+
 _POSE_DEPTH_MIN_PIXELS = 16
 """Fewest valid depth pixels in a pose's silhouette to judge it (``pose_depth_min_share``)."""
 
@@ -223,6 +236,9 @@ class TrackerStats:
             rejections; lost: times the object was declared lost.
         poses_implausible: poses dropped before the filter because the sensor depth of their
             frame contradicts them (``TrackerConfig.pose_depth_min_share``).
+        search_budget_min: with ``TrackerConfig.realtime_load``, the lowest search budget per
+            step it set (0: it never lowered it); groups_over_load: step groups whose
+            processing took longer than ``realtime_load`` of their stream time.
         twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
             measured on kept frame pairs when a late pose started the track.
         steps_remeasured: velocity steps measured again, with RoI flows, once a late pose
@@ -257,6 +273,8 @@ class TrackerStats:
     pose_misses: int = 0
     poses_rejected: int = 0
     poses_implausible: int = 0
+    search_budget_min: int = 0
+    groups_over_load: int = 0
     reinitialisations: int = 0
     lost: int = 0
     twist_measurements: int = 0
@@ -454,6 +472,10 @@ class Tracker:
         rgb_camera: the RGB-D camera (default: the event camera).
         T_event_rgb: (4, 4) maps RGB-camera points into the event camera (default identity).
 
+    Attributes:
+        clock: ``() -> seconds``, the wall clock ``TrackerConfig.realtime_load`` measures the
+            processing with (default :func:`time.perf_counter`; replaceable, e.g. in tests).
+
     Example:
         >>> tracker = Tracker.for_sequence(seq, TrackerConfig(), pose_source)   # doctest: +SKIP
         >>> trajectory = tracker.track(seq)                                      # doctest: +SKIP
@@ -474,6 +496,7 @@ class Tracker:
         if self.T_event_rgb.shape != (4, 4):
             raise ConfigError(f"T_event_rgb must be (4, 4), got {tuple(self.T_event_rgb.shape)}")
         self.pose_source = pose_source
+        self.clock: Callable[[], float] = time.perf_counter
         self.mesh, vertices = _load_mesh(mesh)
         self.device = torch.device(cfg.device)
         self.silhouette = Silhouette(vertices, camera)
@@ -590,6 +613,9 @@ class Tracker:
         self._t: int | None = None
         self._ev_buf: list[Events] = []
         self._thin_level = 0  # event thinning keeps 0.75**level of the RoI cells (_thin)
+        self._search_budget = self.config.max_searched_per_step  # per step (realtime_load)
+        self._backlog_s = 0.0  # processing beyond realtime_load of the stream time, s
+        self._load: float | None = None  # smoothed processing / stream time (realtime_load)
         self._last_event_t: int | None = None
         self._pending: list[tuple[int, int, PoseMeasurement | _Miss | _DepthFrame | tuple]] = []
         self._pending_seq = 0
@@ -930,6 +956,43 @@ class Tracker:
     def _group(self, t0: int, t_end: int, ev: Events) -> None:
         """Process the steps of ``[t0, t_end)``: one flow call for all of them (the mask is the
         silhouette predicted at ``t0``), then the filters step by step."""
+        started = self.clock() if self.config.realtime_load else 0.0
+        self._group_steps(t0, t_end, ev)
+        if self.config.realtime_load:
+            self._adapt_search_budget(self.clock() - started, (t_end - t0) * 1e-6)
+
+    def _adapt_search_budget(self, wall_s: float, stream_s: float) -> None:
+        """``realtime_load``: from a step group's processing time ``wall_s`` and its stream
+        time ``stream_s``, the search budget per step of the next groups. The processing time
+        beyond ``realtime_load`` of the stream time accumulates as a backlog (a live stream's
+        events waiting), which drains when the groups take less. While the backlog exceeds
+        ``_BACKLOG_GROUPS`` groups' stream time and the load, smoothed over ~10 groups, is
+        above the target, the budget is cut by ``_BUDGET_CUT`` per group; while there is no
+        backlog and the smoothed load is below the target it grows by ``_BUDGET_RAISE`` per
+        group (within ``min_searched_per_step`` and ``max_searched_per_step``); otherwise it
+        holds. The average load so stays near ``realtime_load`` with a bounded delay; a burst
+        the budget cannot absorb (e.g. the first pose's catch-up) only drains."""
+        cfg = self.config
+        target = cfg.realtime_load
+        load = wall_s / stream_s
+        if load > target:
+            self.stats.groups_over_load += 1
+        counted = min(load, _LOAD_CLIP * target)
+        self._load = counted if self._load is None else (
+            _LOAD_SMOOTHING * counted + (1 - _LOAD_SMOOTHING) * self._load)
+        self._backlog_s = max(0.0, self._backlog_s + wall_s - target * stream_s)
+        budget = self._search_budget
+        if self._backlog_s > _BACKLOG_GROUPS * stream_s and self._load > target:
+            budget = int(budget * _BUDGET_CUT)
+        elif self._backlog_s == 0.0 and self._load < target:
+            budget = int(budget * _BUDGET_RAISE) + 1
+        budget = min(max(budget, cfg.min_searched_per_step), cfg.max_searched_per_step)
+        if budget < cfg.max_searched_per_step and (not self.stats.search_budget_min
+                                                   or budget < self.stats.search_budget_min):
+            self.stats.search_budget_min = budget
+        self._search_budget = budget
+
+    def _group_steps(self, t0: int, t_end: int, ev: Events) -> None:
         cfg = self.config
         st = self.stats
         step = cfg.velocity_step_us
@@ -959,7 +1022,7 @@ class Tracker:
                 # group ends are whole steps, and steps whole flow windows (the config
                 # checks it): every window of the group is over, one registration reports all
                 search = None
-                budget = cfg.max_searched_per_step * ((t_end - t0) // step)
+                budget = self._search_budget * ((t_end - t0) // step)
                 if (cfg.search_per_roi_window or budget) and len(ev):
                     fc = self.flow.config
                     search = sampled_search(ev.x, ev.y, ev.t, self.flow.events_seen,

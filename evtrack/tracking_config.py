@@ -278,6 +278,16 @@ class TrackerConfig:
             4.74 with 2500 (3000: 4.16 / 4.90; 2000: 4.13 / 5.23; 1500: 4.46 / 4.78; 1000:
             5.24 / 5.84); the tomato can `regular`'s first 200 ms (all events, before the
             first pose) move a little (5.53 -> 4.91 deg); the other sequences are unchanged.
+        realtime_load: keep up with a live stream: when processing the step groups (the flow,
+            the filters and the frames taken meanwhile) takes more than this share of their
+            stream time (smoothed over ~5 groups), the search budget per step is lowered for
+            the next groups, down to ``min_searched_per_step``, and raised again towards
+            ``max_searched_per_step`` when it takes less than 0.8 of this share. The budget then
+            follows the machine's speed and load, and so do the results: 0 (the default) keeps
+            them deterministic. Needs ``max_searched_per_step > 0``. The work the budget does
+            not bound (reading, masking and storing every event, ~0.5 ms per 1 ms step on the
+            cracker box `faster` on 2 cores) stays.
+        min_searched_per_step: the lowest search budget ``realtime_load`` goes to.
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed
             outside the image (less than ``min_visible_fraction`` of its hull area inside) for
             this long; the pose filter then waits for the next pose to re-initialise.
@@ -421,6 +431,8 @@ class TrackerConfig:
     max_events_per_step: int = 20_000
     search_per_roi_window: int = 64
     max_searched_per_step: int = 2500
+    realtime_load: float = 0.0
+    min_searched_per_step: int = 250
     lost_after_ms: float = 100.0
     min_visible_fraction: float = 0.05
     lost_after_misses: int = 3
@@ -474,7 +486,7 @@ class TrackerConfig:
         for name in ("torch_threads", "blas_threads", "velocity_step_us", "flow_batch_steps",
                      "depth_patch_px", "depth_stride_px", "model_depth_interval_us",
                      "lost_after_misses", "max_events_per_step", "search_per_roi_window",
-                     "max_searched_per_step"):
+                     "max_searched_per_step", "min_searched_per_step"):
             _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads", "blas_threads",
                                                 "lost_after_misses", "max_events_per_step",
                                                 "search_per_roi_window", "max_searched_per_step")
@@ -482,7 +494,7 @@ class TrackerConfig:
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
                      "pose_min_confidence", "burst_rate_hz", "reinit_agree_m",
                      "reinit_agree_m_per_s", "reinit_agree_deg", "reinit_agree_deg_per_s",
-                     "pose_depth_tolerance_m"):
+                     "pose_depth_tolerance_m", "realtime_load"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"tracker config field {name!r} must be finite and >= 0, "
@@ -502,6 +514,13 @@ class TrackerConfig:
                 raise ConfigError(f"tracker config field {name!r} needs depth_source 'sensor' "
                                   f"(got {self.depth_source!r}): it measures on the RGB-D "
                                   "depth frames")
+        if self.realtime_load and not self.max_searched_per_step:
+            raise ConfigError("tracker config field 'realtime_load' needs a search budget to "
+                              "adapt: set 'max_searched_per_step' > 0 (the highest budget)")
+        if self.realtime_load and self.min_searched_per_step > self.max_searched_per_step:
+            raise ConfigError(f"tracker config field 'min_searched_per_step' "
+                              f"({self.min_searched_per_step}) must not exceed "
+                              f"'max_searched_per_step' ({self.max_searched_per_step})")
         for name in ("min_visible_fraction", "remeasure_min_inside", "pose_depth_min_share"):
             value = getattr(self, name)
             if not 0 <= value <= 1:
