@@ -802,3 +802,23 @@ def test_depth_contradicting_poses_are_dropped(rest_sequence) -> None:
     assert tracker.stats.poses_rejected == tracker.stats.reinitialisations == 0
     truth = torch.as_tensor(seq.ground_truth.pose_at(traj.t_us[-1:]))[0]
     assert float(torch.linalg.vector_norm(traj.poses[-1, :3, 3] - truth[:3, 3])) < 0.03
+
+
+def test_a_pushed_pose_is_checked_against_the_latest_depth(rest_sequence) -> None:
+    """Streaming, poses handed in by the caller (:meth:`Tracker.push_pose`, no pose source):
+    the check reads the latest depth frame when it is within ``max_depth_age_ms`` of the
+    pose; a pose 0.4 m behind the object is dropped, the right one starts the track."""
+    seq = rest_sequence
+    tracker, oracle = make_tracker(seq)
+    tracker.pose_source = None
+    t_pose = int(seq.depth_times_us[3])
+    stream(tracker, seq, t_end_us=t_pose + 1)  # events and frames up to the depth frame
+    right = oracle(t_pose)
+    far = right.pose.clone()
+    far[:3, 3] += torch.tensor([0.0, 0.0, 0.4], dtype=far.dtype)
+    tracker.push_pose(PoseMeasurement(t_pose, far, right.cov, right.confidence))
+    tracker.flush()
+    assert tracker.stats.poses_implausible == 1 and not tracker.initialized
+    tracker.push_pose(right)
+    tracker.flush()
+    assert tracker.stats.poses_implausible == 1 and tracker.initialized
