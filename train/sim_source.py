@@ -52,6 +52,14 @@ class SimSourceOptions:
         max_linear_speed: largest object speed during a blurred exposure, m/s.
         max_angular_speed: largest angular speed during a blurred exposure, rad/s.
         ambient_range, diffuse_range: per-sample light strengths.
+        view_directions: object-frame directions from the object towards the camera (any
+            length) around which ``view_probability`` of the samples are drawn, e.g. the views
+            a network gets wrong; the others (and all without it) have a uniformly random
+            rotation.
+        view_probability: share of the samples drawn around ``view_directions`` (one of them
+            at random, then Gaussian noise of ``view_spread_deg`` per axis on the direction and
+            a uniformly random roll about the line of sight).
+        view_spread_deg: see ``view_probability``.
     """
 
     samples_per_scene: int = 32
@@ -68,8 +76,28 @@ class SimSourceOptions:
     max_angular_speed: float = 8.0
     ambient_range: tuple[float, float] = (0.15, 0.5)
     diffuse_range: tuple[float, float] = (0.4, 0.9)
+    view_directions: tuple[tuple[float, float, float], ...] | None = None
+    view_probability: float = 0.0
+    view_spread_deg: float = 20.0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.view_probability <= 1 or not self.view_spread_deg >= 0:
+            raise ConfigError("sim source: view_probability in [0, 1] and view_spread_deg >= 0, "
+                              f"got {self.view_probability} and {self.view_spread_deg}")
+        if self.view_directions is not None:
+            try:
+                dirs = np.asarray(self.view_directions, np.float64).reshape(-1, 3)
+            except (TypeError, ValueError) as exc:
+                raise ConfigError("sim source: view_directions must be a list of [x, y, z] "
+                                  f"directions, got {self.view_directions!r}") from exc
+            if not len(dirs) or not np.isfinite(dirs).all() or (
+                    np.linalg.norm(dirs, axis=1) == 0).any():
+                raise ConfigError("sim source: view_directions must be non-zero finite [x, y, z] "
+                                  f"directions, got {self.view_directions!r}")
+            object.__setattr__(self, "view_directions",
+                               tuple(tuple(float(v) for v in d) for d in dirs))
+        if self.view_probability > 0 and not self.view_directions:
+            raise ConfigError("sim source: view_probability > 0 needs view_directions")
         lo, hi = self.z_range
         if not 0 < lo <= hi:
             raise ConfigError(f"sim source: z_range must be 0 < lo <= hi, got {self.z_range}")
@@ -163,7 +191,11 @@ class SimSource:
             f"{self.num_samples} evtrack.sim renders {w}x{h} of {object_spec!r} (seed {seed}, "
             f"{o.samples_per_scene} per random scene, up to {o.max_distractors} distractors, "
             f"z {o.z_range[0]}-{o.z_range[1]} m, blur p={o.blur_probability} up to "
-            f"{o.max_linear_speed} m/s and {o.max_angular_speed} rad/s over {o.exposure_s:.4f} s)"
+            f"{o.max_linear_speed} m/s and {o.max_angular_speed} rad/s over {o.exposure_s:.4f} s"
+            + (f"; {o.view_probability:g} of the rotations around the views "
+               f"{[list(d) for d in o.view_directions]} (object frame), "
+               f"{o.view_spread_deg:g} deg spread" if o.view_probability > 0 else "")
+            + ")"
         )
         self._mesh = None
         self._renderer = None
@@ -222,10 +254,29 @@ class SimSource:
         u = rng.uniform(o.margin * w, (1 - o.margin) * w)
         v = rng.uniform(o.margin * h, (1 - o.margin) * h)
         T = np.eye(4)
-        T[:3, :3] = random_rotation(rng)
-        T[:3, 3] = np.linalg.solve(self.K, np.array([u, v, 1.0])) * z - T[:3, :3] @ np.asarray(
-            self.cuboid.center)
+        centre = np.linalg.solve(self.K, np.array([u, v, 1.0])) * z
+        if o.view_probability > 0 and rng.random() < o.view_probability:
+            T[:3, :3] = self._rotation_towards_view(rng, -centre / np.linalg.norm(centre))
+        else:
+            T[:3, :3] = random_rotation(rng)
+        T[:3, 3] = centre - T[:3, :3] @ np.asarray(self.cuboid.center)
         return T
+
+    def _rotation_towards_view(self, rng: np.random.Generator, to_camera: np.ndarray
+                               ) -> np.ndarray:
+        """(3, 3) object-to-camera rotation that puts one of the options' view directions
+        (with noise, object frame) on ``to_camera`` (camera frame, unit: from the object's
+        centre towards the camera), with a uniformly random roll about it."""
+        from scipy.spatial.transform import Rotation
+
+        o = self.options
+        dirs = np.asarray(o.view_directions, np.float64)
+        d = dirs[rng.integers(len(dirs))]
+        d = d / np.linalg.norm(d) + rng.standard_normal(3) * np.radians(o.view_spread_deg)
+        d /= np.linalg.norm(d)
+        align, _ = Rotation.align_vectors(to_camera[None], d[None])
+        roll = Rotation.from_rotvec(to_camera * rng.uniform(-np.pi, np.pi))
+        return (roll * align).as_matrix()
 
     def __getitem__(self, index: int) -> PoseSample:
         from evtrack.sim.config import FrameConfig

@@ -164,3 +164,46 @@ def test_training_scenes_of_a_procedural_object_have_no_look_alike_distractors()
                       cuboid=sim_object_cuboid("box"), mesh=None, num_samples=4,
                       image_size=(64, 96), seed=0)
     assert build_source("sim", spec)._distractor_kinds() == ("box",)
+
+
+def test_view_bias_draws_rotations_around_the_given_views():
+    """``view_probability`` of the samples look at the object from around one of
+    ``view_directions`` (object frame, towards the camera): with 10 deg of noise per axis the
+    angle to the chosen direction has a median near 12 deg; the rotations are proper; the
+    other samples keep the uniform draw, and without the option the poses are those of the
+    plain source, draw for draw."""
+    pytest.importorskip("moderngl")
+    views = np.array([[0.7, 0.65, 0.28], [0.1, -0.98, 0.1]])
+    views /= np.linalg.norm(views, axis=1, keepdims=True)
+    cuboid = sim_object_cuboid("bottle")
+
+    def poses(**options):
+        src = SimSource("bottle", cuboid, 8, SIZE, object_name="bottle", seed=3,
+                        options=SimSourceOptions(**options))
+        rng = np.random.default_rng(0)
+        return [src._random_pose(rng) for _ in range(400)]
+
+    def nearest_view_deg(T: np.ndarray) -> float:
+        centre = T[:3, 3] + T[:3, :3] @ np.asarray(cuboid.center)
+        towards_camera = T[:3, :3].T @ (-centre / np.linalg.norm(centre))
+        return float(np.degrees(np.arccos(np.clip(views @ towards_camera, -1, 1))).min())
+
+    biased = poses(view_directions=[list(v * 3) for v in views], view_probability=1.0,
+                   view_spread_deg=10.0)
+    angles = np.array([nearest_view_deg(T) for T in biased])
+    assert 9.0 < np.median(angles) < 15.0 and np.percentile(angles, 99) < 40.0
+    assert all(abs(np.linalg.det(T[:3, :3]) - 1) < 1e-9 for T in biased)
+    uniform = np.array([nearest_view_deg(T) for T in poses()])
+    assert np.median(uniform) > 40.0  # two directions cover little of the sphere
+    half = np.array([nearest_view_deg(T) for T in poses(view_directions=views.tolist(),
+                                                        view_probability=0.5)])
+    assert 0.35 < np.mean(half < 30.0) < 0.7
+    plain = poses()
+    off = poses(view_directions=views.tolist(), view_probability=0.0)
+    assert all(np.array_equal(a, b) for a, b in zip(plain, off, strict=True))
+    with pytest.raises(ConfigError, match="needs view_directions"):
+        SimSourceOptions.from_dict({"view_probability": 0.5})
+    with pytest.raises(ConfigError, match="view_directions"):
+        SimSourceOptions.from_dict({"view_directions": [[0, 0, 0]], "view_probability": 0.5})
+    with pytest.raises(ConfigError, match="view_probability"):
+        SimSourceOptions.from_dict({"view_directions": [[0, 0, 1]], "view_probability": 2})
