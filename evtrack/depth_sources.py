@@ -39,6 +39,9 @@ __all__ = ["DepthSource", "SensorDepth", "ModelDepth", "patch_offsets", "roi_dep
 
 _CENTRE = np.zeros((1, 2), np.int64)
 
+#: :func:`roi_depth` looks each distinct pixel up once from this many points on.
+_DEDUPE_MIN_POINTS = 16
+
 
 def patch_offsets(radius: int, stride: int) -> np.ndarray:
     """(M, 2) int offsets ``(dx, dy)`` of a square patch of half-size ``radius`` sampled every
@@ -79,10 +82,6 @@ def roi_depth(depth_map: np.ndarray, uv: np.ndarray, offsets: np.ndarray,
             return _patch_depths(depth_map, np.stack([cx, cy], 1)[first], offsets,
                                  z_range)[inverse.reshape(-1)]
     return _patch_depths(depth_map, centre, offsets, z_range)
-
-
-#: :func:`roi_depth` looks each distinct pixel up once from this many points on.
-_DEDUPE_MIN_POINTS = 16
 
 
 def _patch_depths(depth_map: np.ndarray, centre: np.ndarray, offsets: np.ndarray,

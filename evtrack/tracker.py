@@ -853,19 +853,18 @@ class Tracker:
         """Whether the sensor depth of the pose's frame contradicts the pose (see
         ``TrackerConfig.pose_depth_min_share``); False when it cannot tell."""
         share_min = self.config.pose_depth_min_share
+        if not share_min or not isinstance(self.depth, SensorDepth):
+            return False  # (sensor maps are in the event camera's own pixel grid)
         depth = self._pose_depth.pop(m.t_us, None)
-        if depth is None and isinstance(self.depth, SensorDepth) and self.depth.map is not None \
+        if depth is None and self.depth.map is not None \
                 and self._depth_fresh(self.depth.t_us, m.t_us):
             depth = self.depth.map  # a pose pushed by the caller: the depth nearest in time
-        if not share_min or depth is None:
+        if depth is None:
             return False
         pose = m.pose.detach().cpu().numpy()
         poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
         if poly is None:
             return False
-        scale = getattr(self.depth, "scale", 1.0)
-        if scale != 1.0:  # a map at a fraction of the camera's resolution
-            poly = dataclasses.replace(poly, vertices=(poly.vertices + 0.5) * scale - 0.5)
         share, count = silhouette_depth_share(depth, poly, self.config.pose_depth_tolerance_m)
         return count >= _POSE_DEPTH_MIN_PIXELS and share < share_min
 
@@ -954,8 +953,7 @@ class Tracker:
         self._ev_buf = [ev] if len(ev) else []
 
     def _group(self, t0: int, t_end: int, ev: Events) -> None:
-        """Process the steps of ``[t0, t_end)``: one flow call for all of them (the mask is the
-        silhouette predicted at ``t0``), then the filters step by step."""
+        """:meth:`_group_steps`, timed for ``realtime_load``."""
         started = self.clock() if self.config.realtime_load else 0.0
         self._group_steps(t0, t_end, ev)
         if self.config.realtime_load:
@@ -993,6 +991,8 @@ class Tracker:
         self._search_budget = budget
 
     def _group_steps(self, t0: int, t_end: int, ev: Events) -> None:
+        """Process the steps of ``[t0, t_end)``: one flow call for all of them (the mask is the
+        silhouette predicted at ``t0``), then the filters step by step."""
         cfg = self.config
         st = self.stats
         step = cfg.velocity_step_us

@@ -278,11 +278,13 @@ class TrackerConfig:
             4.74 with 2500 (3000: 4.16 / 4.90; 2000: 4.13 / 5.23; 1500: 4.46 / 4.78; 1000:
             5.24 / 5.84); the tomato can `regular`'s first 200 ms (all events, before the
             first pose) move a little (5.53 -> 4.91 deg); the other sequences are unchanged.
-        realtime_load: keep up with a live stream: when processing the step groups (the flow,
-            the filters and the frames taken meanwhile) takes more than this share of their
-            stream time (smoothed over ~5 groups), the search budget per step is lowered for
-            the next groups, down to ``min_searched_per_step``, and raised again towards
-            ``max_searched_per_step`` when it takes less than 0.8 of this share. The budget then
+        realtime_load: keep up with a live stream: the processing of the step groups (the
+            flow, the filters and the frames taken meanwhile) beyond this share of their stream
+            time accumulates as a backlog; while the backlog exceeds 5 groups and the load
+            (smoothed over ~10 groups) stays above this share, the search budget per step is
+            cut for the next groups, down to ``min_searched_per_step``, and while there is no
+            backlog it is raised again towards ``max_searched_per_step``
+            (:meth:`~evtrack.tracker.Tracker._adapt_search_budget`). The budget then
             follows the machine's speed and load, and so do the results: 0 (the default) keeps
             them deterministic. Needs ``max_searched_per_step > 0``. The work the budget does
             not bound (reading, masking and storing every event, ~0.5 ms per 1 ms step on the
