@@ -43,7 +43,10 @@ with each other (``reinit_on_agreement``: the filter has drifted off, the poses 
 Before any of that, a pose whose frame's sensor depth contradicts it (less than
 ``pose_depth_min_share`` of the valid depths inside its silhouette lie in its depth range) is
 dropped and counted (``poses_implausible``): a network's gross errors, which can agree with
-each other, then never re-initialise the filter.
+each other, then never re-initialise the filter. Before the check, a pose is moved along its
+viewing ray onto the frame's sensor depth (``pose_depth_align``, :mod:`evtrack.pose_alignment`):
+an RGB network errs mostly in range, which the depth frame measures; counted in
+``poses_depth_aligned``, or ``pose_alignments_skipped`` by reason.
 
 Sampled search (``search_per_roi_window``): of a RoI window with more events than that, the
 flow searches only a hash sample of about that many for candidates
@@ -138,6 +141,7 @@ from evtrack.jit import warm_up
 # flop counter, which imports Triton where installed (CUDA builds of torch), and Triton's LLVM
 # crashes the process when Mesa's (the headless OpenGL of depth_range) is already loaded.
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
+from evtrack.pose_alignment import PoseRayAligner
 from evtrack.pose_sources import PoseMeasurement, PoseSource
 from evtrack.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.silhouette import Silhouette, SilhouettePolygon
@@ -236,6 +240,9 @@ class TrackerStats:
             rejections; lost: times the object was declared lost.
         poses_implausible: poses dropped before the filter because the sensor depth of their
             frame contradicts them (``TrackerConfig.pose_depth_min_share``).
+        poses_depth_aligned: poses moved along their viewing ray onto the sensor depth
+            (``TrackerConfig.pose_depth_align``); pose_alignments_skipped: poses that were not,
+            by reason (:class:`~evtrack.pose_alignment.RayAlignment`).
         search_budget_min: with ``TrackerConfig.realtime_load``, the lowest search budget per
             step it set (0: it never lowered it); groups_over_load: step groups whose
             processing took longer than ``realtime_load`` of their stream time.
@@ -273,6 +280,8 @@ class TrackerStats:
     pose_misses: int = 0
     poses_rejected: int = 0
     poses_implausible: int = 0
+    poses_depth_aligned: int = 0
+    pose_alignments_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     search_budget_min: int = 0
     groups_over_load: int = 0
     reinitialisations: int = 0
@@ -512,6 +521,10 @@ class Tracker:
             self.frame_kf = VelocityKF(self.rgb_camera, 1, cfg.frame_flow_kf, device=self.device)
             self.rgb_to_event_twist = twist_adjoint(self.T_event_rgb)
         self.depth = self._make_depth_source(sensing_camera, vertices)
+        self.pose_aligner: PoseRayAligner | None = None
+        if cfg.pose_depth_align and self.mesh is not None and isinstance(self.depth, SensorDepth):
+            self.pose_aligner = PoseRayAligner.from_mesh(
+                self.mesh, self.depth.camera, max_shift_m=cfg.pose_depth_align_max_m)
         self.depth_range: DepthRange | None = None
         if cfg.depth_range and self.method != "velocity":
             if self.mesh is None:
@@ -838,7 +851,7 @@ class Tracker:
         """Keep the sensor depth map of the pose call on the frame at ``t_us`` (the frame's
         own or the latest within ``max_depth_age_ms``) until its pose arrives, for
         :meth:`_depth_contradicts`; forget those older than the kept past."""
-        if not self.config.pose_depth_min_share or not isinstance(self.depth, SensorDepth):
+        if not self._checks_pose_depth():
             return
         oldest = t_us - self.config.history_ms * 1e3
         for t_old in [t for t in self._pose_depth if t < oldest]:
@@ -849,24 +862,54 @@ class Tracker:
     def _depth_fresh(self, t_depth: int | None, t_us: int) -> bool:
         return t_depth is not None and abs(t_us - t_depth) <= self.config.max_depth_age_ms * 1e3
 
-    def _depth_contradicts(self, m: PoseMeasurement) -> bool:
-        """Whether the sensor depth of the pose's frame contradicts the pose (see
-        ``TrackerConfig.pose_depth_min_share``); False when it cannot tell."""
-        share_min = self.config.pose_depth_min_share
-        if not share_min or not isinstance(self.depth, SensorDepth):
-            return False  # (sensor maps are in the event camera's own pixel grid)
-        depth = self._pose_depth.pop(m.t_us, None)
+    def _checks_pose_depth(self) -> bool:
+        """Whether poses are aligned with or checked against sensor depth frames."""
+        return isinstance(self.depth, SensorDepth) and bool(
+            self.config.pose_depth_min_share or self.pose_aligner is not None)
+
+    def _pose_frame_depth(self, t_us: int) -> np.ndarray | None:
+        """The sensor depth map kept for the pose of the frame at ``t_us``, else (a pose pushed
+        by the caller) the latest one within ``max_depth_age_ms``; ``None`` without one."""
+        depth = self._pose_depth.pop(t_us, None)
         if depth is None and self.depth.map is not None \
-                and self._depth_fresh(self.depth.t_us, m.t_us):
-            depth = self.depth.map  # a pose pushed by the caller: the depth nearest in time
+                and self._depth_fresh(self.depth.t_us, t_us):
+            depth = self.depth.map
+        return depth
+
+    def _depth_checked(self, m: PoseMeasurement) -> PoseMeasurement | None:
+        """The pose aligned along its viewing ray with its frame's sensor depth
+        (``TrackerConfig.pose_depth_align``; unchanged when it cannot be), or ``None`` when that
+        depth contradicts it (``TrackerConfig.pose_depth_min_share``). Sensor maps lie in the
+        depth source's camera: the event camera's, the RGB camera's for frame-flow."""
+        if not self._checks_pose_depth():
+            return m
+        depth = self._pose_frame_depth(m.t_us)
         if depth is None:
-            return False
+            return m
         pose = m.pose.detach().cpu().numpy()
-        poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
+        if self.method == "frame-flow":
+            pose, silhouette = self.T_rgb_event.numpy() @ pose, self.rgb_silhouette
+        else:
+            silhouette = self.silhouette
+        if self.pose_aligner is not None:
+            res = self.pose_aligner.align(depth, pose)
+            if res.ok:
+                self.stats.poses_depth_aligned += 1
+                pose = res.pose
+                aligned = (self.T_event_rgb.numpy() @ pose if self.method == "frame-flow"
+                           else pose)
+                m = dataclasses.replace(m, pose=torch.as_tensor(aligned, dtype=m.pose.dtype))
+            else:
+                skipped = self.stats.pose_alignments_skipped
+                skipped[res.reason] = skipped.get(res.reason, 0) + 1
+        share_min = self.config.pose_depth_min_share
+        if not share_min:
+            return m
+        poly = silhouette.polygon(pose)
         if poly is None:
-            return False
+            return m
         share, count = silhouette_depth_share(depth, poly, self.config.pose_depth_tolerance_m)
-        return count >= _POSE_DEPTH_MIN_PIXELS and share < share_min
+        return None if count >= _POSE_DEPTH_MIN_PIXELS and share < share_min else m
 
     def _call_pose_source(self, t_us: int, image: np.ndarray | Callable[[], np.ndarray],
                           depth: np.ndarray | None) -> PoseMeasurement | None:
@@ -1327,9 +1370,11 @@ class Tracker:
             self._lose(t_now)
 
     def _fuse_pose(self, m: PoseMeasurement) -> None:
-        if self._depth_contradicts(m):
+        checked = self._depth_checked(m)
+        if checked is None:
             self.stats.poses_implausible += 1  # neither a found pose nor a miss
             return
+        m = checked
         self._misses = 0
         if self.method == "velocity" and self.initialized:
             return  # the velocity baseline uses poses only to (re-)initialise

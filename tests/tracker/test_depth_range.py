@@ -109,11 +109,14 @@ def test_tracker_fuses_ranges_and_tracks_depth_better(fast_sequence) -> None:
     supporting events (``flow.min_support``, 2026-11-26) the run without ranges is better:
     2.95 cm without, 1.78 cm with. On an AMD EPYC (2026-11-27; the simulated sequence differs
     in its last bits between machines): 2.91 cm without, 1.50 with, 25 frames fused (5 refused
-    as "too few agreeing"). Bounds: 0.75x, and 60 % of the frames."""
+    as "too few agreeing"). Bounds: 0.75x, and 60 % of the frames. Both runs leave the poses
+    as the oracle gives them (``pose_depth_align`` off): the alignment moves them along the ray
+    onto the depth frames too, which is not what this test measures (with it: 3.94 cm plain,
+    1.53 cm ranged, 19 frames fused, 11 refused)."""
     seq = fast_sequence
     oracle = {"std_translation": 0.02, "std_rotation": 0.03}
-    plain, _ = make_tracker(seq, oracle=oracle)
-    ranged, _ = make_tracker(seq, oracle=oracle, depth_range=True)
+    plain, _ = make_tracker(seq, oracle=oracle, pose_depth_align=False)
+    ranged, _ = make_tracker(seq, oracle=oracle, depth_range=True, pose_depth_align=False)
     a, b = plain.track(seq), ranged.track(seq)
     assert plain.stats.depth_ranges == 0
     frames = len(seq.depth_times_us)
