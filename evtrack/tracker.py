@@ -850,7 +850,7 @@ class Tracker:
     def _keep_pose_depth(self, t_us: int) -> None:
         """Keep the sensor depth map of the pose call on the frame at ``t_us`` (the frame's
         own or the latest within ``max_depth_age_ms``) until its pose arrives, for
-        :meth:`_depth_contradicts`; forget those older than the kept past."""
+        :meth:`_depth_checked`; forget those older than the kept past."""
         if not self._checks_pose_depth():
             return
         oldest = t_us - self.config.history_ms * 1e3
