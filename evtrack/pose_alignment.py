@@ -131,12 +131,7 @@ class PoseRayAligner:
         z = P[:, 2]
         if not len(z) or z.min() <= 1e-3:
             return None
-        cam = self.camera
-        if cam.dist is None:
-            u = cam.fx * P[:, 0] / z + cam.cx
-            v = cam.fy * P[:, 1] / z + cam.cy
-        else:
-            u, v = cam.project(torch.from_numpy(P)).numpy().T
+        u, v = self.camera.project(torch.from_numpy(P)).numpy().T
         h, w = depth.shape
         px, py = np.floor(u + 0.5).astype(np.int64), np.floor(v + 0.5).astype(np.int64)
         inside = (px >= 0) & (px < w) & (py >= 0) & (py < h)
