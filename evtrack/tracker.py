@@ -46,7 +46,10 @@ dropped and counted (``poses_implausible``): a network's gross errors, which can
 each other, then never re-initialise the filter. Before the check, a pose is moved along its
 viewing ray onto the frame's sensor depth (``pose_depth_align``, :mod:`evtrack.pose_alignment`):
 an RGB network errs mostly in range, which the depth frame measures; counted in
-``poses_depth_aligned``, or ``pose_alignments_skipped`` by reason.
+``poses_depth_aligned``, or ``pose_alignments_skipped`` by reason. Both read the sensor depth
+frame nearest the pose's own time (within ``max_depth_age_ms``): the maps of the last
+``history_ms`` are kept, so a pose that arrives late, from the pose source or handed in by
+the caller, is judged against the depth of its time, not the latest frame's.
 
 Sampled search (``search_per_roi_window``): of a RoI window with more events than that, the
 flow searches only a hash sample of about that many for candidates
@@ -637,7 +640,7 @@ class Tracker:
         self._out_of_view_us = 0
         self._misses = 0  # pose-source misses in a row
         self._rejected_pose: tuple[int, Tensor] | None = None  # the last pose, if gated
-        self._pose_depth: dict[int, np.ndarray] = {}  # pose frames' depth maps, by frame time
+        self._depth_frames: dict[int, np.ndarray] = {}  # recent sensor maps by frame time
         self._held: np.ndarray | None = None
         self._unposed: dict[int, _UnposedStep] = {}  # by step end (µs), see _remeasure
         self._out_t: list[int] = []
@@ -810,6 +813,7 @@ class Tracker:
                 depth_map = depth_map.raw
             else:
                 self.depth.set_frame(t_us, depth_map)
+            self._remember_depth(t_us)
             if self.depth_range is not None or self.depth_icp is not None:
                 self._schedule(t_us, _DepthFrame(t_us, self.depth.map))
                 self._apply_due(self._t)
@@ -825,7 +829,6 @@ class Tracker:
             self.ge.set_frame(t_us, image, self.pose(t_us) if self.initialized else None)
         if self._wants_pose(t_us):
             self.stats.pose_calls += 1
-            self._keep_pose_depth(t_us)
             available = t_us + self.config.pose_latency_us
             uses_depth = self._source_uses_depth
             if depth_map is None and depth is not None and uses_depth:
@@ -847,17 +850,19 @@ class Tracker:
                 self._schedule(max(available, self._t), _Miss(t_us))
                 self._apply_due(self._t)
 
-    def _keep_pose_depth(self, t_us: int) -> None:
-        """Keep the sensor depth map of the pose call on the frame at ``t_us`` (the frame's
-        own or the latest within ``max_depth_age_ms``) until its pose arrives, for
-        :meth:`_depth_checked`; forget those older than the kept past."""
-        if not self._checks_pose_depth():
+    def _remember_depth(self, t_us: int) -> None:
+        """Keep the sensor depth map just taken (frame time ``t_us``) for the poses of its time
+        (:meth:`_depth_checked`), and forget the maps older than the kept past
+        (``history_ms`` before the newest): a pose that arrives late, from the pose source
+        after its latency or from the caller, is checked against the frame of its own time,
+        not against whatever frame came last. Costs one map per depth frame of that past
+        (640x480 float32: 1.2 MB each, ~37 MB at 30 Hz and the default 1 s)."""
+        if not self._checks_pose_depth() or self.depth.map is None:
             return
-        oldest = t_us - self.config.history_ms * 1e3
-        for t_old in [t for t in self._pose_depth if t < oldest]:
-            del self._pose_depth[t_old]
-        if self.depth.map is not None and self._depth_fresh(self.depth.t_us, t_us):
-            self._pose_depth[t_us] = self.depth.map
+        self._depth_frames[t_us] = self.depth.map
+        oldest = max(self._depth_frames) - self.config.history_ms * 1e3
+        for t_old in [t for t in self._depth_frames if t < oldest]:
+            del self._depth_frames[t_old]
 
     def _depth_fresh(self, t_depth: int | None, t_us: int) -> bool:
         return t_depth is not None and abs(t_us - t_depth) <= self.config.max_depth_age_ms * 1e3
@@ -868,13 +873,12 @@ class Tracker:
             self.config.pose_depth_min_share or self.pose_aligner is not None)
 
     def _pose_frame_depth(self, t_us: int) -> np.ndarray | None:
-        """The sensor depth map kept for the pose of the frame at ``t_us``, else (a pose pushed
-        by the caller) the latest one within ``max_depth_age_ms``; ``None`` without one."""
-        depth = self._pose_depth.pop(t_us, None)
-        if depth is None and self.depth.map is not None \
-                and self._depth_fresh(self.depth.t_us, t_us):
-            depth = self.depth.map
-        return depth
+        """The kept sensor depth map nearest in time to a pose at ``t_us`` (the earlier of two
+        as near), within ``max_depth_age_ms`` of it; ``None`` without one."""
+        fresh = [t for t in self._depth_frames if self._depth_fresh(t, t_us)]
+        if not fresh:
+            return None
+        return self._depth_frames[min(fresh, key=lambda t: (abs(t - t_us), t))]
 
     def _depth_checked(self, m: PoseMeasurement) -> PoseMeasurement | None:
         """The pose aligned along its viewing ray with its frame's sensor depth

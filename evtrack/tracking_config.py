@@ -364,9 +364,11 @@ class TrackerConfig:
             row, agreeing or not).
         reinit_agree_m, reinit_agree_m_per_s, reinit_agree_deg, reinit_agree_deg_per_s: see
             ``reinit_on_agreement``.
-        pose_depth_min_share: a pose-source pose is dropped (counted in
-            ``TrackerStats.poses_implausible``) when, of the valid sensor-depth pixels inside
-            its silhouette (the depth frame of the pose's RGB frame, sampled every 4 px), fewer
+        pose_depth_min_share: a pose (from the pose source or :meth:`Tracker.push_pose`) is
+            dropped (counted in ``TrackerStats.poses_implausible``) when, of the valid
+            sensor-depth pixels inside its silhouette (sampled every 4 px, on the depth frame
+            nearest the pose's time: the sensor maps of the last ``history_ms`` are kept for
+            poses that arrive late), fewer
             than this share lie in the object's depth range at that pose widened by
             ``pose_depth_tolerance_m``: the depth shows that the object is not where the pose
             puts it. A network can only see what is visible, so a right pose has most of its
@@ -374,7 +376,7 @@ class TrackerConfig:
             It stops gross network errors (e.g. a bottle seen from below, turned half a turn
             and pushed a metre back: shares 0-0.33, right poses 0.6-1.0 on the benchmark)
             from re-initialising the filter. 0: off; no check without a sensor depth frame
-            within ``max_depth_age_ms`` or with fewer than 16 valid pixels.
+            within ``max_depth_age_ms`` of the pose or with fewer than 16 valid pixels.
         pose_depth_tolerance_m: see ``pose_depth_min_share``.
         pose_depth_align: before that check, move each pose along its viewing ray until the
             object's surface at the pose lies on its frame's sensor depth
