@@ -827,9 +827,10 @@ def test_a_pushed_pose_is_checked_against_the_depth_of_its_time(rest_sequence, l
     depth frame of the pose's time, not the latest one: 80 ms on, the latest lies ~3 cm
     farther (aligned onto it, the pose would be that far off); 250 ms on, it is older than
     ``max_depth_age_ms`` allows. A pose 0.4 m behind the object is dropped; the true pose
-    moved 5 cm along its ray is aligned to within 1 cm of the truth and starts the track."""
+    moved 5 cm along its ray is aligned to within 1 cm of the truth and starts the track.
+    Only the depth maps of the last ``history_ms`` (here 300 ms) are kept."""
     seq = rest_sequence
-    tracker, _ = make_tracker(seq)
+    tracker, _ = make_tracker(seq, history_ms=300.0)
     tracker.pose_source = None
     checked: list[PoseMeasurement | None] = []
     depth_checked = tracker._depth_checked
@@ -855,6 +856,12 @@ def test_a_pushed_pose_is_checked_against_the_depth_of_its_time(rest_sequence, l
     assert tracker.initialized and tracker.stats.poses_depth_aligned == 1
     error = float(torch.linalg.vector_norm(checked[-1].pose[:3, 3] - truth[:3, 3]))
     assert error < 0.01
+    # the kept maps: the frames of the last history_ms, no more (memory stays bounded)
+    kept = sorted(tracker._depth_frames)
+    newest = int(times[times < t_pose + late_ms * 1000 + 1].max())
+    span_us = tracker.config.history_ms * 1000
+    assert kept[-1] == newest and kept[0] > 0 and kept[-1] - kept[0] <= span_us
+    assert len(kept) == int(((times >= newest - span_us) & (times <= newest)).sum())
 
 
 @pytest.mark.parametrize("align", [True, False])
