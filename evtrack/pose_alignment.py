@@ -3,10 +3,10 @@
 A pose network that sees only RGB gets the object's range wrong far more than anything else:
 the mustard bottle's network on the paper-matched `faster` sequence erred 11-14 cm along the
 viewing ray and under 1 cm across it (rotation 6-10°). An RGB-D tracker has the depth frame
-of the same instant, which measures that range directly. :class:`PoseRayAligner` projects
-surface points of the mesh at the pose, keeps the nearest front-facing point in each image
-cell (a point z-buffer: no renderer needed), compares its depth with the sensor's at its pixel, and
-moves the pose along ``u = t / |t|`` by the robust mean offset ``Δ``: every visible depth
+of the same instant, which measures that range directly. :class:`PoseRayAligner` measures
+the robust offset ``Δ`` between the mesh's visible surface at the pose and the sensor depth
+(:mod:`evtrack.surface_depth`: a point z-buffer, no renderer needed) and moves the pose along
+``u = t / |t|`` by it: every visible depth
 changes by about ``δ · t_z / |t|`` when the object moves by ``δ`` along ``u``, so the aligned
 translation is ``t (1 + Δ / t_z)``. Two such passes (the image of the moved object differs
 slightly) leave a few millimetres on clean depth. The rotation and the position across the
@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from evtrack.camera import PinholeCamera
+from evtrack.surface_depth import SurfaceDepthSampler, robust_offset
 
 __all__ = ["PoseRayAligner", "RayAlignment"]
 
@@ -91,17 +92,11 @@ class PoseRayAligner:
                  cell_px: int = 4, inlier_m: float = 0.03, max_shift_m: float = 0.2,
                  min_cells: int = 20, min_inlier_fraction: float = 0.5,
                  passes: int = 2) -> None:
-        points = np.asarray(points, np.float64)
-        normals = np.asarray(normals, np.float64)
-        if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
-            raise ValueError(f"points and normals must be (N, 3) each, got {points.shape} and "
-                             f"{normals.shape}")
-        if cell_px < 1 or passes < 1 or not max_shift_m > 0 or not inlier_m > 0:
-            raise ValueError("cell_px and passes must be >= 1, max_shift_m and inlier_m > 0; "
-                             f"got {cell_px}, {passes}, {max_shift_m}, {inlier_m}")
-        self.points, self.normals = points, normals
+        if passes < 1 or not max_shift_m > 0 or not inlier_m > 0:
+            raise ValueError("passes must be >= 1, max_shift_m and inlier_m > 0; "
+                             f"got {passes}, {max_shift_m}, {inlier_m}")
+        self.sampler = SurfaceDepthSampler(points, normals, camera, cell_px)
         self.camera = camera
-        self.cell_px = int(cell_px)
         self.inlier_m = float(inlier_m)
         self.max_shift_m = float(max_shift_m)
         self.min_cells = int(min_cells)
@@ -111,40 +106,12 @@ class PoseRayAligner:
     @classmethod
     def from_mesh(cls, mesh, camera: PinholeCamera, n_points: int = 3000, seed: int = 0,
                   **kwargs) -> PoseRayAligner:
-        """Sample ``n_points`` surface points of ``mesh`` (anything with ``vertices`` (V, 3)
-        and ``faces`` (F, 3), e.g. :class:`evtrack.sim.objects.ObjectMesh`), area-weighted,
-        with a fixed ``seed``; ``kwargs`` go to the constructor."""
-        import trimesh
-
-        tm = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64),
-                             np.asarray(mesh.faces, np.int64), process=False)
-        points, faces = trimesh.sample.sample_surface(tm, n_points, seed=seed)
-        return cls(points, tm.face_normals[faces], camera, **kwargs)
-
-    def _offsets(self, depth: np.ndarray, pose: np.ndarray) -> np.ndarray | None:
-        """Sensor-minus-model depth offsets (m) of the cells with a visible surface point and a
-        valid sensor depth; ``None`` when a point lies behind the camera."""
-        R, t = pose[:3, :3], pose[:3, 3]
-        P = self.points @ R.T + t
-        facing = np.einsum("ij,ij->i", self.normals @ R.T, P) < 0
-        P = P[facing]
-        z = P[:, 2]
-        if not len(z) or z.min() <= 1e-3:
-            return None
-        u, v = self.camera.project(torch.from_numpy(P)).numpy().T
-        h, w = depth.shape
-        px, py = np.floor(u + 0.5).astype(np.int64), np.floor(v + 0.5).astype(np.int64)
-        inside = (px >= 0) & (px < w) & (py >= 0) & (py < h)
-        px, py, z = px[inside], py[inside], z[inside]
-        cols = -(-w // self.cell_px)
-        key = (py // self.cell_px) * cols + px // self.cell_px
-        order = np.lexsort((z, key))  # by cell, nearest first
-        first = order[np.r_[True, key[order][1:] != key[order][:-1]]] if len(key) else order
-        # each cell's nearest point, compared with the sensor at that point's own pixel
-        px, py, z = px[first], py[first], z[first]
-        sensor = depth[py, px].astype(np.float64)
-        valid = np.isfinite(sensor) & (sensor > 0)
-        return sensor[valid] - z[valid]
+        """Sample ``n_points`` surface points of ``mesh``, area-weighted, with a fixed
+        ``seed`` (:meth:`evtrack.surface_depth.SurfaceDepthSampler.from_mesh`); ``kwargs`` go
+        to the constructor."""
+        cell_px = kwargs.pop("cell_px", 4)
+        sampler = SurfaceDepthSampler.from_mesh(mesh, camera, n_points, seed, cell_px)
+        return cls(sampler.points, sampler.normals, camera, cell_px=cell_px, **kwargs)
 
     def align(self, depth: np.ndarray, pose: np.ndarray | torch.Tensor) -> RayAlignment:
         """Align one pose with one depth frame.
@@ -161,18 +128,14 @@ class PoseRayAligner:
             return RayAlignment(None, nan, 0.0, 0, 0, "no pose")
         offset, cells, inliers = nan, 0, 0
         for _ in range(self.passes):
-            diff = self._offsets(depth, T)
+            diff = self.sampler.offsets(depth, T)
             if diff is None:
                 return RayAlignment(None, nan, 0.0, 0, 0, "no pose")
-            cells = len(diff)
-            if cells < self.min_cells:
-                return RayAlignment(None, nan, 0.0, cells, 0, "too few cells")
-            median = float(np.median(diff))
-            agreeing = diff[np.abs(diff - median) <= self.inlier_m]
-            inliers = len(agreeing)
-            if inliers < self.min_cells or inliers < self.min_inlier_fraction * cells:
-                return RayAlignment(None, median, 0.0, cells, inliers, "too few agreeing")
-            offset = float(np.median(agreeing))
+            robust = robust_offset(diff, self.inlier_m, self.min_cells, self.min_inlier_fraction)
+            cells, inliers = robust.cells, len(robust.inliers)
+            if not robust.ok:
+                return RayAlignment(None, robust.median, 0.0, cells, inliers, robust.reason)
+            offset = robust.offset
             T[:3, 3] = T[:3, 3] * (1.0 + offset / T[2, 3])
             shift = float(np.linalg.norm(T[:3, 3])) - float(np.linalg.norm(start))
             if abs(shift) > self.max_shift_m:

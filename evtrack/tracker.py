@@ -102,10 +102,10 @@ out-of-range pixels in its patch) takes the predicted depth of the object's orig
 is counted in :attr:`TrackerStats.depth_fallbacks`.
 
 Depth range (``depth_range``, off by default; not in the paper): every sensor depth frame also
-measures the object's range along its viewing ray against the mesh rendered at the filter's
-pose of the frame's time (:mod:`evtrack.depth_range`), fused at that time as a 1-D measurement
-(:meth:`~evtrack.filters.PoseUKF.update_range`); frames without one are counted by reason in
-:attr:`TrackerStats.depth_ranges_skipped`.
+measures the object's range along its viewing ray against the mesh's surface at the filter's
+pose of the frame's time (:mod:`evtrack.depth_range`; no renderer), fused at that time as a
+1-D measurement (:meth:`~evtrack.filters.PoseUKF.update_range`); frames without one are
+counted by reason in :attr:`TrackerStats.depth_ranges_skipped`.
 """
 
 from __future__ import annotations
@@ -533,8 +533,8 @@ class Tracker:
             if self.mesh is None:
                 raise ConfigError("depth_range needs the object's mesh (an ObjectMesh or a "
                                   "mesh file), not bare vertices")
-            self.depth_range = DepthRange(self.mesh, self.depth.camera, cfg.depth_range_scale,
-                                          cfg.depth_range_std_m)
+            self.depth_range = DepthRange(self.mesh, self.depth.camera,
+                                          std_m=cfg.depth_range_std_m)
         self.depth_icp = None
         if cfg.depth_icp and self.method != "velocity":
             if self.mesh is None:

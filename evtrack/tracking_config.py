@@ -201,6 +201,14 @@ def _pose_twist_defaults() -> PoseTwistUKFConfig:
     return PoseTwistUKFConfig(q_translation=0.01, q_rotation=0.3)
 
 
+_REMOVED_FIELDS = {
+    "depth_range_scale": "the range is measured on surface points of the mesh in 4-px image "
+                         "cells, not on a render (2026-11-28); delete the field",
+}
+"""Fields of earlier versions, with what to do instead (an error that says so, not a bare
+"unknown field")."""
+
+
 @dataclass
 class TrackerConfig:
     """Everything :class:`evtrack.Tracker` needs besides the cameras, the object and the sources.
@@ -310,14 +318,12 @@ class TrackerConfig:
         model_depth_scale: the ``model`` depth map is rendered at this fraction of the event
             camera's resolution.
         depth_range: fuse the object's range along its viewing ray, measured on every sensor
-            depth frame against the mesh rendered at the predicted pose
+            depth frame against the mesh's surface at the predicted pose
             (:mod:`evtrack.depth_range`), into the pose filter: the depth the event flow sees
             worst. Off by default (the paper's method uses depth only for the flow's
-            interaction matrix); needs ``depth_source: sensor``, the object's mesh and headless
-            OpenGL. Not used by ``velocity``, which takes poses only to initialise.
+            interaction matrix); needs ``depth_source: sensor`` and the object's mesh (with
+            faces). Not used by ``velocity``, which takes poses only to initialise.
         depth_range_std_m: the floor of a range measurement's standard deviation (m).
-        depth_range_scale: the mesh is rendered at this fraction of the depth map's
-            resolution for the range.
         depth_icp: align the object's mesh with sensor depth frames (point-to-plane ICP,
             :class:`~evtrack.models.DepthRefiner`) from the filter's pose at each frame's time
             and fuse the aligned pose (:meth:`~evtrack.filters.PoseUKF.update_aligned`) with
@@ -461,7 +467,6 @@ class TrackerConfig:
     model_depth_scale: float = 0.5
     depth_range: bool = False
     depth_range_std_m: float = 0.005
-    depth_range_scale: float = 0.5
     depth_icp: bool = False
     depth_icp_rate_hz: float = 30.0
     depth_icp_points: int = 1000
@@ -520,7 +525,7 @@ class TrackerConfig:
                                   f"got {value!r}")
         for name in ("pose_rate_hz", "history_ms", "pose_depth_align_max_m"):
             _need_positive(self, name)
-        for name in ("model_depth_scale", "depth_range_scale"):
+        for name in ("model_depth_scale",):
             value = getattr(self, name)
             if not 0 < value <= 1:
                 raise ConfigError(f"tracker config field {name!r} must be in (0, 1], "
@@ -586,6 +591,10 @@ class TrackerConfig:
             raise ConfigError(f"{source}: expected a mapping of tracker fields, "
                               f"got {type(data).__name__}")
         fields = {f.name: f for f in dataclasses.fields(cls)}
+        removed = sorted(set(data) & set(_REMOVED_FIELDS))
+        if removed:
+            raise ConfigError(f"{source}: field {removed[0]!r} was removed: "
+                              f"{_REMOVED_FIELDS[removed[0]]}")
         unknown = sorted(set(data) - set(fields))
         if unknown:
             raise ConfigError(f"{source}: unknown field(s) {unknown}; known: {sorted(fields)}")

@@ -194,7 +194,7 @@ def test_tracker_builds_the_aligner_only_where_it_can_work() -> None:
     with pytest.raises(ConfigError, match="pose_depth_align_max_m"):
         TrackerConfig.from_dict({"pose_depth_align_max_m": 0.0})
     aligner = PoseRayAligner.from_mesh(Mesh, CAM)
-    assert aligner.points.shape == (3000, 3) and aligner.normals.shape == (3000, 3)
+    assert aligner.sampler.points.shape == (3000, 3) and aligner.sampler.normals.shape == (3000, 3)
 
 
 @pytest.mark.parametrize("method", ["full", "frame-flow"])
