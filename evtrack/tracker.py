@@ -142,7 +142,8 @@ from evtrack.jit import warm_up
 
 # evtrack.models is imported here, not where depth_icp is set up: it imports torch's
 # flop counter, which imports Triton where installed (CUDA builds of torch), and Triton's LLVM
-# crashes the process when Mesa's (the headless OpenGL of depth_range) is already loaded.
+# crashes the process when Mesa's (the headless OpenGL of model depth, and of depth_range
+# before it used surface points) is already loaded.
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.pose_alignment import PoseRayAligner
 from evtrack.pose_sources import PoseMeasurement, PoseSource
