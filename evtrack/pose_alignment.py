@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from evtrack.camera import PinholeCamera
-from evtrack.surface_depth import SurfaceDepthSampler, robust_offset
+from evtrack.surface_depth import SurfaceDepthSampler, robust_offset, sample_surface
 
 __all__ = ["PoseRayAligner", "RayAlignment"]
 
@@ -96,7 +96,6 @@ class PoseRayAligner:
             raise ValueError("passes must be >= 1, max_shift_m and inlier_m > 0; "
                              f"got {passes}, {max_shift_m}, {inlier_m}")
         self.sampler = SurfaceDepthSampler(points, normals, camera, cell_px)
-        self.camera = camera
         self.inlier_m = float(inlier_m)
         self.max_shift_m = float(max_shift_m)
         self.min_cells = int(min_cells)
@@ -106,12 +105,9 @@ class PoseRayAligner:
     @classmethod
     def from_mesh(cls, mesh, camera: PinholeCamera, n_points: int = 3000, seed: int = 0,
                   **kwargs) -> PoseRayAligner:
-        """Sample ``n_points`` surface points of ``mesh``, area-weighted, with a fixed
-        ``seed`` (:meth:`evtrack.surface_depth.SurfaceDepthSampler.from_mesh`); ``kwargs`` go
-        to the constructor."""
-        cell_px = kwargs.pop("cell_px", 4)
-        sampler = SurfaceDepthSampler.from_mesh(mesh, camera, n_points, seed, cell_px)
-        return cls(sampler.points, sampler.normals, camera, cell_px=cell_px, **kwargs)
+        """An aligner on :func:`~evtrack.surface_depth.sample_surface` of ``mesh``;
+        ``kwargs`` go to the constructor."""
+        return cls(*sample_surface(mesh, n_points, seed), camera, **kwargs)
 
     def align(self, depth: np.ndarray, pose: np.ndarray | torch.Tensor) -> RayAlignment:
         """Align one pose with one depth frame.

@@ -24,7 +24,20 @@ import torch
 
 from evtrack.camera import PinholeCamera
 
-__all__ = ["RobustOffset", "SurfaceDepthSampler", "robust_offset"]
+__all__ = ["RobustOffset", "SurfaceDepthSampler", "robust_offset", "sample_surface"]
+
+
+def sample_surface(mesh, n_points: int = 3000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``n_points`` surface points of ``mesh`` (anything with ``vertices`` (V, 3) and
+    ``faces`` (F, 3), e.g. :class:`evtrack.sim.objects.ObjectMesh`), area-weighted, with a
+    fixed ``seed`` (trimesh's sampler): ``(points (N, 3), outward unit normals (N, 3))``,
+    object frame."""
+    import trimesh
+
+    tm = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64),
+                         np.asarray(mesh.faces, np.int64), process=False)
+    points, faces = trimesh.sample.sample_surface(tm, n_points, seed=seed)
+    return points, tm.face_normals[faces]
 
 
 class SurfaceDepthSampler:
@@ -57,15 +70,8 @@ class SurfaceDepthSampler:
     @classmethod
     def from_mesh(cls, mesh, camera: PinholeCamera, n_points: int = 3000, seed: int = 0,
                   cell_px: int = 4) -> SurfaceDepthSampler:
-        """Sample ``n_points`` surface points of ``mesh`` (anything with ``vertices`` (V, 3)
-        and ``faces`` (F, 3), e.g. :class:`evtrack.sim.objects.ObjectMesh`), area-weighted,
-        with a fixed ``seed``."""
-        import trimesh
-
-        tm = trimesh.Trimesh(np.asarray(mesh.vertices, np.float64),
-                             np.asarray(mesh.faces, np.int64), process=False)
-        points, faces = trimesh.sample.sample_surface(tm, n_points, seed=seed)
-        return cls(points, tm.face_normals[faces], camera, cell_px)
+        """A sampler on :func:`sample_surface` of ``mesh``."""
+        return cls(*sample_surface(mesh, n_points, seed), camera, cell_px)
 
     def offsets(self, depth: np.ndarray, pose: np.ndarray) -> np.ndarray | None:
         """Sensor-minus-model depth offsets (m) of the cells with a visible surface point and
