@@ -31,10 +31,10 @@ from evtrack.models.weights import (
 )
 from evtrack.train.config import TrainConfig
 from evtrack.train.data import PoseDataModule
-from evtrack.train.module import PoseLightningModule
+from evtrack.train.module import OptimConfig, PoseLightningModule
 from evtrack.utils import atomic_write_text
 
-__all__ = ["TrainResult", "run_training", "build_module", "resolve_resume"]
+__all__ = ["TrainResult", "run_training", "build_module", "resolve_resume", "weight_averaging"]
 
 
 @dataclass
@@ -93,6 +93,21 @@ def _initial_network(config: TrainConfig):
     return net.train()
 
 
+def weight_averaging(optim: OptimConfig) -> L.Callback | None:
+    """The callback that averages the weights as ``optim.ema_decay`` asks, or ``None``.
+
+    With it, validation runs on the average, checkpoints hold the average as their
+    ``state_dict`` (the raw weights under ``current_model_state``, so ``--resume`` goes on from
+    both) and the exported weights file is the average.
+    """
+    if optim.ema_decay <= 0:
+        return None
+    from lightning.pytorch.callbacks import EMAWeightAveraging
+
+    return EMAWeightAveraging(decay=optim.ema_decay,
+                              update_starting_at_step=optim.ema_start_step)
+
+
 def resolve_resume(resume: str | None, run_dir: Path) -> str | None:
     """``None`` | ``"auto"`` (the run's last.ckpt if it exists) | a checkpoint path."""
     if resume is None:
@@ -144,10 +159,13 @@ def run_training(
         monitor="val/loss" if has_val else "train/loss_epoch", mode="min",
         save_top_k=1, save_last=True,
     )
+    callbacks = [checkpoint, LearningRateMonitor(logging_interval="step")]
+    averaging = weight_averaging(config.optim)
+    if averaging is not None:
+        callbacks.append(averaging)
     trainer_kwargs = {"log_every_n_steps": 10, **config.trainer}
     trainer = L.Trainer(
-        **trainer_kwargs, logger=_logger(config, run_dir),
-        callbacks=[checkpoint, LearningRateMonitor(logging_interval="step")],
+        **trainer_kwargs, logger=_logger(config, run_dir), callbacks=callbacks,
         default_root_dir=run_dir, use_distributed_sampler=False, fast_dev_run=fast_dev_run,
         enable_progress_bar=verbose, enable_model_summary=verbose,
     )

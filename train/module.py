@@ -50,6 +50,15 @@ class OptimConfig:
             schedule (a 2-core run that reached 28 of 44 planned epochs stopped at 64% of its
             cosine). With ``"time"`` the learning rate of a step depends on the machine's
             speed, so two runs of one config are no longer the same bit for bit.
+        ema_decay: keep an exponential moving average of the weights (and of the batch-norm
+            statistics), ``avg = ema_decay * avg + (1 - ema_decay) * w`` after every optimiser
+            step from ``ema_start_step`` on, validate and checkpoint it, and export it
+            (Lightning's :class:`~lightning.pytorch.callbacks.EMAWeightAveraging`); its horizon
+            is ~``1 / (1 - ema_decay)`` steps. 0 (the default): off. Averaging smooths the
+            step-to-step noise of the last weights, which on the mustard bottle's CPU
+            continuations moved the median pose error by ~1 cm and ~1 deg from run to run.
+        ema_start_step: the first optimiser step (0-based) that enters the average; the
+            average starts as a copy of the weights after it.
     """
 
     lr: float = 2e-3
@@ -58,6 +67,8 @@ class OptimConfig:
     warmup_steps: int = 100
     final_lr_fraction: float = 0.02
     schedule_by: str = "steps"
+    ema_decay: float = 0.0
+    ema_start_step: int = 0
 
     def __post_init__(self) -> None:
         if self.schedule not in ("cosine", "constant"):
@@ -68,6 +79,11 @@ class OptimConfig:
                               f"got {self.schedule_by!r}")
         if self.lr <= 0 or self.weight_decay < 0 or self.warmup_steps < 0:
             raise ConfigError("optim: lr must be > 0, weight_decay and warmup_steps >= 0")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ConfigError(f"optim.ema_decay must be in [0, 1) (0: no weight average), "
+                              f"got {self.ema_decay!r}")
+        if self.ema_start_step < 0:
+            raise ConfigError(f"optim.ema_start_step must be >= 0, got {self.ema_start_step!r}")
 
 
 @dataclass(frozen=True)

@@ -404,3 +404,73 @@ def test_keypoint_metrics_judge_the_strongest_peak_of_each_channel():
     # two instances: each target peak takes the nearest predicted peak
     target[0, 0] = np.maximum(blob(20, 20, 5, 5), blob(20, 20, 15, 15))
     assert keypoint_metrics(pred, target, 8, 0.1, 8.0)[:2] == (2, 2)
+
+
+class WeightRecorder(L.Callback):
+    """The raw weights and batch-norm statistics after every optimiser step."""
+
+    def __init__(self):
+        self.states = []
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        self.states.append({k: v.detach().clone() for k, v in module.state_dict().items()
+                            if v.is_floating_point()})
+
+
+def test_ema_weights_follow_the_exponential_average_of_the_steps():
+    from evtrack.train.fit import weight_averaging
+
+    assert weight_averaging(OptimConfig()) is None  # off by default
+    src = SyntheticCuboidSource(CUBOID, 8, (32, 48), options=CuboidSourceOptions(
+        empty_probability=0, distance_range=(1.8, 2.5), distractor_boxes=0))
+    loader = torch.utils.data.DataLoader(PoseDataset(src, MEAN, STD), batch_size=2)
+    record = WeightsRecord(arch="dope_lite_tiny", object_name="box", cuboid=CUBOID)
+    optim = OptimConfig(lr=5e-3, warmup_steps=0, schedule="constant", ema_decay=0.7,
+                        ema_start_step=2)
+    torch.manual_seed(0)
+    module = PoseLightningModule(create("dope_lite_tiny"), record, optim)
+    recorder = WeightRecorder()
+    trainer = L.Trainer(max_steps=7, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False,
+                        callbacks=[recorder, weight_averaging(optim)])
+    trainer.fit(module, loader)
+    steps = recorder.states
+    assert len(steps) == 7
+    # by hand: a copy of the weights after step 2 (0-based), then avg = 0.7 avg + 0.3 w
+    expected = dict(steps[2])
+    for state in steps[3:]:
+        expected = {k: 0.7 * expected[k] + 0.3 * state[k] for k in expected}
+    final = module.state_dict()  # the average replaces the weights when training ends
+    assert any("running_mean" in k for k in expected)  # the batch-norm statistics too
+    for k, v in expected.items():
+        torch.testing.assert_close(final[k], v, rtol=1e-5, atol=1e-6)
+    moved = max(float((steps[-1][k] - v).abs().max()) for k, v in expected.items())
+    assert moved > 1e-4  # the average is not simply the last weights
+
+
+def test_ema_run_validates_checkpoints_exports_and_resumes_the_average(trained_run, tmp_path):
+    cfg, _ = trained_run
+    base = {**cfg.to_dict(), "output_dir": str(tmp_path), "run_name": "ema",
+            "optim": {**cfg.to_dict()["optim"], "ema_decay": 0.5}}
+    result = run_training(TrainConfig.from_dict(base), verbose=False)
+    last = torch.load(result.last_checkpoint, weights_only=True)
+    raw = {k[len("net."):]: v for k, v in last["current_model_state"].items()
+           if k.startswith("net.")}
+    average = {k[len("net."):]: v for k, v in last["state_dict"].items() if k.startswith("net.")}
+    exported, _ = load_model(result.weights)
+    # the weights file is the average (its best checkpoint is the last one: 2 epochs, val
+    # every epoch, so compare with the checkpoint it names)
+    best = torch.load(result.best_checkpoint, weights_only=True)["state_dict"]
+    torch.testing.assert_close(exported.state_dict(),
+                               {k[len("net."):]: v for k, v in best.items()
+                                if k.startswith("net.")})
+    assert any(not torch.equal(raw[k], average[k]) for k in raw if raw[k].is_floating_point())
+    # resuming restores both the raw weights and the average, and goes on averaging
+    more = TrainConfig.from_dict({**base, "trainer": {**cfg.trainer, "max_epochs": 3}})
+    again = run_training(more, resume="auto", verbose=False)
+    assert load_model(again.weights)[1].training["steps"] == 9
+    with pytest.raises(ConfigError, match="ema_decay must be in"):
+        OptimConfig(ema_decay=1.0)
+    with pytest.raises(ConfigError, match="ema_start_step"):
+        OptimConfig(ema_start_step=-1)
