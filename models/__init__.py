@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from evtrack.models import dope_lite  # noqa: F401  (registers the DOPE-Lite models)
 from evtrack.models._registry import is_model, list_models, model_entrypoint, register_model
+from evtrack.models.averaging import average_weights
 from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
 from evtrack.models.decode import (
     DecodeConfig,
@@ -63,6 +64,7 @@ __all__ = [
     "TorchPoseEstimator",
     "WeightsError",
     "WeightsRecord",
+    "average_weights",
     "count_flops",
     "count_parameters",
     "create",
