@@ -3,7 +3,8 @@
 Writes, under ``output_dir/run_name/``:
 
 * ``config.yaml``: the resolved config,
-* ``checkpoints/last.ckpt`` and ``checkpoints/best-*.ckpt`` (Lightning; resumable),
+* ``checkpoints/last.ckpt`` (the latest state, :class:`LastCheckpoint`) and
+  ``checkpoints/best-*.ckpt`` (the lowest validation loss; Lightning; both resumable),
 * ``logs/version_N/metrics.csv`` (or TensorBoard events),
 * ``<object>_<model>.pt``: the best network as a weights file (``evtrack.models.create``
   loads it) and ``<object>_<model>.md``, its model card (config, data, time, metrics).
@@ -34,7 +35,8 @@ from evtrack.train.data import PoseDataModule
 from evtrack.train.module import OptimConfig, PoseLightningModule
 from evtrack.utils import atomic_write_text
 
-__all__ = ["TrainResult", "run_training", "build_module", "resolve_resume", "weight_averaging"]
+__all__ = ["TrainResult", "run_training", "build_module", "resolve_resume", "weight_averaging",
+           "LastCheckpoint"]
 
 
 @dataclass
@@ -91,6 +93,42 @@ def _initial_network(config: TrainConfig):
         raise WeightsError(path, f"was trained with input mean/std {record.mean}/{record.std}, "
                                  f"the config has {config.model.mean}/{config.model.std}")
     return net.train()
+
+
+class LastCheckpoint(L.Callback):
+    """Keeps ``path`` (``checkpoints/last.ckpt``) the run's latest state: written at the end
+    of a training epoch when ``every_s`` seconds have passed since the last write, and when
+    training ends (a ``max_time`` or ``max_steps`` stop included), through a temporary file
+    and a rename, so an interrupted write leaves the previous one.
+
+    Lightning's ``ModelCheckpoint(save_last=True)`` writes ``last.ckpt`` only when it also
+    writes a top-k checkpoint: once the monitored loss stops improving, its "last" stays at the
+    best epoch, ``--resume auto`` went back there, and the end of the run (with
+    ``optim.ema_decay``, its final average) was never written (a 75-minute run's last was at
+    step 1280 of 5011). Place it before a weight-averaging callback: at the end of training
+    it then saves the raw weights with the average before the average replaces them.
+    """
+
+    def __init__(self, path: Path, every_s: float = 60.0) -> None:
+        self.path = Path(path)
+        self.every_s = float(every_s)
+        self._saved_at = time.monotonic()
+
+    def _save(self, trainer: L.Trainer) -> None:
+        if trainer.fast_dev_run:
+            return
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        trainer.save_checkpoint(tmp)  # every rank takes part; global rank 0 writes
+        if trainer.is_global_zero:
+            tmp.replace(self.path)
+        self._saved_at = time.monotonic()
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if time.monotonic() - self._saved_at >= self.every_s:
+            self._save(trainer)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._save(trainer)
 
 
 def weight_averaging(optim: OptimConfig) -> L.Callback | None:
@@ -157,9 +195,11 @@ def run_training(
     checkpoint = ModelCheckpoint(
         dirpath=run_dir / "checkpoints", filename="best-{epoch:03d}",
         monitor="val/loss" if has_val else "train/loss_epoch", mode="min",
-        save_top_k=1, save_last=True,
+        save_top_k=1, save_last=False,
     )
-    callbacks = [checkpoint, LearningRateMonitor(logging_interval="step")]
+    last_path = run_dir / "checkpoints" / "last.ckpt"
+    callbacks = [checkpoint, LearningRateMonitor(logging_interval="step"),
+                 LastCheckpoint(last_path)]
     averaging = weight_averaging(config.optim)
     if averaging is not None:
         callbacks.append(averaging)
@@ -176,7 +216,7 @@ def run_training(
     if fast_dev_run or not trainer.is_global_zero:
         return result
     best = Path(checkpoint.best_model_path) if checkpoint.best_model_path else None
-    last = Path(checkpoint.last_model_path) if checkpoint.last_model_path else None
+    last = last_path if last_path.is_file() else None
     source = best or last
     if source is None:
         raise ConfigError("training produced no checkpoint (check trainer.enable_checkpointing)")

@@ -474,3 +474,22 @@ def test_ema_run_validates_checkpoints_exports_and_resumes_the_average(trained_r
         OptimConfig(ema_decay=1.0)
     with pytest.raises(ConfigError, match="ema_start_step"):
         OptimConfig(ema_start_step=-1)
+
+
+def test_last_checkpoint_is_the_end_of_the_run_not_the_best_epoch(trained_run, tmp_path):
+    """Lightning's save_last wrote last.ckpt only with a new best checkpoint; a run stopped
+    between validations (max_steps, max_time) must still leave its end in last.ckpt."""
+    cfg, _ = trained_run
+    stopped = TrainConfig.from_dict({
+        **cfg.to_dict(), "output_dir": str(tmp_path), "run_name": "stopped",
+        "trainer": {**cfg.trainer, "max_epochs": 5, "max_steps": 4}})  # 3 steps per epoch
+    result = run_training(stopped, verbose=False)
+    last = torch.load(result.last_checkpoint, weights_only=True)
+    best = torch.load(result.best_checkpoint, weights_only=True)
+    assert last["global_step"] == 4 and best["global_step"] == 3  # validated after epoch 0
+    assert not list(result.last_checkpoint.parent.glob("*.tmp"))
+    # --resume auto goes on from step 4
+    more = TrainConfig.from_dict({**stopped.to_dict(), "trainer": {**stopped.trainer,
+                                                                   "max_steps": 6}})
+    again = run_training(more, resume="auto", verbose=False)
+    assert torch.load(again.last_checkpoint, weights_only=True)["global_step"] == 6
