@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import textwrap
 from pathlib import Path
 
 __all__ = ["register", "run"]
@@ -12,13 +13,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "average-weights",
         help="average several weights files of one network (a model soup)",
-        description=(
+        description=textwrap.fill(
             "Write the mean of two or more pose-network weights files (or 'evtrack train' "
             "checkpoints) of one architecture and object: e.g. a run and its continuation, or "
             "the last checkpoints of runs from one start. Weights and batch-norm statistics "
-            "are averaged; the record names the files and drops their metrics (measure the "
+            "are averaged; the record (and the model card written beside the file) names the "
+            "files and drops their metrics (measure the "
             "result, e.g. with benchmarks/bench_pose_accuracy.py). For an average over the "
-            "steps of one run, train with optim.ema_decay instead."
+            "steps of one run, train with optim.ema_decay instead.", 88
         ),
         epilog="example:\n  evtrack average-weights runs/pose/a/x.pt runs/pose/b/x.pt "
                "--out runs/pose/soup/x.pt",
@@ -33,8 +35,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from evtrack.models import load_weights_file, write_model_card
     from evtrack.models.averaging import average_weights
 
     path = average_weights(args.weights, args.out, args.factors)
-    print(f"wrote the mean of {len(args.weights)} weights files to {path}")
+    card = write_model_card(path.with_suffix(".md"), load_weights_file(path)[0])
+    print(f"wrote the mean of {len(args.weights)} weights files to {path} (model card {card})")
     return 0

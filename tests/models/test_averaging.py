@@ -85,6 +85,7 @@ def test_average_weights_command(tmp_path, capsys):
     assert main(["average-weights", str(a), str(b), "--out", str(out)]) == 0
     assert "wrote the mean of 2 weights files" in capsys.readouterr().out
     assert load_model(out)[1].object_name == "box"
+    assert str(a) in out.with_suffix(".md").read_text()  # the card names the averaged files
     mug, _ = _weights(tmp_path / "mug.pt", 2, object_name="mug")
     assert main(["average-weights", str(a), str(mug), "--out", str(out)]) == 1
     assert "not one network" in capsys.readouterr().err
