@@ -459,12 +459,15 @@ def test_ema_run_validates_checkpoints_exports_and_resumes_the_average(trained_r
            if k.startswith("net.")}
     average = {k[len("net."):]: v for k, v in last["state_dict"].items() if k.startswith("net.")}
     exported, _ = load_model(result.weights)
-    # the weights file is the average (its best checkpoint is the last one: 2 epochs, val
-    # every epoch, so compare with the checkpoint it names)
-    best = torch.load(result.best_checkpoint, weights_only=True)["state_dict"]
+    # the weights file is the best checkpoint's state_dict, which is the average there too
+    # (the raw weights of that step are its current_model_state)
+    best_ckpt = torch.load(result.best_checkpoint, weights_only=True)
+    best = best_ckpt["state_dict"]
     torch.testing.assert_close(exported.state_dict(),
                                {k[len("net."):]: v for k, v in best.items()
                                 if k.startswith("net.")})
+    assert any(not torch.equal(v, best_ckpt["current_model_state"][k])
+               for k, v in best.items() if v.is_floating_point())
     assert any(not torch.equal(raw[k], average[k]) for k in raw if raw[k].is_floating_point())
     # resuming restores both the raw weights and the average, and goes on averaging
     more = TrainConfig.from_dict({**base, "trainer": {**cfg.trainer, "max_epochs": 3}})
