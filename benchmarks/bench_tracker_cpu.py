@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tracker_cpu.py --sequence DIR [DIR ...] [--repeats 2]
                                            [--variants reference blas strips mask groups kf
-                                                       depth eq3 sample budget]
+                                                       depth eq3 sample budget runs]
 
 Variants, cumulative (each adds one change to the one before):
 
@@ -24,7 +24,11 @@ Variants, cumulative (each adds one change to the one before):
 * ``sample``: the flow searches a hash sample of about 64 events of each RoI window
   (``search_per_roi_window``; every event still enters the search's history);
 * ``budget``: of those, at most 2500 events per velocity step are searched, by whole RoIs
-  (``max_searched_per_step``), the tracker's default: all ten changes.
+  (``max_searched_per_step``), the tracker's default;
+* ``runs``: the velocity steps between two events of the stream (a frame, a pose due) in
+  the filters' compiled runs (``Tracker.step_runs``: ``VelocityKF.forward_run``,
+  ``PoseTimeline.step_run``), a few calls for ~10 steps instead of a few dozen per step: all
+  eleven changes, the tracker as it ships.
 
 The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
@@ -35,9 +39,9 @@ parallel loops, compiled group keys and counts), the NumPy gather of the event m
 compiled row spans, and the pose source in ``track``'s worker thread (``pose_async``).
 
 All but ``groups``, ``eq3``, ``sample`` and ``budget`` give the same trajectory as the variant
-before up to float rounding (the strips bit for bit; the BLAS thread count and the mask's
-arithmetic can move an event on the mask's edge); ``groups`` masks 10 steps of events with the
-silhouette predicted at their first step (its errors on the benchmark sets: see
+before up to float rounding (the strips and the runs bit for bit; the BLAS thread count and the
+mask's arithmetic can move an event on the mask's edge); ``groups`` masks 10 steps of events
+with the silhouette predicted at their first step (its errors on the benchmark sets: see
 ``TrackerConfig.flow_batch_steps``); ``eq3`` solves Eq. 3 over fewer hypotheses (its errors: see
 ``evtrack.tracking_config``), ``sample`` the data term of fewer events in the crowded windows
 (see ``evtrack.tracker``), ``budget`` the flows of fewer RoIs when the object's events exceed
@@ -65,7 +69,7 @@ from pathlib import Path
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
 VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3", "sample",
-            "budget")
+            "budget", "runs")
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int, frames: str) -> dict:
@@ -94,6 +98,10 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
             return (xy @ normals.T - offsets).max(axis=1) <= margin
 
         SilhouettePolygon.contains_pixels = point_test
+    if level < VARIANTS.index("runs"):
+        from evtrack.tracker import Tracker
+
+        Tracker.step_runs = False
     if level < VARIANTS.index("depth"):
         from evtrack import depth_sources
 

@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import bisect
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from itertools import repeat
 
 import torch
 from torch import Tensor
@@ -238,12 +239,55 @@ class PoseTimeline:
                                          [(times[k] - times[k - 1]) * 1e-6 for k in run])
         if states is None:
             return False
+        for n, snap in enumerate(self._run_snapshots(states)):
+            self._snaps[i0 + n] = snap
+        return True
+
+    def _run_snapshots(self, states: tuple[Tensor, Tensor, Tensor]) -> list[tuple[Tensor, ...]]:
+        """The snapshots of the steps of a :meth:`PoseUKF.predict_run` (its states ``t``,
+        ``q``, ``cov``, one per step; the last is the filter's now): the other state tensors
+        (counters) are unchanged by a predict and shared with the final snapshot."""
         last = self._snapshot()  # the final state, and the unchanged counters' copies
         slots = {"t": 0, "q": 1, "cov": 2}
-        for n, k in enumerate(run):
-            self._snaps[k] = tuple(states[slots[name]][n] if name in slots else last[m]
-                                   for m, name in enumerate(self.names))
-        return True
+        columns = [states[slots[name]].unbind(0)[:-1] if name in slots else repeat(last[m])
+                   for m, name in enumerate(self.names)]
+        return [*zip(*columns, strict=False), last]  # stops at the shortest: n - 1 steps' views
+
+    def step_run(self, times: Sequence[int], twists: Tensor
+                 ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """:meth:`step` to each of ``times`` (µs, rising, after :attr:`now`) with the twist
+        ``twists[k]`` (1,6) in one compiled call (:meth:`PoseUKF.predict_run
+        <evtrack.filters.PoseUKF.predict_run>`): the same states and snapshots, bit for bit.
+        For a tracker's run of velocity steps without a measurement.
+
+        Args:
+            times: (n,) step ends. twists: (n,1,6).
+
+        Returns:
+            The states after each step, ``t`` (n,1,3), ``q`` (n,1,4), ``cov`` (n,1,6,6) (not
+            to be changed: the snapshots share them); ``None``, with nothing done, where the
+            compiled path does not apply (a :class:`PoseTwistUKF`, a batch, CUDA, float32...):
+            then call :meth:`step` per step.
+        """
+        ends = [int(t) for t in times]
+        if len(ends) != len(twists):
+            raise ValueError(f"PoseTimeline.step_run: {len(ends)} times but {len(twists)} twists")
+        if not ends or not self.twist_driven:
+            return None
+        starts = [self.now, *ends[:-1]]
+        if any(b <= a for a, b in zip(starts, ends, strict=True)):
+            raise ValueError(f"PoseTimeline.step_run: times must rise after {self.now} µs, "
+                             f"got {ends}")
+        steps = list(twists.clone().unbind(0))  # kept: not the caller's to change
+        states = self.filter.predict_run(steps, [(b - a) * 1e-6 for a, b in
+                                                 zip(starts, ends, strict=True)])
+        if states is None:
+            return None
+        self._times.extend(ends)
+        self._snaps.extend(self._run_snapshots(states))
+        self._twists.extend(steps)
+        self._trim()
+        return states
 
     def _replay_step(self, i: int, times: list[int],
                      twist_of: Callable[[int, int], Tensor | None] | None, t_from: int) -> None:

@@ -214,6 +214,9 @@ _REMEASURE_CHECK_MIN_ROIS = 10
 #: from sensor noise off the object, 8 of 297 on the tests' small box against none of the
 #: well-supported 90, which a right pose cannot explain
 _REMEASURE_CHECK_MIN_SUPPORT = 5
+#: The fewest velocity steps between two events of the stream (a frame, a measurement due, a
+#: depth map expiring) that go through the filters' compiled runs (Tracker._step_run)
+_MIN_RUN_STEPS = 2
 
 FrameInput = np.ndarray | Callable[[], np.ndarray] | None
 
@@ -495,6 +498,12 @@ class Tracker:
         >>> trajectory.save("track.csv")                                         # doctest: +SKIP
     """
 
+    step_runs: bool = True
+    """Run the velocity steps between two events of the stream (a frame, a measurement due)
+    through the filters' compiled runs, a few calls for all of them, where they apply (one
+    float64 track on CPU, sensor depth); off: step by step. The same trajectory either way
+    (the tests compare the two)."""
+
     def __init__(self, config: TrackerConfig | None = None, *, camera: PinholeCamera,
                  mesh: Any, pose_source: PoseSource | None = None,
                  rgb_camera: PinholeCamera | None = None,
@@ -634,6 +643,7 @@ class Tracker:
         self._backlog_s = 0.0  # processing beyond realtime_load of the stream time, s
         self._load: float | None = None  # smoothed processing / stream time (realtime_load)
         self._last_event_t: int | None = None
+        self._runs_declined = False  # the filters' compiled runs do not apply (_step_run)
         self._pending: list[tuple[int, int, PoseMeasurement | _Miss | _DepthFrame | tuple]] = []
         self._pending_seq = 0
         self._next_pose_slot: int | None = None
@@ -1081,12 +1091,26 @@ class Tracker:
                     st.events_unsearched += int(len(search) - int(search.sum()))
                 res = _StepFlows(self.flow.update(ev, until_us=t_end, search=search), t0, step,
                                  (t_end - t0) // step, self.vkf.twist.dtype, self.device)
+        n_steps = (t_end - t0) // step
         ev_cut = torch.searchsorted(ev.t, t0 + step * torch.arange(
-            1, (t_end - t0) // step + 1, dtype=torch.int64)).tolist() if len(ev) else None
-        for k in range((t_end - t0) // step):
+            1, n_steps + 1, dtype=torch.int64)).tolist() if len(ev) else None
+        runs = (res is not None and pose is not None and poly is not None and self.step_runs
+                and not self._runs_declined and isinstance(self.depth, SensorDepth)
+                and self.timeline.twist_driven)
+        k = 0
+        while k < n_steps:
             b = t0 + (k + 1) * step
             if k:
                 self._frames_due(b)
+            if runs and self.initialized:
+                end = self._quiet_end(t0, k, n_steps)
+                if end - k >= _MIN_RUN_STEPS:
+                    done = self._step_run(t0, k, end, res, poly, pose)
+                    if done is None:  # the filters' compiled paths do not apply
+                        self._runs_declined, runs = True, False
+                    elif done > k:
+                        k = done
+                        continue
             usable = pose is None or self.initialized  # lost inside the group: predict only
             dt = step * 1e-6
             twist: Tensor | None = None
@@ -1115,6 +1139,87 @@ class Tracker:
             st.steps += 1
             self._check_view(b)
             self._record(b)
+            k += 1
+
+    def _quiet_end(self, t0: int, k: int, n_steps: int) -> int:
+        """The end (exclusive) of the steps from ``k`` of the group starting at ``t0`` that
+        nothing falls between: no queued frame is due before one of them, no pending
+        measurement is due at its end, and the sensor depth map does not expire at its start
+        (the steps' depths are one lookup)."""
+        step = self.config.velocity_step_us
+        end = n_steps
+        if self._frames:  # frames before b_j are taken at the start of step j > k
+            end = min(end, max(k + 1, (self._frames[0][0] - t0) // step))
+        if self._pending:  # due at b_j = t0 + (j + 1) step when available <= b_j
+            end = min(end, (self._pending[0][0] - t0 - 1) // step)
+        if self.depth.map is not None and self.depth.t_us is not None:
+            # step j reads the map at its start t0 + j step, expired beyond the maximum age
+            age_us = self.config.max_depth_age_ms * 1e3
+            end = min(end, math.floor((self.depth.t_us + age_us - t0) / step) + 1)
+        return end
+
+    def _step_run(self, t0: int, k: int, end: int, flows: _StepFlows,
+                  poly: SilhouettePolygon, pose: np.ndarray) -> int | None:
+        """Steps ``k..end-1`` of the group starting at ``t0`` (see :meth:`_quiet_end`) with the
+        filters' compiled runs (:meth:`VelocityKF.forward_run
+        <evtrack.filters.VelocityKF.forward_run>`, :meth:`PoseTimeline.step_run
+        <evtrack.pose_timeline.PoseTimeline.step_run>`): the same states, outputs and counts as
+        step by step, a few calls instead of a few dozen per step.
+
+        Returns:
+            The next step to do: ``end``, or earlier when the object is lost at a step of the
+            run (the steps after it are left to the step loop) or a velocity update needs the
+            torch path (that step is left to it); ``None``, with nothing done, where the
+            compiled runs do not apply.
+        """
+        cfg = self.config
+        st = self.stats
+        step = cfg.velocity_step_us
+        with _Timer(st.time_s, "velocity"):
+            bounds = flows.bounds[k:end + 1]
+            lo = int(bounds[0])
+            z, missing = self._run_depth(flows, k, end, poly, pose)
+            normal = flows.normal[lo:int(bounds[-1])]
+            twists = self.vkf.forward_run(
+                [step * 1e-6] * (end - k), bounds - lo, torch.from_numpy(flows.uv[lo:bounds[-1]]),
+                torch.from_numpy(z), flows.flow[lo:int(bounds[-1])],
+                normal if cfg.use_flow_normal_flags else None)
+            if twists is None:
+                return None
+            done = k + len(twists)
+            if done == k:
+                return k
+        with _Timer(st.time_s, "pose"):
+            ends = [t0 + (j + 1) * step for j in range(k, done)]
+            states = self.timeline.step_run(ends, twists)
+            if states is not None:
+                t_all, q_all = states[0][:, 0].tolist(), states[1][:, 0].tolist()
+            else:  # the pose filter's compiled run does not apply (sigma points...): per step
+                t_all, q_all = [], []
+                for b, twist in zip(ends, twists, strict=True):
+                    self.timeline.step(b, twist)
+                    t_all.append(self.ukf.t.tolist()[0])
+                    q_all.append(self.ukf.q.tolist()[0])
+            twist_rows = twists[:, 0].numpy()
+            for n, b in enumerate(ends):
+                rows = int(bounds[n + 1] - bounds[n])
+                if rows:
+                    st.roi_flows += rows
+                    st.velocity_updates += 1
+                self._t = b
+                st.steps += 1
+                lost = self._check_view(b, t_all[n], q_all[n])
+                if lost:
+                    st.depth_fallbacks += int(missing[:int(bounds[n + 1]) - lo].sum())
+                    self._record(b)
+                    return k + n + 1
+                self._held = None
+                self._out_t.append(b)
+                self._out_tq.append(np.array(t_all[n] + q_all[n], np.float64))
+                self._out_twist.append(twist_rows[n].copy())
+                self._out_status.append(STATUS_TRACKING)
+            st.depth_fallbacks += int(missing[:int(bounds[len(ends)]) - lo].sum())
+        return done
 
     def _in_burst(self, t: np.ndarray, on_object: np.ndarray, poly: SilhouettePolygon, t0: int,
                   t_end: int) -> np.ndarray:
@@ -1312,19 +1417,32 @@ class Tracker:
 
     def _step_depth(self, flows: _StepFlows, k: int, poly: SilhouettePolygon,
                     pose: np.ndarray) -> np.ndarray:
-        """:meth:`_roi_depth` of step ``k``'s RoIs (sensor depth), with one lookup for the
-        rows of every remaining step of the group while the depth map stays the same (the
-        group's silhouette and pose are fixed; a new or expired map starts a new lookup), so
-        the same depths as step by step at a fraction of the per-call cost."""
+        """:meth:`_roi_depth` of step ``k``'s RoIs (sensor depth), from :meth:`_run_depth`."""
+        z, missing = self._run_depth(flows, k, k + 1, poly, pose)
+        self.stats.depth_fallbacks += int(missing.sum())
+        return z
+
+    def _run_depth(self, flows: _StepFlows, k: int, end: int, poly: SilhouettePolygon,
+                   pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The sensor depths (m) of the RoIs of steps ``k..end-1`` (the map read at step
+        ``k``'s start), the missing ones replaced by the fallback (not counted), and which
+        were missing. One lookup serves the rows of every remaining step of the group while
+        the depth map stays the same (the group's silhouette and pose are fixed; a new or
+        expired map starts a new lookup): the same depths as step by step at a fraction of
+        the per-call cost."""
         self._expire_sensor_depth(self._t)
-        lo, hi = int(flows.bounds[k]), int(flows.bounds[k + 1])
+        lo, hi = int(flows.bounds[k]), int(flows.bounds[end])
         cache = flows.depth_cache
         if cache is None or cache[0] is not self.depth.map:
             z_lo, z_hi = poly.z_range
             cache = (self.depth.map, lo, self.depth.lookup(
                 flows.uv[lo:], (z_lo - _DEPTH_TOLERANCE_M, z_hi + _DEPTH_TOLERANCE_M)))
             flows.depth_cache = cache
-        return self._with_fallback(cache[2][lo - cache[1]:hi - cache[1]].copy(), pose)
+        z = cache[2][lo - cache[1]:hi - cache[1]].copy()
+        missing = ~np.isfinite(z)
+        if missing.any():
+            z[missing] = self._fallback_depth(pose)
+        return z, missing
 
     def _with_fallback(self, z: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """``z`` (N,) metres with its missing depths (NaN) replaced by the fallback (the
@@ -1572,24 +1690,32 @@ class Tracker:
                 self.stats.twists_replayed += 1
 
     # ------------------------------------------------------------------ loss and output
-    def _check_view(self, t1: int) -> None:
+    def _check_view(self, t1: int, t: list[float] | None = None,
+                    q: list[float] | None = None) -> bool:
+        """Count the step ending at ``t1`` out of view, or not, at the pose ``t`` (3,), ``q``
+        (4,) (default: the pose filter's); lose the object after ``lost_after_ms`` out of
+        view. Returns whether it was lost here."""
         if not self.initialized:
-            return
-        ukf = self.ukf
-        if self.silhouette.box_in_image(ukf.t.tolist()[0], ukf.q.tolist()[0]):
+            return False
+        if t is None or q is None:
+            t, q = self.ukf.t.tolist()[0], self.ukf.q.tolist()[0]
+        if self.silhouette.box_in_image(t, q):
             visible = 1.0  # the whole silhouette in view (the common case: no polygon)
         else:
-            visible = self.silhouette.visible_fraction(self._current_pose())
+            visible = self.silhouette.visible_fraction(_quat_to_matrix(t, q))
         if visible >= self.config.min_visible_fraction:
             self._out_of_view_us = 0
-            return
+            return False
         self._out_of_view_us += self.config.velocity_step_us
         if self._out_of_view_us >= self.config.lost_after_ms * 1e3:
-            self._lose(t1)
+            self._lose(t1, _quat_to_matrix(t, q))
+            return True
+        return False
 
-    def _lose(self, t_now: int) -> None:
-        """The object is lost: hold the last pose, forget the filters' states."""
-        self._held = self._current_pose()
+    def _lose(self, t_now: int, held: np.ndarray | None = None) -> None:
+        """The object is lost: hold the last pose (``held``, default the pose filter's),
+        forget the filters' states."""
+        self._held = self._current_pose() if held is None else held
         self._ever_lost = True
         self.stats.lost += 1
         self._out_of_view_us = 0

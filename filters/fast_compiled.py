@@ -19,6 +19,13 @@ The pose predict (:func:`pose_predict`) is the closed-form unscented predict of
 SE(3) algebra of :mod:`scalar_lie` compiled into it: ~7 µs per call against ~30 µs for the
 NumPy form (the filter's whole ``predict`` call: 114 -> 36 µs).
 
+A tracker between two RGB frames runs tens of velocity steps whose inputs are all known in
+advance: :func:`velocity_run` does them in one call (the decaying predict and the update of
+each step, in order, stopping before a step whose matrix is not positive definite), so the
+~50 µs of per-call checks and conversions are paid once per run, not per step;
+:func:`pose_predict_run` does the same for the pose predicts. Their results equal the
+step-by-step calls bit for bit (``tests/filters/test_fast_path.py``).
+
 The first use compiles the kernels (10-15 s); numba caches them on disk (``__pycache__`` beside
 this file, or ``NUMBA_CACHE_DIR``), so later processes load it in a fraction of a second.
 
@@ -36,7 +43,7 @@ from evtrack.filters.scalar_lie import normalized, quat_mul, quat_rotate, rotati
 from evtrack.jit import available as _numba_available
 from evtrack.jit import njit as _njit
 
-__all__ = ["available", "pose_predict", "pose_predict_run", "velocity_update"]
+__all__ = ["available", "pose_predict", "pose_predict_run", "velocity_update", "velocity_run"]
 
 _TINY = float(np.finfo(np.float64).tiny)
 _NOT_PD = -1  # status of a factorisation that met a non-positive pivot
@@ -290,6 +297,89 @@ def velocity_update(
     if skipped_depth < 0:
         raise np.linalg.LinAlgError("a 6x6 information matrix is not positive definite")
     return post_twist, post_cov, skipped_depth, skipped_flow
+
+
+@_njit
+def _velocity_run_kernel(normal_flow, weighting, reference_previous, passes, fixed_scale,
+                         flow_info, scale, scale_min, floor, fx, fy, cx, cy, log_rate, q_matrix,
+                         twist, cov, reference, dts, bounds, uv, depth, flow, normal):
+    """``n = len(dts)`` steps of predict then update (rows ``bounds[k]:bounds[k+1]``; a step
+    without rows only predicts), stopping before a step whose update meets a matrix that is
+    not positive definite. Returns the number of steps done and, per step, the twist (n,6),
+    covariance (n,6,6), reference (n,6) and skipped (depth, flow) counts (n,2)."""
+    n = dts.shape[0]
+    twists = np.empty((n, 6))
+    covs = np.empty((n, 6, 6))
+    refs = np.empty((n, 6))
+    skipped = np.zeros((n, 2), np.int64)
+    ones = np.ones(uv.shape[0], np.bool_)
+    for k in range(n):
+        decay = math.exp(dts[k] * log_rate)  # as fast_path.velocity_predict
+        twist = twist * decay
+        cov = cov * (decay * decay) + dts[k] * q_matrix
+        lo, hi = bounds[k], bounds[k + 1]
+        if hi > lo:
+            post_twist, post_cov, skipped_depth, skipped_flow = _update_kernel(
+                normal_flow, weighting, reference_previous, passes, fixed_scale, flow_info,
+                scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference, uv[lo:hi],
+                depth[lo:hi], flow[lo:hi], normal[lo:hi], ones[lo:hi])
+            if skipped_depth < 0:
+                return k, twists, covs, refs, skipped
+            twist, cov, reference = post_twist, post_cov, post_twist
+            skipped[k, 0] = skipped_depth
+            skipped[k, 1] = skipped_flow
+        twists[k] = twist
+        covs[k] = cov
+        refs[k] = reference
+    return n, twists, covs, refs, skipped
+
+
+def velocity_run(
+    cfg: VelocityKFConfig,
+    consts: list[float],
+    focal: np.ndarray,
+    principal: np.ndarray,
+    q_matrix: np.ndarray,
+    twist: np.ndarray,
+    cov: np.ndarray,
+    reference: np.ndarray,
+    dts: np.ndarray,
+    bounds: np.ndarray,
+    uv: np.ndarray,
+    depth: np.ndarray,
+    flow: np.ndarray,
+    normal_only: np.ndarray | None,
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` steps of :func:`evtrack.filters.fast_path.velocity_predict` then
+    :func:`velocity_update` in one call, with the same arithmetic.
+
+    Args:
+        cfg, consts, focal, principal: as for :func:`velocity_update`. q_matrix: (6,6)
+            process-noise density. twist (6,), cov (6,6), reference (6,): the state before the
+            first step. dts: (n,) seconds. bounds: (n+1,) non-decreasing row offsets; step
+            ``k`` updates with rows ``bounds[k]:bounds[k+1]`` (none: predict only).
+        uv (N,2) px, depth (N,) m, flow (N,2) px/s, normal_only (N,) bool or ``None``
+            (``cfg.assume_normal`` everywhere).
+
+    Returns:
+        ``(done, twists (n,6), covs (n,6,6), references (n,6), skipped (n,2))``: the states
+        after each of the first ``done`` steps; ``done < n`` when the update of step ``done``
+        met a 6x6 matrix that is not positive definite (nothing of it is kept).
+    """
+    _, flow_info, scale, scale_min, floor = consts
+    f64 = np.float64
+    N = depth.shape[0]
+    normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
+    return _velocity_run_kernel(
+        bool(cfg.normal_flow), bool(cfg.weighting), cfg.weighting_reference == "previous",
+        int(cfg.weighting_iterations), cfg.laplace_scale is not None, float(flow_info),
+        float(scale), float(scale_min), float(floor), float(focal[0]), float(focal[1]),
+        float(principal[0]), float(principal[1]), float(consts[0]),
+        np.ascontiguousarray(q_matrix, f64), np.ascontiguousarray(twist, f64),
+        np.ascontiguousarray(cov, f64), np.ascontiguousarray(reference, f64),
+        np.ascontiguousarray(dts, f64).reshape(-1), np.ascontiguousarray(bounds, np.int64),
+        np.ascontiguousarray(uv, f64).reshape(-1, 2), np.ascontiguousarray(depth, f64),
+        np.ascontiguousarray(flow, f64).reshape(-1, 2), np.ascontiguousarray(normal, np.bool_))
 
 
 @_njit

@@ -38,6 +38,7 @@ counted in ``skipped_flow``. Skipped values never reach the arithmetic.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -45,6 +46,7 @@ import torch
 from torch import Tensor, nn
 
 from evtrack.camera import PinholeCamera
+from evtrack.filters import fast_compiled as _compiled
 from evtrack.filters import fast_path as fp
 from evtrack.filters.compiled import CompilableSteps
 from evtrack.filters.config import VelocityKFConfig
@@ -280,6 +282,81 @@ class VelocityKF(CompilableSteps, nn.Module):
                 return self._update_torch(uv, depth, flow, normal_only, mask)
         self.predict(dt)
         return self.update(uv, depth, flow, normal_only, mask)
+
+    def forward_run(
+        self,
+        dts: Sequence[float],
+        bounds: Sequence[int],
+        uv: Tensor,
+        depth: Tensor,
+        flow: Tensor,
+        normal_only: Tensor | None = None,
+    ) -> Tensor | None:
+        """``len(dts)`` calls of :meth:`forward` in one compiled call, with the same
+        arithmetic: step ``k`` predicts over ``dts[k]`` s and updates with the rows
+        ``bounds[k]:bounds[k+1]`` of the RoIs (a step without rows only predicts, as
+        :meth:`predict`). For a tracker's group of velocity steps, where one call per step
+        costs more than its arithmetic.
+
+        Args:
+            dts: (n,) seconds. bounds: (n+1,) non-decreasing row offsets into the RoIs.
+            uv: (N,2) RoI pixel coordinates; depth: (N,) m; flow: (N,2) px/s;
+                normal_only: (N,) bool or ``None`` (``config.assume_normal``): the rows of
+                all the steps, as :meth:`update` takes one step's (without the batch).
+
+        Returns:
+            The twist after each step done, (m,1,6) with ``m <= n``; the filter holds the
+            state after step ``m - 1``. ``m < n`` when the update of step ``m`` meets a
+            matrix that is not positive definite: nothing of that step is done, and it is
+            left to :meth:`forward` (whose torch path reports it). ``None``, with the filter
+            unchanged, when :meth:`forward` would not take the compiled single-track path
+            (a batch, CUDA, float32, gradients, a distorted camera, no numba...): then call
+            :meth:`forward` per step.
+        """
+        n = len(dts)
+        if len(bounds) != n + 1:
+            raise ValueError(f"forward_run: {n} steps need {n + 1} row bounds, got {len(bounds)}")
+        N = depth.shape[0] if isinstance(depth, Tensor) and depth.ndim == 1 else -1
+        if N < 0 or uv.shape != (N, 2) or flow.shape != (N, 2) or (
+                normal_only is not None and (normal_only.shape != (N,)
+                                             or normal_only.dtype is not torch.bool)):
+            raise ValueError(
+                "forward_run: uv (N,2), depth (N,), flow (N,2) and normal_only (N,) bool, got "
+                f"{tuple(uv.shape)}, {tuple(getattr(depth, 'shape', ()))}, {tuple(flow.shape)}"
+                f", {None if normal_only is None else tuple(normal_only.shape)}")
+        b = np.asarray(bounds, dtype=np.int64)
+        if n and (b[0] < 0 or b[-1] > N or (np.diff(b) < 0).any()):
+            raise ValueError(f"forward_run: row bounds must rise within [0, {N}], got {b}")
+        if not (n and fp.COMPILED and _compiled.available() and self.camera.dist is None
+                and self._fast((uv, depth, flow, normal_only, *(float(dt) for dt in dts)))):
+            return None
+        buf = self._buffers
+        done, twists, covs, refs, skipped = _compiled.velocity_run(
+            self.config,
+            buf["consts"].tolist(),
+            buf["focal"].numpy(),
+            buf["principal"].numpy(),
+            buf["q_matrix"].numpy(),
+            buf["twist"].numpy()[0],
+            buf["cov"].numpy()[0],
+            buf["reference"].numpy()[0],
+            np.array([float(dt) for dt in dts], dtype=np.float64),
+            b,
+            fp.as_array(uv),
+            fp.as_array(depth),
+            fp.as_array(flow),
+            None if normal_only is None else fp.as_bool_array(normal_only),
+        )
+        if done:
+            last = done - 1
+            buf.update(twist=torch.from_numpy(twists[last:done].copy()),
+                       cov=torch.from_numpy(covs[last:done].copy()),
+                       reference=torch.from_numpy(refs[last:done].copy()))
+            skipped_depth, skipped_flow = (int(v) for v in skipped[:done].sum(0))
+            if skipped_depth or skipped_flow:
+                buf.update(skipped_depth=buf["skipped_depth"] + skipped_depth,
+                           skipped_flow=buf["skipped_flow"] + skipped_flow)
+        return torch.from_numpy(twists[:done]).unsqueeze(1)
 
     # ------------------------------------------------------------------ fast path (B = 1)
     # Buffers are read from and written to ``_buffers`` directly: nn.Module's attribute

@@ -347,3 +347,85 @@ def test_pose_state_stays_unit_and_symmetric_on_the_fast_path() -> None:
     assert abs(float(ukf.q.norm()) - 1) < 1e-12
     assert torch.equal(ukf.cov, ukf.cov.transpose(-1, -2))
     assert torch.linalg.eigvalsh(ukf.cov).min() > 0
+
+
+# ---------------------------------------------------------------------------- forward_run
+def _run_rows(g: torch.Generator, sizes: list[int]) -> tuple[torch.Tensor, ...]:
+    """The rows of steps of ``sizes`` RoIs each, one after the other (bad RoIs included)."""
+    parts = [_flows(g, max(n, 10), "mixed+bad") for n in sizes]
+    uv, depth, flow, normal = (torch.cat([p[i][0, :n] for p, n in zip(parts, sizes, strict=True)])
+                               for i in range(4))
+    return uv, depth, flow, normal
+
+
+@pytest.mark.parametrize(
+    "cfg", [c[1] for c in VELOCITY_CASES], ids=[c[0] for c in VELOCITY_CASES]
+)
+@pytest.mark.parametrize("flags", [True, False], ids=["normal flags", "assumed"])
+def test_forward_run_equals_forward_calls_bit_for_bit(cfg: VelocityKFConfig, flags: bool) -> None:
+    """``forward_run`` equals ``forward`` per step (``predict`` for a step without rows):
+    every step's twist, the final twist, covariance, reference and skip counters, exactly;
+    with a pivot's process noise and uneven steps."""
+    if not fp._compiled.available():
+        pytest.skip("numba is not installed")
+    g = torch.Generator().manual_seed(11)
+    sizes = [16, 0, 1, 30, 3, 0, 0, 12, 9, 25]
+    dts = [1e-3, 1e-3, 2.5e-4, 1e-3, 3e-3, 1e-3, 1e-6, 1e-3, 7e-4, 1e-3]
+    uv, depth, flow, normal = _run_rows(g, sizes)
+    bounds = [0, *torch.tensor(sizes).cumsum(0).tolist()]
+    run, ref = VelocityKF(CAM, 1, cfg), VelocityKF(CAM, 1, cfg)
+    for kf in (run, ref):
+        kf.set_pivot(torch.tensor([0.05, -0.02, 0.7], dtype=F64))
+        kf(1e-3, *(x[None, :8] for x in (uv, depth, flow)), normal[None, :8])  # a history
+    twists = run.forward_run(dts, bounds, uv, depth, flow, normal if flags else None)
+    assert twists is not None and twists.shape == (len(dts), 1, 6)
+    for k, dt in enumerate(dts):
+        lo, hi = bounds[k], bounds[k + 1]
+        if hi == lo:
+            want = ref.predict(dt)
+        else:
+            want = ref(dt, uv[None, lo:hi], depth[None, lo:hi], flow[None, lo:hi],
+                       normal[None, lo:hi] if flags else None)
+        assert torch.equal(twists[k], want), k
+    for name in ("twist", "cov", "reference", "skipped_depth", "skipped_flow"):
+        assert torch.equal(getattr(run, name), getattr(ref, name)), name
+    assert int(run.skipped_depth) > 0 and int(run.skipped_flow) > 0  # the bad RoIs counted
+
+
+def test_forward_run_stops_before_a_step_it_cannot_do() -> None:
+    """An update whose prior is not positive definite: the run stops before it, holding the
+    state after the steps before; ``forward`` on that step then goes through torch."""
+    if not fp._compiled.available():
+        pytest.skip("numba is not installed")
+    g = torch.Generator().manual_seed(12)
+    uv, depth, flow, normal = _run_rows(g, [0, 0, 6])
+    kf, ref = VelocityKF(CAM, 1), VelocityKF(CAM, 1)
+    for f in (kf, ref):
+        f.reset(cov=-1e6 * torch.eye(6, dtype=F64)[None])
+    twists = kf.forward_run([1e-3, 1e-3, 1e-3], [0, 0, 0, 6], uv, depth, flow, normal)
+    assert twists is not None and twists.shape == (2, 1, 6)
+    ref.predict(1e-3)
+    ref.predict(1e-3)
+    assert torch.equal(kf.cov, ref.cov) and torch.equal(kf.twist, ref.twist)
+
+
+def test_forward_run_declines_where_forward_is_not_compiled_and_checks_inputs() -> None:
+    g = torch.Generator().manual_seed(13)
+    uv, depth, flow, normal = _run_rows(g, [5, 5])
+    args = ([1e-3, 1e-3], [0, 5, 10], uv, depth, flow, normal)
+    for kf in (VelocityKF(CAM, 2), VelocityKF(CAM, 1).to(torch.float32),
+               VelocityKF(CAM, 1, fast_path=False),
+               VelocityKF(PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480,
+                                        dist=[0.1, 0.0, 0.0, 0.0, 0.0]), 1)):
+        before = kf.twist.clone(), kf.cov.clone()
+        assert kf.forward_run(*args) is None
+        assert torch.equal(kf.twist, before[0]) and torch.equal(kf.cov, before[1])
+    kf = VelocityKF(CAM, 1)
+    with pytest.raises(ValueError, match="need 3 row bounds"):
+        kf.forward_run([1e-3, 1e-3], [0, 10], uv, depth, flow)
+    with pytest.raises(ValueError, match="must rise"):
+        kf.forward_run([1e-3, 1e-3], [0, 6, 5], uv, depth, flow)
+    with pytest.raises(ValueError, match="must rise"):
+        kf.forward_run([1e-3, 1e-3], [0, 5, 11], uv, depth, flow)
+    with pytest.raises(ValueError, match=r"uv \(N,2\)"):
+        kf.forward_run([1e-3], [0, 5], uv[None], depth, flow)

@@ -336,3 +336,58 @@ def test_predict_run_equals_predict_calls_and_declines_batches() -> None:
     assert single.predict_run([torch.zeros(1, 6)], [1e-3]) is None
     with pytest.raises(ValueError, match="2 twists but 1 time steps"):
         run.predict_run(list(twists[:2]), [1e-3])
+
+
+def test_step_run_equals_steps_bit_for_bit_and_late_poses_replay_the_same() -> None:
+    """``step_run`` (one compiled predict for a run of steps) keeps the same times, twists and
+    snapshots as ``step`` per step, so a late pose then replays to the same state; the past
+    beyond the horizon is trimmed the same."""
+    n = 90
+    twists = _twists(n)
+    lines = []
+    for runs in (True, False):
+        filt = PoseUKF(1, dtype=torch.float64)
+        _start(filt)
+        line = PoseTimeline(filt, horizon_us=40_000)
+        k = 0
+        for size in [1, 10, 3, 7, 10, 10, 2, 10, 10, 10, 10, 7]:  # uneven runs, 90 steps
+            ends = [(j + 1) * STEP + 250 * (j % 3 == 1) for j in range(k, k + size)]
+            if runs and size > 1:
+                assert line.step_run(ends, twists[k:k + size]) is not None
+            else:
+                for j, t_end in enumerate(ends):
+                    line.step(t_end, twists[k + j])
+            k += size
+        assert k == n
+        cov = torch.eye(6, dtype=torch.float64)[None] * 1e-3
+        line.add(n * STEP - 23_400, "pose", _meas(3), cov)
+        lines.append(line)
+    fast, slow = lines
+    assert list(fast._times) == list(slow._times)
+    for name in fast.names:
+        assert torch.equal(getattr(fast.filter, name), getattr(slow.filter, name)), name
+    for a, b in zip(fast._twists, slow._twists, strict=True):
+        assert (a is None and b is None) or torch.equal(a, b)
+    for snap_a, snap_b in zip(fast._snaps, slow._snaps, strict=True):
+        for x, y in zip(snap_a, snap_b, strict=True):
+            assert torch.equal(x, y)
+
+
+def test_step_run_declines_where_not_compiled_and_checks_its_times() -> None:
+    twists = _twists(3)
+    line = PoseTimeline(PoseTwistUKF(1, dtype=torch.float64), 10_000)
+    assert line.step_run([1000, 2000, 3000], twists) is None  # constant-velocity filter
+    single = PoseUKF(1, dtype=torch.float32)
+    _start(single)
+    line = PoseTimeline(single, 10_000)
+    assert line.step_run([1000, 2000, 3000], twists.float()) is None
+    assert line.now == 0 and len(line._snaps) == 1
+    filt = PoseUKF(1, dtype=torch.float64)
+    _start(filt)
+    line = PoseTimeline(filt, 10_000)
+    with pytest.raises(ValueError, match="must rise"):
+        line.step_run([1000, 1000, 3000], twists)
+    with pytest.raises(ValueError, match="must rise"):
+        line.step_run([0, 1000, 2000], twists)
+    with pytest.raises(ValueError, match="3 times but 2 twists"):
+        line.step_run([1000, 2000, 3000], twists[:2])

@@ -893,3 +893,66 @@ def test_a_pose_off_in_range_is_moved_onto_the_depth(rest_sequence, align) -> No
     aligner = tracker.pose_aligner or Tracker.for_sequence(seq, TrackerConfig()).pose_aligner
     res = aligner.align(seq.depth(len(seq.depth_times_us) - 5), exact.pose)
     assert res.ok and abs(res.shift) < 0.005
+
+
+# ---------------------------------------------------------------------------- step runs
+def _same_runs(make, feed) -> tuple[Tracker, list[tuple[int, bool]]]:
+    """Track with the filters' compiled step runs and step by step (``Tracker.step_runs``):
+    the trajectories must be equal bit for bit and every counter the same. Returns the run
+    tracker and its view checks made inside runs (step end, lost)."""
+    results = []
+    inside: list[tuple[int, bool]] = []
+    original = Tracker._check_view
+
+    def watched(self, t1, t=None, q=None):
+        lost = original(self, t1, t, q)
+        if t is not None:
+            inside.append((t1, lost))
+        return lost
+
+    for runs in (True, False):
+        tracker = make()
+        tracker.step_runs = runs
+        tracker._check_view = watched.__get__(tracker)
+        results.append((feed(tracker), tracker))
+    (fast, fast_tracker), (slow, slow_tracker) = results
+    assert torch.equal(fast.t_us, slow.t_us) and torch.equal(fast.status, slow.status)
+    assert torch.equal(fast.poses.nan_to_num(7.0), slow.poses.nan_to_num(7.0))
+    assert torch.equal(fast.twists, slow.twists)
+    fast_stats, slow_stats = fast_tracker.stats.to_dict(), slow_tracker.stats.to_dict()
+    fast_stats.pop("time_s"), slow_stats.pop("time_s")
+    assert fast_stats == slow_stats
+    return fast_tracker, inside
+
+
+def test_step_runs_equal_steps_with_dropped_frames_in_chunks(fast_sequence) -> None:
+    """Streamed in random chunks, with RGB-D frames dropped (depth maps that expire, and
+    arrive, inside a step group): the compiled runs give the per-step trajectory exactly."""
+    seq = fast_sequence
+    times = seq.rgb_times_us.numpy()
+    dropped = ((times >= 150_000) & (times < 400_000)) | (
+        np.random.default_rng(1).random(len(times)) < 0.5)
+    tracker, inside = _same_runs(
+        lambda: make_tracker(seq, method="full")[0],
+        lambda tr: stream(tr, seq, np.random.default_rng(5), keep_frame=lambda i: not dropped[i]))
+    assert tracker.stats.depth_fallbacks > 0
+    assert len(inside) > 0.5 * tracker.stats.steps  # most steps went through runs
+
+
+def test_step_runs_equal_steps_when_the_object_leaves_the_view(exit_sequence, box) -> None:
+    """The object leaves the image and is lost by its predicted silhouette (no misses
+    counted; lost once 5% of it has been out of the image for 5 ms): the loss falls inside a
+    run, whose later steps are then done step by step, with the same trajectory as step by
+    step throughout."""
+    seq = exit_sequence
+
+    def make() -> Tracker:
+        oracle = OraclePoseSource.from_sequence(seq, seed=0, **ORACLE_NOISE)
+        source = VisibleOnlySource(oracle, np.asarray(box.vertices), seq.meta.event_camera, 0.3)
+        cfg = TrackerConfig.from_dict({**TEST_TRACKER, "lost_after_misses": 0,
+                                       "min_visible_fraction": 0.95, "lost_after_ms": 5.0})
+        return Tracker.for_sequence(seq, cfg, source)
+
+    tracker, inside = _same_runs(make, lambda tr: tr.track(seq))
+    assert tracker.stats.lost >= 1
+    assert any(lost for _, lost in inside)  # lost at a step of a run
