@@ -90,6 +90,13 @@ class PoseTimeline:
         """Time of the current state (µs)."""
         return self._times[-1]
 
+    def step_ends(self, t_from: int, t_to: int) -> list[int]:
+        """The kept step ends (µs) in ``(t_from, t_to]``, in time order."""
+        times = self._times
+        lo = bisect.bisect_right(times, int(t_from))
+        hi = bisect.bisect_right(times, int(t_to))
+        return [times[i] for i in range(lo, hi)]
+
     def start(self, t_us: int) -> None:
         """Forget the past: the current filter state is the state at ``t_us``."""
         self._times: deque[int] = deque([int(t_us)])

@@ -1346,11 +1346,10 @@ class Tracker:
                  else None)
 
         group_us = cfg.velocity_step_us * cfg.flow_batch_steps
-        at: dict[str, Any] = {"group": None}  # the group's pose and silhouette, as in _group
+        # the group's pose and silhouette, as in _group, and its steps' new twists by step end
+        at: dict[str, Any] = {"group": None, "twists": {}}
 
         def twist_of(t_start: int, t_end: int) -> Tensor:
-            dt = (t_end - t_start) * 1e-6
-            step = kept.get(t_end)
             if at["group"] != t_start // group_us:
                 pose = self._current_pose()
                 poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
@@ -1358,19 +1357,20 @@ class Tracker:
                 if cfg.velocity_kf.object_centred:
                     self.vkf.set_pivot(None if poly is None else
                                        torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
-            pose, poly = at["pose"], at["poly"]
-            if step is None or poly is None or not len(step.uv):
-                return self.vkf.predict(dt)
-            inside = poly.contains(step.uv, cfg.mask_margin_px)
-            if not inside.any():
-                return self.vkf.predict(dt)
-            sel = torch.from_numpy(inside)
-            if saved is not None:
-                self.depth.map, self.depth.t_us = step.depth
-            z = self._roi_depth(step.uv[inside], poly, pose, t_now=t_start)
-            self.stats.steps_remeasured += 1
-            return self._vkf_update(dt, step.uv[inside], z, step.flow[sel.to(step.flow.device)],
-                                    step.normal[sel.to(step.normal.device)])
+                # the group's steps from here on (those starting before the next group's),
+                # all asked in turn: the filter holds a pose
+                group_end = (t_start // group_us + 1) * group_us
+                times = [t_start]
+                for t in self.timeline.step_ends(t_start, self.timeline.now):
+                    if times[-1] >= group_end:
+                        break
+                    times.append(t)
+                at["twists"] = self._remeasure_group(kept, times, poly, pose)
+            twist = at["twists"].pop(t_end, None)
+            if twist is None:
+                raise RuntimeError(f"Tracker._remeasure: step ({t_start}, {t_end}] µs was not "
+                                   "among its group's steps")
+            return twist
 
         if isinstance(self.depth, ModelDepth):
             self.depth.invalidate()  # rendered again at the replayed poses and times
@@ -1382,6 +1382,93 @@ class Tracker:
                 self.depth.map, self.depth.t_us = saved
             elif isinstance(self.depth, ModelDepth):
                 self.depth.invalidate()  # the live steps render at the present pose
+
+    def _remeasure_group(self, kept: dict[int, _UnposedStep], times: list[int],
+                         poly: SilhouettePolygon | None, pose: np.ndarray
+                         ) -> dict[int, Tensor]:
+        """The new twists (1, 6) of the steps ``(times[i], times[i + 1]]`` of one step group
+        of :meth:`_remeasure`, by step end: the kept RoIs inside the group's silhouette, their
+        depths at the group's pose from each step's depth frame, then the velocity filter,
+        by one compiled run where it applies (:meth:`VelocityKF.forward_run
+        <evtrack.filters.VelocityKF.forward_run>`) or step by step: the same twists either
+        way. A step without RoIs inside only predicts."""
+        cfg = self.config
+        n = len(times) - 1
+        dts = [(times[i + 1] - times[i]) * 1e-6 for i in range(n)]
+        steps = [kept.get(t_end) for t_end in times[1:]]
+        if poly is not None:
+            rows = [i for i, step in enumerate(steps) if step is not None and len(step.uv)]
+        else:
+            rows = []
+        empty = np.zeros((0, 2))
+        uv = [empty] * n
+        flow: list[Tensor | None] = [None] * n
+        normal: list[Tensor | None] = [None] * n
+        if rows:  # one silhouette test for the group's RoIs
+            inside = np.split(poly.contains(np.concatenate([steps[i].uv for i in rows]),
+                                            cfg.mask_margin_px),
+                              np.cumsum([len(steps[i].uv) for i in rows])[:-1])
+            for i, keep in zip(rows, inside, strict=True):
+                if keep.any():
+                    step = steps[i]
+                    uv[i] = step.uv[keep]
+                    sel = torch.from_numpy(keep)
+                    flow[i] = step.flow[sel.to(step.flow.device)]
+                    normal[i] = step.normal[sel.to(step.normal.device)]
+        z = self._remeasure_depths(steps, times, uv, poly, pose)
+        measured = [i for i in range(n) if len(uv[i])]
+        self.stats.steps_remeasured += len(measured)
+        twists: list[Tensor] = []
+        if measured and self.step_runs:
+            bounds = np.concatenate([[0], np.cumsum([len(u) for u in uv])])
+            run = self.vkf.forward_run(
+                dts, bounds, torch.from_numpy(np.concatenate(uv)),
+                torch.from_numpy(np.concatenate(z)), torch.cat([flow[i] for i in measured]),
+                torch.cat([normal[i] for i in measured]) if cfg.use_flow_normal_flags else None)
+            if run is not None:
+                twists = list(run.unbind(0))
+        for i in range(len(twists), n):  # step by step (the rest after a failed run)
+            if len(uv[i]):
+                twists.append(self._vkf_update(dts[i], uv[i], z[i], flow[i], normal[i]))
+            else:
+                twists.append(self.vkf.predict(dts[i]))
+        return dict(zip(times[1:], twists, strict=True))
+
+    def _remeasure_depths(self, steps: list[_UnposedStep | None], times: list[int],
+                          uv: list[np.ndarray], poly: SilhouettePolygon | None,
+                          pose: np.ndarray) -> list[np.ndarray]:
+        """The depths (m) of the RoIs ``uv[i]`` of the steps of a :meth:`_remeasure_group`,
+        each read from its own step's sensor depth frame at the step's start (rendered at the
+        group's pose for model depth), missing ones by the fallback (counted): one lookup per
+        run of steps reading the same frame, the same depths as one per step."""
+        z = [np.zeros(0)] * len(uv)
+        measured = [i for i in range(len(uv)) if len(uv[i])]
+        sensor = isinstance(self.depth, SensorDepth)
+        max_age_us = self.config.max_depth_age_ms * 1e3
+
+        def frame(i: int) -> tuple[Any, ...]:
+            if not sensor:
+                return (i,)  # model depth: rendered per step
+            depth_map, t_us = steps[i].depth
+            stale = t_us is not None and times[i] - t_us > max_age_us
+            return (id(depth_map), t_us, stale)
+
+        j = 0
+        while j < len(measured):
+            key = frame(measured[j])
+            end = j + 1
+            while end < len(measured) and frame(measured[end]) == key:
+                end += 1
+            run = measured[j:end]
+            if sensor:
+                self.depth.map, self.depth.t_us = steps[run[0]].depth
+            both = self._roi_depth(np.concatenate([uv[i] for i in run]), poly, pose,
+                                   t_now=times[run[0]])
+            for i, part in zip(run, np.split(both, np.cumsum([len(uv[i]) for i in run])[:-1]),
+                               strict=True):
+                z[i] = part
+            j = end
+        return z
 
     def _pose_explains_events(self, t_pose: int, kept: dict[int, _UnposedStep]) -> bool:
         """Whether at least ``remeasure_min_inside`` of the kept RoI flows (of at least

@@ -391,3 +391,18 @@ def test_step_run_declines_where_not_compiled_and_checks_its_times() -> None:
         line.step_run([0, 1000, 2000], twists)
     with pytest.raises(ValueError, match="3 times but 2 twists"):
         line.step_run([1000, 2000, 3000], twists[:2])
+
+
+def test_step_ends_are_the_kept_step_ends_in_a_half_open_span() -> None:
+    """``step_ends(a, b)``: the kept step ends in (a, b], the ones trimmed off the kept past
+    (5 ms horizon) no longer among them."""
+    filt = PoseUKF(1)
+    _start(filt)
+    line = PoseTimeline(filt, horizon_us=5_000)
+    for k in range(20):
+        line.step((k + 1) * STEP, torch.zeros(1, 6, dtype=torch.float64))
+    assert line.step_ends(17 * STEP, 19 * STEP) == [18 * STEP, 19 * STEP]
+    assert line.step_ends(17 * STEP + 1, 19 * STEP - 1) == [18 * STEP]
+    assert line.step_ends(line.now, line.now + STEP) == []
+    kept = line.step_ends(-1, line.now)
+    assert kept[-1] == line.now and kept[0] >= line.now - 5_000 - STEP and len(kept) < 20

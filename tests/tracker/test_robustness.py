@@ -937,6 +937,23 @@ def test_step_runs_equal_steps_with_dropped_frames_in_chunks(fast_sequence) -> N
         lambda tr: stream(tr, seq, np.random.default_rng(5), keep_frame=lambda i: not dropped[i]))
     assert tracker.stats.depth_fallbacks > 0
     assert len(inside) > 0.5 * tracker.stats.steps  # most steps went through runs
+    assert tracker.stats.steps_remeasured > 50  # the late first pose's steps: runs of a group
+
+
+@pytest.mark.parametrize("depth_source", ["sensor", "model"])
+def test_step_runs_equal_steps_when_a_late_first_pose_measures_again(fast_sequence,
+                                                                     depth_source) -> None:
+    """The first pose (100 ms late) has the steps since its frame measured again, a step
+    group per compiled run (``remeasure_on_pose``), with sensor depth (the frames dropped in
+    that span: depth maps that expire inside a group) and with model depth (no live runs):
+    the same trajectory and counts as step by step."""
+    seq = fast_sequence
+    times = seq.rgb_times_us.numpy()
+    dropped = (times >= 20_000) & (times < 90_000)
+    tracker, _ = _same_runs(
+        lambda: make_tracker(seq, method="full", depth_source=depth_source)[0],
+        lambda tr: stream(tr, seq, np.random.default_rng(2), keep_frame=lambda i: not dropped[i]))
+    assert tracker.stats.steps_remeasured > 50
 
 
 def test_step_runs_equal_steps_when_the_object_leaves_the_view(exit_sequence, box) -> None:
