@@ -27,8 +27,9 @@ Variants, cumulative (each adds one change to the one before):
   (``max_searched_per_step``), the tracker's default;
 * ``runs``: the velocity steps between two events of the stream (a frame, a pose due) in
   the filters' compiled runs (``Tracker.step_runs``: ``VelocityKF.forward_run``,
-  ``PoseTimeline.step_run``), a few calls for ~10 steps instead of a few dozen per step: all
-  eleven changes, the tracker as it ships.
+  ``PoseTimeline.step_run``), a few calls for ~10 steps instead of a few dozen per step, and
+  the steps a late first pose measures again a step group per velocity run: all eleven
+  changes, the tracker as it ships.
 
 The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
