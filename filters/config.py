@@ -49,6 +49,14 @@ class VelocityKFConfig:
             set the estimate (the shrinkage of the posterior is about
             ``(1 − a) / (1 + I·Q·dt)`` for flow information ``I``).
         flow_std: px/s, standard deviation ``σ_F`` of one flow component (``R_F = σ_F²``).
+        normal_flow_std: px/s, the standard deviation of the one row of a RoI flagged
+            normal-only (under ``normal_flow``), or ``None``: ``flow_std`` (the paper: one
+            noise for every row). The tracker's normal-only flows are much more precise than
+            its full flows (``docs/measurement-log.md``, session 31: residual RMS ~19 px/s
+            along their direction against ~140 for full flows), so a smaller value weighs
+            them by what they know. With 15-25 px/s the tracker's rotation error fell by 3-9 %
+            on all four benchmark columns (oracle poses) while its position error rose by up
+            to 9 % on three of them: a trade, so off by default.
         init_std_linear: m/s, initial standard deviation of ``v_o`` (initial mean zero).
         init_std_angular: rad/s, initial standard deviation of ``ω``.
         normal_flow: apply the normal-flow constraint (paper III-B.4) to RoIs flagged normal-only;
@@ -84,6 +92,7 @@ class VelocityKFConfig:
     q_linear: float = 1000.0
     q_angular: float = 10000.0
     flow_std: float = 50.0
+    normal_flow_std: float | None = None
     init_std_linear: float = 1.0
     init_std_angular: float = 3.0
     normal_flow: bool = True
@@ -116,6 +125,8 @@ class VelocityKFConfig:
             _check_positive(self, name, allow_zero=True)
         if self.laplace_scale is not None:
             _check_positive(self, "laplace_scale")
+        if self.normal_flow_std is not None:
+            _check_positive(self, "normal_flow_std")
         if (
             int(self.weighting_iterations) != self.weighting_iterations
             or self.weighting_iterations < 1

@@ -142,8 +142,8 @@ def _laplacian_weights(residual, M, fixed_scale, scale, scale_min, floor, previo
 
 @_njit
 def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_scale, flow_info,
-                   scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference, uv, depth,
-                   flow, normal, mask):
+                   normal_info, scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference,
+                   uv, depth, flow, normal, mask):
     N = depth.shape[0]
     n_mask = 0
     n_depth = 0
@@ -172,6 +172,7 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
     # unit direction e has a = e_u fx, b = e_v fy and the value |F| along, 0 across
     HT = np.empty((6, M))
     zval = np.zeros(M)
+    row_info = np.full(M, flow_info)  # R⁻¹ per row: the normal-only rows' own
     across = n_valid
     for r in range(n_valid):
         i = rows[r]
@@ -187,6 +188,8 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
             ny = 0.0
         zval[r] = mag
         full = not normal_flow or not normal[i]
+        if not full:
+            row_info[r] = normal_info
         for side in range(2 if full else 1):
             if side == 0:  # along n
                 m, a, b = r, nx * fx, ny * fy
@@ -229,16 +232,16 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
             previous[:] = rho
             _laplacian_weights(residual, M, fixed_scale, scale, scale_min, floor, previous,
                                it > 0, rho)
-        # info = Hᵀ W H + P⁻¹ and gain = Hᵀ W ν, with W = R_F⁻¹ ρ
+        # info = Hᵀ W H + P⁻¹ and gain = Hᵀ W ν, with W = R⁻¹ ρ
         for j in range(6):
             g = 0.0
             for m in range(M):
-                g += HT[j, m] * flow_info * rho[m] * innovation[m]
+                g += HT[j, m] * row_info[m] * rho[m] * innovation[m]
             gain[j] = g
             for k in range(j + 1):
                 s = 0.0
                 for m in range(M):
-                    s += HT[j, m] * flow_info * rho[m] * HT[k, m]
+                    s += HT[j, m] * row_info[m] * rho[m] * HT[k, m]
                 info[j, k] = s + prior_info[j, k]
                 info[k, j] = info[j, k]
         if _cholesky(info, L):
@@ -282,13 +285,14 @@ def velocity_update(
     Raises:
         numpy.linalg.LinAlgError: if a 6x6 matrix is not positive definite.
     """
-    _, flow_info, scale, scale_min, floor = consts
+    _, flow_info, scale, scale_min, floor, normal_info = consts
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
     post_twist, post_cov, skipped_depth, skipped_flow = _update_kernel(
         bool(cfg.normal_flow), bool(cfg.weighting), cfg.weighting_reference == "previous",
         int(cfg.weighting_iterations), cfg.laplace_scale is not None, float(flow_info),
-        float(scale), float(scale_min), float(floor), float(focal[0]), float(focal[1]),
+        float(normal_info), float(scale), float(scale_min), float(floor), float(focal[0]),
+        float(focal[1]),
         float(principal[0]), float(principal[1]), np.ascontiguousarray(twist, np.float64),
         np.ascontiguousarray(cov, np.float64), np.ascontiguousarray(reference, np.float64),
         np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(depth, np.float64),
@@ -301,8 +305,9 @@ def velocity_update(
 
 @_njit
 def _velocity_run_kernel(normal_flow, weighting, reference_previous, passes, fixed_scale,
-                         flow_info, scale, scale_min, floor, fx, fy, cx, cy, log_rate, q_matrix,
-                         twist, cov, reference, dts, bounds, uv, depth, flow, normal):
+                         flow_info, normal_info, scale, scale_min, floor, fx, fy, cx, cy,
+                         log_rate, q_matrix, twist, cov, reference, dts, bounds, uv, depth,
+                         flow, normal):
     """``n = len(dts)`` steps of predict then update (rows ``bounds[k]:bounds[k+1]``; a step
     without rows only predicts), stopping before a step whose update meets a matrix that is
     not positive definite. Returns the number of steps done and, per step, the twist (n,6),
@@ -321,7 +326,8 @@ def _velocity_run_kernel(normal_flow, weighting, reference_previous, passes, fix
         if hi > lo:
             post_twist, post_cov, skipped_depth, skipped_flow = _update_kernel(
                 normal_flow, weighting, reference_previous, passes, fixed_scale, flow_info,
-                scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference, uv[lo:hi],
+                normal_info, scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference,
+                uv[lo:hi],
                 depth[lo:hi], flow[lo:hi], normal[lo:hi], ones[lo:hi])
             if skipped_depth < 0:
                 return k, twists, covs, refs, skipped
@@ -366,14 +372,15 @@ def velocity_run(
         after each of the first ``done`` steps; ``done < n`` when the update of step ``done``
         met a 6x6 matrix that is not positive definite (nothing of it is kept).
     """
-    _, flow_info, scale, scale_min, floor = consts
+    _, flow_info, scale, scale_min, floor, normal_info = consts
     f64 = np.float64
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
     return _velocity_run_kernel(
         bool(cfg.normal_flow), bool(cfg.weighting), cfg.weighting_reference == "previous",
         int(cfg.weighting_iterations), cfg.laplace_scale is not None, float(flow_info),
-        float(scale), float(scale_min), float(floor), float(focal[0]), float(focal[1]),
+        float(normal_info), float(scale), float(scale_min), float(floor), float(focal[0]),
+        float(focal[1]),
         float(principal[0]), float(principal[1]), float(consts[0]),
         np.ascontiguousarray(q_matrix, f64), np.ascontiguousarray(twist, f64),
         np.ascontiguousarray(cov, f64), np.ascontiguousarray(reference, f64),

@@ -172,7 +172,8 @@ def velocity_update(
 
     Args:
         cfg: the filter's config. consts: the filter's ``consts`` buffer as floats
-            ``[ln(alpha)/alpha_dt, 1/σ_F², b or 0, b_min, floor]``. focal: (2,) ``[fx, fy]``;
+            ``[ln(alpha)/alpha_dt, 1/σ_F², b or 0, b_min, floor, 1/σ_N²]`` (``σ_N``: the
+            normal-only rows' noise). focal: (2,) ``[fx, fy]``;
             principal: (2,) ``[cx, cy]`` (px).
         twist (6,), cov (6,6): the prior. reference (6,): the last posterior twist.
         uv (N,2) ideal pinhole px, depth (N,) m, flow (N,2) px/s; normal_only (N,) bool or
@@ -188,7 +189,7 @@ def velocity_update(
     if COMPILED and _compiled.available():  # same update, ~10x less time per call
         return _compiled.velocity_update(cfg, consts, focal, principal, twist, cov, reference,
                                          uv, depth, flow, normal_only, mask)
-    _, flow_info, scale, scale_min, floor = consts
+    _, flow_info, scale, scale_min, floor, normal_info = consts
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
     uv_flat, flow_flat = uv.reshape(-1), flow.reshape(-1)
@@ -267,7 +268,13 @@ def velocity_update(
     passes = cfg.weighting_iterations if cfg.weighting else 1
     rho: np.ndarray | None = None
     post_twist, post_cov = twist, cov
-    HTf = HT * flow_info  # Hᵀ R_F⁻¹
+    if cfg.normal_flow and cfg.normal_flow_std is not None:
+        # the along rows (the first n_valid) of normal-only RoIs have their own noise
+        row_info = np.full(z.shape[0], flow_info)
+        row_info[:n_valid][normal] = normal_info
+        HTf = HT * row_info  # Hᵀ R⁻¹
+    else:
+        HTf = HT * flow_info  # Hᵀ R_F⁻¹
     for i in range(passes):
         if cfg.weighting:
             rho = laplacian_weights(

@@ -80,7 +80,7 @@ class VelocityKF(CompilableSteps, nn.Module):
     cumulative counts ``skipped_depth`` and ``skipped_flow`` (B,); constants ``focal``
     ``[fx, fy]``, ``principal`` ``[cx, cy]``, ``q_density`` (6,) and
     ``q_matrix`` (its 6x6 diagonal),
-    ``init_var`` (6,) and ``consts`` (5,).
+    ``init_var`` (6,) and ``consts`` (6,).
 
     Example:
         >>> cam = PinholeCamera(500.0, 500.0, 320.0, 240.0, 640, 480)
@@ -137,13 +137,16 @@ class VelocityKF(CompilableSteps, nn.Module):
         ):
             self.register_buffer(name, torch.zeros(shape, dtype=dt, device=device))
         # Scalars as tensors of the filter's dtype: an exported graph would store Python floats
-        # as float32 constants. [ln(alpha)/alpha_dt (1/s), 1/R_F ((px/s)⁻²), b or 0, b_min, floor]
+        # as float32 constants. [ln(alpha)/alpha_dt (1/s), 1/R_F ((px/s)⁻²), b or 0, b_min, floor,
+        # 1/R of a normal-only row ((px/s)⁻²)]
+        normal_std = cfg.flow_std if cfg.normal_flow_std is None else cfg.normal_flow_std
         consts = [
             math.log(cfg.alpha) / cfg.alpha_dt,
             1.0 / cfg.flow_std**2,
             cfg.laplace_scale or 0.0,
             cfg.laplace_scale_min,
             cfg.weight_floor,
+            1.0 / normal_std**2,
         ]
         self.register_buffer("consts", torch.tensor(consts, **kw))
         self.reset(batch_size)
@@ -475,7 +478,11 @@ class VelocityKF(CompilableSteps, nn.Module):
             # digits to the conditioning in float32; in float64 they cost nothing extra.
             H, z, twist, cov, reference = (x.double() for x in (H, z, twist, cov, reference))
         consts = self.consts if out_dtype == torch.float64 else self.consts.double()
-        _, flow_info, scale, scale_min, floor = consts.unbind()
+        _, flow_info, scale, scale_min, floor, normal_info = consts.unbind()
+        if cfg.normal_flow and cfg.normal_flow_std is not None:
+            # the along row of a normal-only RoI has its own noise; the across rows R_F
+            along_normal = torch.stack([normal_only, torch.zeros_like(normal_only)], dim=-1)
+            flow_info = torch.where(along_normal.reshape(z.shape), normal_info, flow_info)
         HT = H.transpose(-1, -2)
         innovation = z - (H @ twist.unsqueeze(-1)).squeeze(-1)  # (B, 2N)
         innovation_col = innovation.unsqueeze(-1)

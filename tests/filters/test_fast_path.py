@@ -125,6 +125,7 @@ VELOCITY_CASES = [
         False,
     ),
     ("fixed scale", VelocityKFConfig(laplace_scale=20.0), "mixed+bad", False),
+    ("normal rows' own noise", VelocityKFConfig(normal_flow_std=15.0), "mixed+bad", True),
 ]
 
 

@@ -38,6 +38,7 @@ def test_partial_yaml_and_types(tmp_path: Path) -> None:
     [
         ("velocity_kf:\n  alpha: 1.5\n", "alpha"),
         ("velocity_kf:\n  flow_std: -1\n", "flow_std"),
+        ("velocity_kf:\n  normal_flow_std: 0\n", "normal_flow_std"),
         ("velocity_kf:\n  normal_flow: 1\n", "normal_flow"),
         ("velocity_kf:\n  weighting_reference: median\n", "weighting_reference"),
         ("velocity_kf:\n  weighting_iterations: 1.5\n", "weighting_iterations"),

@@ -83,10 +83,13 @@ def test_equals_filterpy_kalman_filter_over_1000_steps() -> None:
     assert int(kf.skipped_depth[0]) == len(range(0, steps, 7))
 
 
-def test_weighted_update_is_a_kalman_update_with_inflated_noise() -> None:
-    # The information form with weights equals a covariance-form update with R_j = R_F / ρ_j.
+@pytest.mark.parametrize("normal_std", [None, 15.0], ids=["one noise", "normal rows' own"])
+def test_weighted_update_is_a_kalman_update_with_inflated_noise(normal_std: float | None) -> None:
+    # The information form with weights equals a covariance-form update with R_j = R / ρ_j,
+    # R = σ_F² for every row, or σ_N² (normal_flow_std) for a normal-only RoI's one row.
     g = torch.Generator().manual_seed(1)
-    cfg = VelocityKFConfig(weighting_reference="predicted", weighting_iterations=1)
+    cfg = VelocityKFConfig(weighting_reference="predicted", weighting_iterations=1,
+                           normal_flow_std=normal_std)
     kf = VelocityKF(CAM, 1, cfg)
     twist0 = _random_twists(g, 1)
     cov0 = torch.diag(torch.tensor([0.3, 0.2, 0.1, 2.0, 1.0, 3.0], dtype=torch.float64))[None]
@@ -98,15 +101,17 @@ def test_weighted_update_is_a_kalman_update_with_inflated_noise() -> None:
     V, P, _ = kf.update_state(twist0, cov0, twist0, uv, depth, flow, normal, mask)
 
     J = interaction_matrix(uv[0], depth[0], CAM).numpy()
-    rows, z = [], []
+    rows, z, var = [], [], []
     for k in range(30):
         F = flow[0, k].numpy()
         n = F / np.linalg.norm(F)
         rows.append(n @ J[k])
         z.append(np.linalg.norm(F))
+        var.append((normal_std or cfg.flow_std) ** 2 if normal[0, k] else cfg.flow_std**2)
         if not normal[0, k]:
             rows.append(np.array([-n[1], n[0]]) @ J[k])
             z.append(0.0)
+            var.append(cfg.flow_std**2)
     H, z = np.array(rows), np.array(z)
     x0, P0 = twist0[0].numpy(), cov0[0].numpy()
     r = z - H @ x0
@@ -117,11 +122,43 @@ def test_weighted_update_is_a_kalman_update_with_inflated_noise() -> None:
         cfg.laplace_scale_min,
         cfg.weight_floor,
     )[0].numpy()
-    R = np.diag(cfg.flow_std**2 / rho)
+    R = np.diag(np.array(var) / rho)
     S = H @ P0 @ H.T + R
     K = P0 @ H.T @ np.linalg.inv(S)
     np.testing.assert_allclose(V[0].numpy(), x0 + K @ r, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(P[0].numpy(), (np.eye(6) - K @ H) @ P0, rtol=1e-7, atol=1e-12)
+
+
+def test_normal_rows_own_noise_equals_repeating_them() -> None:
+    """Without weighting, a normal-only row of noise σ_F / 3 carries the information of 9 rows
+    of σ_F: ``normal_flow_std`` equals the one-noise filter fed each normal-only RoI 9 times
+    (the fast path and the torch path), and ``normal_flow_std = flow_std`` is the default
+    filter bit for bit."""
+    g = torch.Generator().manual_seed(7)
+    base = VelocityKFConfig(weighting=False)
+    own = VelocityKFConfig(weighting=False, normal_flow_std=base.flow_std / 3)
+    twist = _random_twists(g, 1)
+    for fast in (True, False):
+        kf, rep = VelocityKF(CAM, 1, own, fast_path=fast), VelocityKF(CAM, 1, base, fast_path=fast)
+        plain = VelocityKF(CAM, 1, base, fast_path=fast)
+        g2 = torch.Generator().manual_seed(8)
+        for _ in range(5):
+            uv, depth = _rois(g2, 1, 40)
+            flow = _true_flow(CAM, uv, depth, twist) + 20 * torch.randn(
+                1, 40, 2, generator=g2, dtype=torch.float64)
+            normal = torch.rand(1, 40, generator=g2) < 0.5
+            idx = torch.cat([torch.arange(40)] + [torch.nonzero(normal[0])[:, 0]] * 8)
+            kf(1e-3, uv, depth, flow, normal)
+            rep(1e-3, uv[:, idx], depth[:, idx], flow[:, idx], normal[:, idx])
+            plain(1e-3, uv, depth, flow, normal)
+            torch.testing.assert_close(kf.twist, rep.twist, rtol=1e-9, atol=1e-9)
+            torch.testing.assert_close(kf.cov, rep.cov, rtol=1e-9, atol=1e-12)
+        assert (kf.twist - plain.twist).abs().max() > 1e-3  # the option changes the update
+    same = VelocityKF(CAM, 1, VelocityKFConfig(normal_flow_std=base.flow_std))
+    default = VelocityKF(CAM, 1, VelocityKFConfig())
+    for kf in (same, default):
+        kf(1e-3, uv, depth, flow, normal)
+    assert torch.equal(same.twist, default.twist) and torch.equal(same.cov, default.cov)
 
 
 # ---------------------------------------------------------------------------- batching, skipping

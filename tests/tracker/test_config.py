@@ -44,7 +44,7 @@ def test_rgbd_preset_is_the_defaults_with_both_depth_extensions() -> None:
 
 def test_round_trip(tmp_path) -> None:
     cfg = TrackerConfig.from_dict({"method": "frame-flow", "flow": {"roi_size": 16},
-                                   "velocity_kf": {"weighting": False},
+                                   "velocity_kf": {"weighting": False, "normal_flow_std": 20},
                                    "frame_flow": {"algorithm": "farneback"}})
     path = tmp_path / "t.yaml"
     cfg.to_yaml(path)
@@ -52,6 +52,7 @@ def test_round_trip(tmp_path) -> None:
     assert again == cfg
     assert again.flow.roi_size == 16 and again.flow.window_us == 1000
     assert again.velocity_kf.weighting is False and again.velocity_kf.normal_flow is True
+    assert again.velocity_kf.normal_flow_std == 20
 
 
 def test_partial_sections_keep_the_other_defaults() -> None:
@@ -70,6 +71,7 @@ def test_partial_sections_keep_the_other_defaults() -> None:
     ({"pose_ukf": {"q_rotation": "a lot"}}, "q_rotation"),
     ({"pose_ukf": {"gate": 3}}, "gate"),
     ({"velocity_kf": {"weighting": "yes"}}, "weighting"),
+    ({"velocity_kf": {"normal_flow_std": -5}}, "normal_flow_std"),
     ({"frame_flow": {"algorithm": "raft"}}, "algorithm"),
     ({"ge": {"contrast": -1}}, "contrast"),
     ({"pose_rate_hz": 0}, "pose_rate_hz"),
