@@ -118,6 +118,7 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import groupby
 from pathlib import Path
 from typing import Any
 
@@ -1453,13 +1454,8 @@ class Tracker:
             stale = t_us is not None and times[i] - t_us > max_age_us
             return (id(depth_map), t_us, stale)
 
-        j = 0
-        while j < len(measured):
-            key = frame(measured[j])
-            end = j + 1
-            while end < len(measured) and frame(measured[end]) == key:
-                end += 1
-            run = measured[j:end]
+        for _, same_frame in groupby(measured, key=frame):
+            run = list(same_frame)
             if sensor:
                 self.depth.map, self.depth.t_us = steps[run[0]].depth
             both = self._roi_depth(np.concatenate([uv[i] for i in run]), poly, pose,
@@ -1467,7 +1463,6 @@ class Tracker:
             for i, part in zip(run, np.split(both, np.cumsum([len(uv[i]) for i in run])[:-1]),
                                strict=True):
                 z[i] = part
-            j = end
         return z
 
     def _pose_explains_events(self, t_pose: int, kept: dict[int, _UnposedStep]) -> bool:
@@ -1526,18 +1521,20 @@ class Tracker:
                 flows.uv[lo:], (z_lo - _DEPTH_TOLERANCE_M, z_hi + _DEPTH_TOLERANCE_M)))
             flows.depth_cache = cache
         z = cache[2][lo - cache[1]:hi - cache[1]].copy()
+        return z, self._fill_missing(z, pose)
+
+    def _fill_missing(self, z: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Replace the missing depths (NaN) of ``z`` (N,) metres, in place, by the fallback
+        (the predicted depth of the object's origin); returns which were missing (N,)."""
         missing = ~np.isfinite(z)
         if missing.any():
             z[missing] = self._fallback_depth(pose)
-        return z, missing
+        return missing
 
     def _with_fallback(self, z: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        """``z`` (N,) metres with its missing depths (NaN) replaced by the fallback (the
-        predicted depth of the object's origin), counted in the stats; changes ``z``."""
-        missing = ~np.isfinite(z)
-        if missing.any():
-            z[missing] = self._fallback_depth(pose)
-            self.stats.depth_fallbacks += int(missing.sum())
+        """``z`` (N,) metres with its missing depths replaced by the fallback
+        (:meth:`_fill_missing`), counted in the stats; changes ``z``."""
+        self.stats.depth_fallbacks += int(self._fill_missing(z, pose).sum())
         return z
 
     def _expire_sensor_depth(self, t_now: int) -> None:

@@ -265,6 +265,17 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
     return post_twist, post_cov, n_mask - n_depth, n_depth - n_valid
 
 
+def _update_settings(cfg: VelocityKFConfig, consts: list[float], focal: np.ndarray,
+                     principal: np.ndarray) -> tuple[bool | int | float, ...]:
+    """The scalar leading arguments of :func:`_update_kernel` (and of the run kernel): the
+    config's switches, the ``consts`` noises and weighting scales, the intrinsics."""
+    _, flow_info, scale, scale_min, floor, normal_info = consts
+    return (bool(cfg.normal_flow), bool(cfg.weighting), cfg.weighting_reference == "previous",
+            int(cfg.weighting_iterations), cfg.laplace_scale is not None, float(flow_info),
+            float(normal_info), float(scale), float(scale_min), float(floor), float(focal[0]),
+            float(focal[1]), float(principal[0]), float(principal[1]))
+
+
 def velocity_update(
     cfg: VelocityKFConfig,
     consts: list[float],
@@ -285,15 +296,10 @@ def velocity_update(
     Raises:
         numpy.linalg.LinAlgError: if a 6x6 matrix is not positive definite.
     """
-    _, flow_info, scale, scale_min, floor, normal_info = consts
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
     post_twist, post_cov, skipped_depth, skipped_flow = _update_kernel(
-        bool(cfg.normal_flow), bool(cfg.weighting), cfg.weighting_reference == "previous",
-        int(cfg.weighting_iterations), cfg.laplace_scale is not None, float(flow_info),
-        float(normal_info), float(scale), float(scale_min), float(floor), float(focal[0]),
-        float(focal[1]),
-        float(principal[0]), float(principal[1]), np.ascontiguousarray(twist, np.float64),
+        *_update_settings(cfg, consts, focal, principal), np.ascontiguousarray(twist, np.float64),
         np.ascontiguousarray(cov, np.float64), np.ascontiguousarray(reference, np.float64),
         np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(depth, np.float64),
         np.ascontiguousarray(flow, np.float64), np.ascontiguousarray(normal, np.bool_),
@@ -327,8 +333,7 @@ def _velocity_run_kernel(normal_flow, weighting, reference_previous, passes, fix
             post_twist, post_cov, skipped_depth, skipped_flow = _update_kernel(
                 normal_flow, weighting, reference_previous, passes, fixed_scale, flow_info,
                 normal_info, scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference,
-                uv[lo:hi],
-                depth[lo:hi], flow[lo:hi], normal[lo:hi], ones[lo:hi])
+                uv[lo:hi], depth[lo:hi], flow[lo:hi], normal[lo:hi], ones[lo:hi])
             if skipped_depth < 0:
                 return k, twists, covs, refs, skipped
             twist, cov, reference = post_twist, post_cov, post_twist
@@ -372,16 +377,11 @@ def velocity_run(
         after each of the first ``done`` steps; ``done < n`` when the update of step ``done``
         met a 6x6 matrix that is not positive definite (nothing of it is kept).
     """
-    _, flow_info, scale, scale_min, floor, normal_info = consts
     f64 = np.float64
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
     return _velocity_run_kernel(
-        bool(cfg.normal_flow), bool(cfg.weighting), cfg.weighting_reference == "previous",
-        int(cfg.weighting_iterations), cfg.laplace_scale is not None, float(flow_info),
-        float(normal_info), float(scale), float(scale_min), float(floor), float(focal[0]),
-        float(focal[1]),
-        float(principal[0]), float(principal[1]), float(consts[0]),
+        *_update_settings(cfg, consts, focal, principal), float(consts[0]),
         np.ascontiguousarray(q_matrix, f64), np.ascontiguousarray(twist, f64),
         np.ascontiguousarray(cov, f64), np.ascontiguousarray(reference, f64),
         np.ascontiguousarray(dts, f64).reshape(-1), np.ascontiguousarray(bounds, np.int64),
