@@ -302,7 +302,8 @@ class Events:
         unsorted = outside = bad = 0
         first_unsorted = first_outside = first_bad = -1
         # numpy on CPU (zero-copy views, ~10x faster than torch's int16/int8 kernels there)
-        x, y, t, p = (self.numpy()[k] for k in "xytp") if self.device.type == "cpu" else (
+        fields = self.numpy() if self.device.type == "cpu" else None
+        x, y, t, p = (fields[k] for k in "xytp") if fields is not None else (
             self.x, self.y, self.t, self.p)
         if n and self.device.type == "cpu" and jit_available():
             # the counts below in one compiled pass (a dozen NumPy passes otherwise)
@@ -401,10 +402,10 @@ def concatenate(chunks: Sequence[Events]) -> Events:
     dtype = torch.int32 if any(c.x.dtype == torch.int32 for c in chunks) else chunks[0].x.dtype
     if all(c.device.type == "cpu" for c in chunks):  # numpy's concatenate is much faster on CPU
         np_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+        arrays = [c.numpy() for c in chunks]
         fields = {
             k: torch.from_numpy(np.concatenate(
-                [c.numpy()[k].astype(np_dtype, copy=False) if k in "xy" else c.numpy()[k]
-                 for c in chunks]))
+                [a[k].astype(np_dtype, copy=False) if k in "xy" else a[k] for a in arrays]))
             for k in ("x", "y", "t", "p")
         }
     else:
