@@ -118,7 +118,9 @@ class LastCheckpoint(L.Callback):
         if trainer.fast_dev_run:
             return
         tmp = self.path.with_name(self.path.name + ".tmp")
-        trainer.save_checkpoint(tmp)  # every rank takes part; global rank 0 writes
+        # the full state (optimizer, loops, callbacks) for --resume; every rank takes part,
+        # global rank 0 writes (weights_only given: Lightning logs a line per save without it)
+        trainer.save_checkpoint(tmp, weights_only=False)
         if trainer.is_global_zero:
             tmp.replace(self.path)
         self._saved_at = time.monotonic()

@@ -301,6 +301,9 @@ def test_run_writes_checkpoints_logs_weights_and_card(trained_run):
 
 def test_resume_continues_from_the_last_checkpoint(trained_run):
     cfg, first = trained_run
+    # last.ckpt holds the whole state a resume needs, not only the weights
+    state = torch.load(first.last_checkpoint, weights_only=True)
+    assert state["optimizer_states"] and state["loops"] and state["callbacks"]
     more = TrainConfig.from_dict({**cfg.to_dict(), "trainer": {**cfg.trainer, "max_epochs": 3}})
     result = run_training(more, resume="auto", verbose=False)
     record = load_model(result.weights)[1]
