@@ -147,6 +147,7 @@ from evtrack.jit import warm_up
 # before it used surface points) is already loaded.
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.pose_alignment import PoseRayAligner
+from evtrack.pose_flips import HalfTurnResolver
 from evtrack.pose_sources import PoseMeasurement, PoseSource
 from evtrack.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.silhouette import Silhouette, SilhouettePolygon
@@ -248,6 +249,8 @@ class TrackerStats:
             rejections; lost: times the object was declared lost.
         poses_implausible: poses dropped before the filter because the sensor depth of their
             frame contradicts them (``TrackerConfig.pose_depth_min_share``).
+        poses_half_turned: poses replaced by their half turn about one of
+            ``TrackerConfig.pose_half_turn_axes``, which lay nearer the filter's pose.
         poses_depth_aligned: poses moved along their viewing ray onto the sensor depth
             (``TrackerConfig.pose_depth_align``); pose_alignments_skipped: poses that were not,
             by reason (:class:`~evtrack.pose_alignment.RayAlignment`).
@@ -288,6 +291,7 @@ class TrackerStats:
     pose_misses: int = 0
     poses_rejected: int = 0
     poses_implausible: int = 0
+    poses_half_turned: int = 0
     poses_depth_aligned: int = 0
     pose_alignments_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     search_budget_min: int = 0
@@ -539,6 +543,11 @@ class Tracker:
         if cfg.pose_depth_align and self.mesh is not None and isinstance(self.depth, SensorDepth):
             self.pose_aligner = PoseRayAligner.from_mesh(
                 self.mesh, self.depth.camera, max_shift_m=cfg.pose_depth_align_max_m)
+        self.half_turns: HalfTurnResolver | None = None
+        if cfg.pose_half_turn_axes:
+            lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+            self.half_turns = HalfTurnResolver(cfg.pose_half_turn_axes, (lo + hi) / 2,
+                                               cfg.pose_half_turn_max_view_deg)
         self.depth_range: DepthRange | None = None
         if cfg.depth_range and self.method != "velocity":
             if self.mesh is None:
@@ -1585,6 +1594,8 @@ class Tracker:
         self._misses = 0
         if self.method == "velocity" and self.initialized:
             return  # the velocity baseline uses poses only to (re-)initialise
+        if self.half_turns is not None and self.initialized:
+            m = self._nearer_half_turn(m)
         rejected = int(self.ukf.rejected[0])
         reinit = int(self.ukf.reinitialised[0])
         t, q = pose_measurement_value(m.pose, self.ukf.t.dtype, self.device)
@@ -1608,6 +1619,19 @@ class Tracker:
                 self._replay_frame_flow(m.t_us)
             elif self._unposed:
                 self._remeasure(m.t_us)
+
+    def _nearer_half_turn(self, m: PoseMeasurement) -> PoseMeasurement:
+        """``m``, or its half turn about one of ``pose_half_turn_axes`` where that lies nearer
+        the filter's pose at ``m.t_us`` (see :mod:`evtrack.pose_flips`)."""
+        reference = self._past_pose(m.t_us)
+        if reference is None:
+            return m
+        pose = m.pose.detach().cpu().numpy().astype(np.float64)
+        chosen, axis = self.half_turns.resolve(pose, reference)
+        if axis is None:
+            return m
+        self.stats.poses_half_turned += 1
+        return dataclasses.replace(m, pose=torch.as_tensor(chosen, dtype=m.pose.dtype))
 
     def _agrees_with_rejected(self, t_us: int, pose: Tensor) -> bool:
         """Whether the previous pose was rejected by the gate and ``pose`` lies within the

@@ -397,6 +397,18 @@ class TrackerConfig:
         pose_depth_align_max_m: the largest move of ``pose_depth_align``, metres: a pose
             farther off is a gross error for the check to drop, not to move onto whatever lies
             behind it.
+        pose_half_turn_axes: the object-frame axes (a string of ``x``, ``y``, ``z``; ``""``:
+            none) whose half turns the pose network may confuse where it sees the object along
+            them: each pose seen within ``pose_half_turn_max_view_deg`` of one of these axes is
+            replaced by its half turn about that axis (through the cuboid's centre) when that
+            lies nearer the filter's pose at the pose's time, in rotation
+            (:class:`~evtrack.pose_flips.HalfTurnResolver`; counted in
+            ``TrackerStats.poses_half_turned``). A cuboid-keypoint network's corner swaps give
+            exactly these poses, at the right range, and seen along the axis their silhouettes
+            agree, so the depth check cannot drop them (the mustard bottle seen from below:
+            ``y``). Applied after the depth check, once the filter is initialised; the pose's
+            covariance is kept. Not in the paper.
+        pose_half_turn_max_view_deg: see ``pose_half_turn_axes``, degrees in [0, 90].
         history_ms: how far back the pose filter keeps its past states for late poses; a pose
             older than that is dropped and counted.
         velocity_before_pose: before the first pose (and after losing the object) run the
@@ -486,6 +498,8 @@ class TrackerConfig:
     pose_depth_tolerance_m: float = 0.06
     pose_depth_align: bool = True
     pose_depth_align_max_m: float = 0.2
+    pose_half_turn_axes: str = ""
+    pose_half_turn_max_view_deg: float = 30.0
     history_ms: float = 1000.0
     velocity_before_pose: bool = True
     remeasure_on_pose: bool = True
@@ -545,6 +559,14 @@ class TrackerConfig:
             raise ConfigError(f"tracker config field 'min_searched_per_step' "
                               f"({self.min_searched_per_step}) must not exceed "
                               f"'max_searched_per_step' ({self.max_searched_per_step})")
+        axes = self.pose_half_turn_axes
+        if (not isinstance(axes, str) or set(axes) - set("xyz")
+                or len(set(axes)) != len(axes)):
+            raise ConfigError(f"tracker config field 'pose_half_turn_axes' must be distinct "
+                              f"letters of 'xyz' (e.g. 'y'; '' for none), got {axes!r}")
+        if not 0 <= self.pose_half_turn_max_view_deg <= 90:
+            raise ConfigError(f"tracker config field 'pose_half_turn_max_view_deg' must be in "
+                              f"[0, 90], got {self.pose_half_turn_max_view_deg}")
         for name in ("min_visible_fraction", "remeasure_min_inside", "pose_depth_min_share"):
             value = getattr(self, name)
             if not 0 <= value <= 1:
