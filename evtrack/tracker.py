@@ -250,7 +250,9 @@ class TrackerStats:
         poses_implausible: poses dropped before the filter because the sensor depth of their
             frame contradicts them (``TrackerConfig.pose_depth_min_share``).
         poses_half_turned: poses replaced by their half turn about one of
-            ``TrackerConfig.pose_half_turn_axes``, which lay nearer the filter's pose.
+            ``TrackerConfig.pose_half_turn_axes``, which lay nearer the filter's pose;
+            half_turn_reinits: poses that re-initialised the filter instead, the
+            ``pose_half_turn_reinit_after``-th in a row to need the turn.
         poses_depth_aligned: poses moved along their viewing ray onto the sensor depth
             (``TrackerConfig.pose_depth_align``); pose_alignments_skipped: poses that were not,
             by reason (:class:`~evtrack.pose_alignment.RayAlignment`).
@@ -292,6 +294,7 @@ class TrackerStats:
     poses_rejected: int = 0
     poses_implausible: int = 0
     poses_half_turned: int = 0
+    half_turn_reinits: int = 0
     poses_depth_aligned: int = 0
     pose_alignments_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     search_budget_min: int = 0
@@ -661,6 +664,7 @@ class Tracker:
         self._out_of_view_us = 0
         self._misses = 0  # pose-source misses in a row
         self._rejected_pose: tuple[int, Tensor] | None = None  # the last pose, if gated
+        self._half_turns_in_row = 0  # fused poses turned by pose_half_turn_axes in a row
         self._depth_frames: dict[int, np.ndarray] = {}  # recent sensor maps by frame time
         self._held: np.ndarray | None = None
         self._unposed: dict[int, _UnposedStep] = {}  # by step end (µs), see _remeasure
@@ -1594,8 +1598,9 @@ class Tracker:
         self._misses = 0
         if self.method == "velocity" and self.initialized:
             return  # the velocity baseline uses poses only to (re-)initialise
+        turned_back = False  # the track deemed half a turn off: re-initialise on m
         if self.half_turns is not None and self.initialized:
-            m = self._nearer_half_turn(m)
+            m, turned_back = self._nearer_half_turn(m)
         rejected = int(self.ukf.rejected[0])
         reinit = int(self.ukf.reinitialised[0])
         t, q = pose_measurement_value(m.pose, self.ukf.t.dtype, self.device)
@@ -1603,7 +1608,8 @@ class Tracker:
         if m.t_us > self.timeline.now:  # pragma: no cover - _apply_due never lets it happen
             raise RuntimeError(f"pose at {m.t_us} µs applied before the clock reached it")
         was_init = self.initialized
-        kind = "pose_reinit" if self._agrees_with_rejected(m.t_us, m.pose) else "pose"
+        kind = ("pose_reinit" if turned_back or self._agrees_with_rejected(m.t_us, m.pose)
+                else "pose")
         if not self.timeline.add(m.t_us, kind, (t, q), cov):
             self.stats.poses_late += 1
             return
@@ -1620,18 +1626,28 @@ class Tracker:
             elif self._unposed:
                 self._remeasure(m.t_us)
 
-    def _nearer_half_turn(self, m: PoseMeasurement) -> PoseMeasurement:
+    def _nearer_half_turn(self, m: PoseMeasurement) -> tuple[PoseMeasurement, bool]:
         """``m``, or its half turn about one of ``pose_half_turn_axes`` where that lies nearer
-        the filter's pose at ``m.t_us`` (see :mod:`evtrack.pose_flips`)."""
+        the filter's pose at ``m.t_us`` (see :mod:`evtrack.pose_flips`); and whether the
+        filter is to re-initialise on ``m`` as it is instead: the pose is the
+        ``pose_half_turn_reinit_after``-th in a row to need the turn, so the track, not the
+        network, is deemed half a turn off (it started on a turned pose)."""
         reference = self._past_pose(m.t_us)
         if reference is None:
-            return m
+            return m, False
         pose = m.pose.detach().cpu().numpy().astype(np.float64)
         chosen, axis = self.half_turns.resolve(pose, reference)
         if axis is None:
-            return m
+            self._half_turns_in_row = 0
+            return m, False
+        self._half_turns_in_row += 1
+        limit = self.config.pose_half_turn_reinit_after
+        if limit and self._half_turns_in_row >= limit:
+            self._half_turns_in_row = 0
+            self.stats.half_turn_reinits += 1
+            return m, True
         self.stats.poses_half_turned += 1
-        return dataclasses.replace(m, pose=torch.as_tensor(chosen, dtype=m.pose.dtype))
+        return dataclasses.replace(m, pose=torch.as_tensor(chosen, dtype=m.pose.dtype)), False
 
     def _agrees_with_rejected(self, t_us: int, pose: Tensor) -> bool:
         """Whether the previous pose was rejected by the gate and ``pose`` lies within the
@@ -1828,6 +1844,7 @@ class Tracker:
         self.stats.lost += 1
         self._out_of_view_us = 0
         self._rejected_pose = None
+        self._half_turns_in_row = 0
         self.ukf.reset(1)
         self.vkf.reset(1)
         self.timeline.start(t_now)

@@ -409,6 +409,11 @@ class TrackerConfig:
             ``y``). Applied after the depth check, once the filter is initialised; the pose's
             covariance is kept. Not in the paper.
         pose_half_turn_max_view_deg: see ``pose_half_turn_axes``, degrees in [0, 90].
+        pose_half_turn_reinit_after: the filter re-initialises on the pose as it is (not
+            turned) when this many fused poses in a row needed the turn: a network that turns
+            its poses now and then does not turn several in a row, a track that started on a
+            turned pose disagrees with every right one (0: never; the turned track is then
+            corrected only once the views leave the axes' cones).
         history_ms: how far back the pose filter keeps its past states for late poses; a pose
             older than that is dropped and counted.
         velocity_before_pose: before the first pose (and after losing the object) run the
@@ -500,6 +505,7 @@ class TrackerConfig:
     pose_depth_align_max_m: float = 0.2
     pose_half_turn_axes: str = ""
     pose_half_turn_max_view_deg: float = 30.0
+    pose_half_turn_reinit_after: int = 2
     history_ms: float = 1000.0
     velocity_before_pose: bool = True
     remeasure_on_pose: bool = True
@@ -524,10 +530,12 @@ class TrackerConfig:
         for name in ("torch_threads", "blas_threads", "velocity_step_us", "flow_batch_steps",
                      "depth_patch_px", "depth_stride_px", "model_depth_interval_us",
                      "lost_after_misses", "max_events_per_step", "search_per_roi_window",
-                     "max_searched_per_step", "min_searched_per_step"):
+                     "max_searched_per_step", "min_searched_per_step",
+                     "pose_half_turn_reinit_after"):
             _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads", "blas_threads",
                                                 "lost_after_misses", "max_events_per_step",
-                                                "search_per_roi_window", "max_searched_per_step")
+                                                "search_per_roi_window", "max_searched_per_step",
+                                                "pose_half_turn_reinit_after")
                       else 1)
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
                      "pose_min_confidence", "burst_rate_hz", "reinit_agree_m",
