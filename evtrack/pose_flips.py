@@ -6,16 +6,19 @@ cuboid onto itself, so if the network swaps the corners' identities that way, Pn
 pose turned half a turn about that axis *at the right position and range*. Where the camera
 looks at the object along that axis the two poses also show nearly the same silhouette, so
 neither the image cues nor a depth check can tell them apart: the mustard bottle seen from
-below, along its long axis, is the benchmark's case (its network answers there with such half
-turns, and a track that takes them is 180° off; ``models/weights/README.md``).
+below, along its long axis, is the benchmark's case (networks trained on more of those views
+answered some of them with such half turns, and a track that took one was 180° off;
+``models/weights/README.md``, sessions 32 and 34).
 
 The tracker has a third source: its own pose. :class:`HalfTurnResolver` offers, for a pose
 seen within ``max_view_deg`` of the line of sight along one of the chosen axes, the pose
 turned half a turn about that axis as an alternative, and keeps whichever of the two lies
 nearer the filter's pose in rotation. A right pose is kept as long as the filter is within
-90° of the truth; a half-turned one is turned back. Away from those views nothing changes,
-so a filter that is itself half a turn off (started on such a pose) is still corrected by
-the network's poses of the other views (the filter's gate and re-initialisation).
+90° of the truth; a half-turned one is turned back. A filter that is itself half a turn off
+(started on such a pose: nothing can resolve the first pose) disagrees with every right pose;
+the tracker re-initialises it when several in a row need the turn
+(``TrackerConfig.pose_half_turn_reinit_after``), and away from those views nothing is turned,
+so the filter's gate and re-initialisation correct it as without the resolver.
 """
 
 from __future__ import annotations
