@@ -27,6 +27,9 @@ import math
 from collections.abc import Iterable
 
 import numpy as np
+import torch
+
+from evtrack.eval.metrics import rotation_errors
 
 __all__ = ["HalfTurnResolver", "half_turn"]
 
@@ -42,12 +45,6 @@ def half_turn(axis: int, center: np.ndarray) -> np.ndarray:
     S[:3, :3] = R
     S[:3, 3] = np.asarray(center, np.float64) - R @ np.asarray(center, np.float64)
     return S
-
-
-def _rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Geodesic angle between two rotation matrices, radians."""
-    cos = (float(np.trace(R_a.T @ R_b)) - 1.0) / 2.0
-    return math.acos(max(-1.0, min(1.0, cos)))
 
 
 class HalfTurnResolver:
@@ -107,11 +104,11 @@ class HalfTurnResolver:
         Returns:
             the chosen (4, 4) pose and the axis it was turned about (``None``: unchanged).
         """
-        best, best_axis = pose, None
-        best_angle = _rotation_angle(pose[:3, :3], reference[:3, :3])
-        for a in self.offered(pose):
-            turned = pose @ self._turns[a]
-            angle = _rotation_angle(turned[:3, :3], reference[:3, :3])
-            if angle < best_angle:
-                best, best_axis, best_angle = turned, a, angle
-        return best, best_axis
+        axes = self.offered(pose)
+        if not axes:
+            return pose, None
+        candidates = np.stack([pose] + [pose @ self._turns[a] for a in axes])
+        angles = rotation_errors(torch.from_numpy(candidates),
+                                 torch.from_numpy(np.asarray(reference, np.float64)))
+        best = int(torch.argmin(angles))  # the first of equal minima: pose itself on a tie
+        return (pose, None) if best == 0 else (candidates[best], axes[best - 1])

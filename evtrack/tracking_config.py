@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from evtrack.errors import ConfigError
@@ -33,6 +34,7 @@ from evtrack.filters.config import (
     config_from_dict,
 )
 from evtrack.flow.config import FlowConfig
+from evtrack.pose_flips import HalfTurnResolver
 
 __all__ = [
     "METHODS",
@@ -567,14 +569,15 @@ class TrackerConfig:
             raise ConfigError(f"tracker config field 'min_searched_per_step' "
                               f"({self.min_searched_per_step}) must not exceed "
                               f"'max_searched_per_step' ({self.max_searched_per_step})")
-        axes = self.pose_half_turn_axes
-        if (not isinstance(axes, str) or set(axes) - set("xyz")
-                or len(set(axes)) != len(axes)):
-            raise ConfigError(f"tracker config field 'pose_half_turn_axes' must be distinct "
-                              f"letters of 'xyz' (e.g. 'y'; '' for none), got {axes!r}")
-        if not 0 <= self.pose_half_turn_max_view_deg <= 90:
-            raise ConfigError(f"tracker config field 'pose_half_turn_max_view_deg' must be in "
-                              f"[0, 90], got {self.pose_half_turn_max_view_deg}")
+        if not isinstance(self.pose_half_turn_axes, str):
+            raise ConfigError(f"tracker config field 'pose_half_turn_axes' must be a string of "
+                              f"'xyz' letters, got {self.pose_half_turn_axes!r}")
+        try:  # the resolver's own checks of both fields
+            HalfTurnResolver(self.pose_half_turn_axes, np.zeros(3),
+                             self.pose_half_turn_max_view_deg)
+        except ValueError as exc:
+            raise ConfigError(f"tracker config fields 'pose_half_turn_axes' / "
+                              f"'pose_half_turn_max_view_deg': {exc}") from exc
         for name in ("min_visible_fraction", "remeasure_min_inside", "pose_depth_min_share"):
             value = getattr(self, name)
             if not 0 <= value <= 1:
