@@ -105,10 +105,18 @@ def main() -> None:
     parser.add_argument("--depth-refine", action="store_true",
                         help="also each decoding refined on the depth frames (ICP)")
     parser.add_argument("--decode", action="append", default=[],
-                        choices=["strongest", "search", "ransac", "search+ransac"],
+                        choices=["strongest", "search", "ransac", "search+ransac",
+                                 "ransac-nofallback"],
                         help="decoding to evaluate (repeatable; default: ransac, the library's "
                              "default): each corner's strongest peak, the search over corner "
-                             "identities, with or without RANSAC PnP (see evtrack.models.decode)")
+                             "identities, with or without RANSAC PnP; 'ransac' also runs the "
+                             "search where the strongest peaks' pose is missing or less "
+                             "confident than --search-below, 'ransac-nofallback' never (see "
+                             "evtrack.models.decode)")
+    parser.add_argument("--search-below", type=float, default=DecodeConfig().search_below,
+                        help="confidence under which 'ransac' also runs the search "
+                             "(DecodeConfig.search_below; default: the library's, "
+                             f"{DecodeConfig().search_below})")
     parser.add_argument("--one-pass", action="store_true",
                         help="also each decoding without the second pass on a crop around the "
                              "detection (DecodeConfig.crop_refine=0), as '<decoding>/1pass'")
@@ -118,7 +126,8 @@ def main() -> None:
     decodings = {}
     for name in args.decode or ["ransac"]:
         kw = {"correspondence": "search" if "search" in name else "strongest",
-              "ransac": "ransac" in name}
+              "ransac": "ransac" in name,
+              "search_below": args.search_below if name == "ransac" else 0.0}
         decodings[name] = DecodeConfig(**kw)
         if args.one_pass:
             decodings[f"{name}/1pass"] = DecodeConfig(**kw, crop_refine=0.0)

@@ -7,11 +7,13 @@ generator, so that decoding is checked against ground-truth poses independently.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import cv2
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
 from evtrack.errors import ConfigError
@@ -184,9 +186,30 @@ def test_ransac_rejects_an_outlier_corner():
     assert det.num_points == 8
     assert_pose_close(det, truth)
     (plain,) = decode_poses(belief, affinity, CUBOID, K,
-                            config=DecodeConfig(ransac=False, max_angle_deg=60))
+                            config=DecodeConfig(ransac=False, max_angle_deg=60, search_below=0.0))
     assert plain.num_points == 9
     assert plain.reprojection_error_px > 1.0
+
+
+@pytest.mark.parametrize("offset", [(45.0, -30.0), (80.0, -60.0), (120.0, -90.0)])
+def test_search_below_recovers_a_pose_the_strongest_peaks_fit_badly(offset):
+    # two corner peaks in wrong places and no RANSAC: the fit of all nine keypoints is off by
+    # 10-100 deg with a reprojection error of 19-38 px (confidence <= 0.05); the search, run
+    # because that confidence is under search_below, matches only the seven right peaks
+    truth = make_pose(9, t=(0.0, 0.0, 0.5))
+    uv = project(truth)
+    uv[5] += offset
+    uv[2] -= offset
+    belief, affinity = synth_maps([uv])
+    cfg = DecodeConfig(ransac=False, max_angle_deg=60, search_below=0.0)
+    (plain,) = decode_poses(belief, affinity, CUBOID, K, config=cfg)
+    assert plain.confidence < 0.1
+    assert rotation_error_deg(plain.pose.numpy()[:3, :3], truth[:3, :3]) > 10.0
+    (found,) = decode_poses(belief, affinity, CUBOID, K,
+                            config=dataclasses.replace(cfg, search_below=0.1))
+    assert found.num_points == 7
+    assert found.confidence > 0.5
+    assert_pose_close(found, truth)
 
 
 @pytest.mark.parametrize("method,tol", [("log_quadratic", 1e-3), ("centroid", 0.1), ("none", 0.5)])
@@ -317,6 +340,67 @@ def test_search_equals_strongest_peak_on_clean_maps_and_through_a_resize(seed):
     c = decode_poses(belief2, affinity2, CUBOID, K, pixel_scale=0.5,
                      config=DecodeConfig(correspondence="search"))[0]
     assert_pose_close(c, truth, t_tol=3e-3, r_tol_deg=1.0)
+
+
+@pytest.mark.parametrize("strongest_result", ["poor", "none"])
+def test_search_below_falls_back_to_the_search_where_the_strongest_peaks_fail(
+        monkeypatch, strongest_result):
+    # The maps a network gives an elongated object seen end-on (its two ends' corners named
+    # inconsistently) are hard to synthesise so that RANSAC finds no consistent subset; the
+    # strongest-peak fit is made to fail here instead: a poor fit (confidence 0.05) or none
+    import evtrack.models.decode as decode
+
+    truth = make_pose(1)
+    belief, affinity = confused_maps(project(truth))
+    searched = decode_poses(belief, affinity, CUBOID, K,
+                            config=DecodeConfig(correspondence="search"))[0]
+    solve = decode.solve_pose
+
+    def failing(*args, **kwargs):
+        det = solve(*args, **kwargs)
+        if strongest_result == "none":
+            return None
+        det.pose = det.pose.clone()
+        det.pose[:3, 3] += 0.5  # far off, as such fits are
+        det.confidence = 0.05
+        return det
+
+    monkeypatch.setattr(decode, "solve_pose", failing)
+    poor = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.0))
+    assert (not poor) if strongest_result == "none" else poor[0].confidence == 0.05
+    found = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.3))
+    assert len(found) == 1
+    assert torch.equal(found[0].pose, searched.pose)
+    assert found[0].confidence == searched.confidence > 0.3
+    assert_pose_close(found[0], truth, t_tol=2e-3, r_tol_deg=0.5)
+    # a fit at least as confident as the threshold is not searched; no fit always is
+    kept = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.04))
+    expected = searched if strongest_result == "none" else poor[0]
+    assert torch.equal(kept[0].pose, expected.pose)
+    assert kept[0].confidence == expected.confidence
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_search_below_leaves_confident_poses_alone(seed):
+    truth = make_pose(seed)
+    belief, affinity = synth_maps([project(truth)])
+    plain = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.0))[0]
+    assert plain.confidence > 0.5
+    kept = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.5))[0]
+    assert torch.equal(kept.pose, plain.pose)
+    assert kept.confidence == plain.confidence
+    # a threshold above every confidence: the search runs, the more confident pose is kept
+    always = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=1.0))[0]
+    searched = decode_poses(belief, affinity, CUBOID, K,
+                            config=DecodeConfig(correspondence="search"))[0]
+    assert always.confidence == max(plain.confidence, searched.confidence)
+    assert_pose_close(always, truth, t_tol=2e-3, r_tol_deg=0.5)
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])
+def test_search_below_is_validated(value):
+    with pytest.raises(ConfigError, match="search_below"):
+        DecodeConfig(search_below=value)
 
 
 def test_search_config_is_validated():
