@@ -92,10 +92,11 @@ class DecodeConfig:
             of an object poorly in some views (the shipped mustard bottle's seen end-on, the
             potted meat can's in a few) still has strong peaks there, at the right places
             under the wrong names: the strongest peaks then fit with a reprojection error of
-            tens of pixels (confidence ~0, poses 0.5-5 m and 60-180 deg off), the search gives
+            tens of pixels (confidence ~0, poses 0.4-5 m and 60-180 deg off), the search gives
             a pose. 0.1 by default: with the shipped YCB networks on the benchmark's `faster`
-            sequences the tracker's rotation RMSE fell from 13.12 to 11.94 deg (paper-matched
-            speeds) and from 14.34 to 13.29 deg (default presets), no object worse (README,
+            sequences the tracker's rotation RMSE fell from 13.35 to 12.50 deg (paper-matched
+            speeds) and from 13.74 to 12.92 deg (default presets; torch on 2 threads; on one:
+            13.12 to 11.94 and 14.34 to 13.29), no object worse, `regular` unchanged (README,
             "Tracking accuracy"). At 0.5 the search also replaced the tomato can's fits of
             confidence 0.17-0.21, which were better than its answers (4.6 -> 15.9 deg), so
             its confidence is not comparable with the strongest peaks' above ~0.1. The search
