@@ -509,17 +509,14 @@ def decode_poses(
                 cand = inst.candidates.copy()
                 cand[:, :2] = (cand[:, :2] + 0.5) / scale - 0.5
             inst = InstanceKeypoints((inst.keypoints + 0.5) / scale - 0.5, inst.scores, cand)
-        if cfg.correspondence == "search":
-            det = search_instance(inst, belief, cuboid, K, dist, stride=stride, config=cfg,
-                                  pixel_scale=scale, object_name=object_name)
-        else:
-            det = solve_pose(inst, cuboid, K, dist, cfg, object_name)
-            if cfg.search_below > 0 and (det is None or det.confidence < cfg.search_below):
-                found = search_instance(inst, belief, cuboid, K, dist, stride=stride,
-                                        config=cfg, pixel_scale=scale,
-                                        object_name=object_name)
-                if found is not None and (det is None or found.confidence > det.confidence):
-                    det = found
+        search = cfg.correspondence == "search"
+        det = None if search else solve_pose(inst, cuboid, K, dist, cfg, object_name)
+        if search or (cfg.search_below > 0
+                      and (det is None or det.confidence < cfg.search_below)):
+            found = search_instance(inst, belief, cuboid, K, dist, stride=stride, config=cfg,
+                                    pixel_scale=scale, object_name=object_name)
+            if found is not None and (det is None or found.confidence > det.confidence):
+                det = found
         if det is not None:
             out.append(det)
     out.sort(key=lambda d: -d.confidence)
