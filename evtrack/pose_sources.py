@@ -54,6 +54,11 @@ class PoseMeasurement:
         cov: (6, 6) float64 covariance of ``[δt (m), δθ (rad)]``, finite and symmetric, or
             ``None`` for the filter's default measurement noise.
         confidence: the detector's confidence (1 when unknown).
+        alternatives: other poses the detector found for the object in the same image and
+            ranked lower (e.g. :attr:`evtrack.models.PoseDetection.alternatives`), most
+            confident first; the tracker tries them, in that order, where this pose fails its
+            depth check (``TrackerConfig.pose_alternatives``). Each is a measurement of the same
+            ``t_us`` without alternatives of its own.
 
     Raises:
         ValueError: a pose or covariance of the wrong shape, not finite, or not a rigid
@@ -64,9 +69,15 @@ class PoseMeasurement:
     pose: Tensor
     cov: Tensor | None = None
     confidence: float = 1.0
+    alternatives: tuple[PoseMeasurement, ...] = ()
 
     def __post_init__(self) -> None:
         self.t_us = int(self.t_us)
+        self.alternatives = tuple(self.alternatives)
+        for alt in self.alternatives:
+            if not isinstance(alt, PoseMeasurement) or alt.t_us != self.t_us or alt.alternatives:
+                raise ValueError(f"pose measurement at t={self.t_us} µs: each alternative must "
+                                 "be a PoseMeasurement of the same t_us without alternatives")
         self.pose = torch.as_tensor(self.pose, dtype=torch.float64)
         where = f"pose measurement at t={self.t_us} µs"
         if self.pose.shape != (4, 4):
@@ -124,7 +135,8 @@ class NetworkPoseSource:
 
     A detection whose pose is not a finite rigid transform (see :class:`PoseMeasurement`)
     gives no measurement (the tracker counts the call as a miss) and is counted in
-    :attr:`invalid`.
+    :attr:`invalid`; so is such an alternative, which is left out of the measurement's
+    ``alternatives``.
     """
 
     def __init__(self, estimator: Callable[[np.ndarray], Sequence],
@@ -173,10 +185,26 @@ class NetworkPoseSource:
             pose = self._refine(pose, depth)
         try:
             return PoseMeasurement(t_us, self.T_event_rgb @ torch.as_tensor(pose),
-                                   self.cov, float(best.confidence))
+                                   self.cov, float(best.confidence),
+                                   self._alternatives(t_us, best))
         except ValueError:
             self.invalid += 1
             return None
+
+    def _alternatives(self, t_us: int, detection) -> tuple[PoseMeasurement, ...]:
+        """The detection's :attr:`~evtrack.models.PoseDetection.alternatives` at or above
+        ``min_confidence`` as measurements (not depth-refined; invalid poses left out)."""
+        out = []
+        for alt in getattr(detection, "alternatives", ()):
+            if alt.confidence < self.min_confidence:
+                continue
+            try:
+                out.append(PoseMeasurement(t_us, self.T_event_rgb @ torch.as_tensor(
+                    np.asarray(alt.pose, np.float64)), self.cov, float(alt.confidence)))
+            except ValueError:
+                self.invalid += 1
+                continue
+        return tuple(out)
 
 
 class OraclePoseSource:

@@ -49,7 +49,10 @@ an RGB network errs mostly in range, which the depth frame measures; counted in
 ``poses_depth_aligned``, or ``pose_alignments_skipped`` by reason. Both read the sensor depth
 frame nearest the pose's own time (within ``max_depth_age_ms``): the maps of the last
 ``history_ms`` are kept, so a pose that arrives late, from the pose source or handed in by
-the caller, is judged against the depth of its time, not the latest frame's.
+the caller, is judged against the depth of its time, not the latest frame's. A dropped
+pose gives way to the first of its ``alternatives`` (the detector's other poses of that
+image, most confident first) that the depth confirms (``pose_alternatives``; counted in
+``poses_from_alternatives``).
 
 Sampled search (``search_per_roi_window``): of a RoI window with more events than that, the
 flow searches only a hash sample of about that many for candidates
@@ -249,6 +252,9 @@ class TrackerStats:
             rejections; lost: times the object was declared lost.
         poses_implausible: poses dropped before the filter because the sensor depth of their
             frame contradicts them (``TrackerConfig.pose_depth_min_share``).
+        poses_from_alternatives: poses that failed that check and were replaced by one of
+            their :attr:`~evtrack.pose_sources.PoseMeasurement.alternatives` that passed it
+            (``TrackerConfig.pose_alternatives``; not counted as implausible).
         poses_half_turned: poses replaced by their half turn about one of
             ``TrackerConfig.pose_half_turn_axes``, which lay nearer the filter's pose;
             half_turn_reinits: poses that re-initialised the filter instead, the
@@ -293,6 +299,7 @@ class TrackerStats:
     pose_misses: int = 0
     poses_rejected: int = 0
     poses_implausible: int = 0
+    poses_from_alternatives: int = 0
     poses_half_turned: int = 0
     half_turn_reinits: int = 0
     poses_depth_aligned: int = 0
@@ -1589,8 +1596,25 @@ class Tracker:
         if limit and self._misses >= limit and self.initialized:
             self._lose(t_now)
 
+    def _plausible_alternative(self, m: PoseMeasurement) -> PoseMeasurement | None:
+        """The first of ``m``'s alternatives (most confident first) at or above
+        ``pose_min_confidence`` that passes the depth check, aligned as it checked; ``None``
+        without one or with ``pose_alternatives`` off."""
+        if not self.config.pose_alternatives:
+            return None
+        for alt in m.alternatives:
+            if alt.confidence < self.config.pose_min_confidence:
+                continue
+            checked = self._depth_checked(alt)
+            if checked is not None:
+                self.stats.poses_from_alternatives += 1
+                return checked
+        return None
+
     def _fuse_pose(self, m: PoseMeasurement) -> None:
         checked = self._depth_checked(m)
+        if checked is None:
+            checked = self._plausible_alternative(m)
         if checked is None:
             self.stats.poses_implausible += 1  # neither a found pose nor a miss
             return

@@ -399,6 +399,16 @@ class TrackerConfig:
         pose_depth_align_max_m: the largest move of ``pose_depth_align``, metres: a pose
             farther off is a gross error for the check to drop, not to move onto whatever lies
             behind it.
+        pose_alternatives: where a pose fails that check, try the other poses its detector
+            found in the same image (:attr:`~evtrack.pose_sources.PoseMeasurement.alternatives`,
+            e.g. the first pass's detection where the network's crop pass replaced it, or the
+            strongest peaks' fit where the corner search's was kept), most confident first,
+            each aligned and checked the same way; the first that passes is used in its place
+            (counted in ``TrackerStats.poses_from_alternatives``). The depth, not the
+            confidence, picks among them: on the mustard bottle's end-on frames the kept pose
+            had confidence 0.00 and lay 0.6 m off while the first pass's (0.15) lay at the right
+            range. Needs the same as the check; off or without alternatives, the pose is just
+            dropped. Not in the paper.
         pose_half_turn_axes: the object-frame axes (a string of ``x``, ``y``, ``z``; ``""``:
             none) whose half turns the pose network may confuse where it sees the object along
             them: each pose seen within ``pose_half_turn_max_view_deg`` of one of these axes is
@@ -505,6 +515,7 @@ class TrackerConfig:
     pose_depth_tolerance_m: float = 0.06
     pose_depth_align: bool = True
     pose_depth_align_max_m: float = 0.2
+    pose_alternatives: bool = True
     pose_half_turn_axes: str = ""
     pose_half_turn_max_view_deg: float = 30.0
     pose_half_turn_reinit_after: int = 2

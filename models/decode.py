@@ -25,7 +25,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import cv2
@@ -52,6 +52,7 @@ __all__ = [
     "solve_pose",
     "search_instance",
     "decode_poses",
+    "with_alternatives",
 ]
 
 
@@ -198,6 +199,11 @@ class PoseDetection:
         reprojection_error_px: RMS reprojection error over the keypoints used by PnP.
         num_points: keypoints used by PnP.
         object_name: the object the network was trained for ("" if unknown).
+        alternatives: other poses the decoding found for the same instance and did not keep
+            (the strongest peaks' fit where the search's was kept, or the reverse; the first
+            pass's detection where the crop pass replaced it), most confident first, each
+            without alternatives of its own. A tracker with depth can verify them where the
+            kept pose fails (``TrackerConfig.pose_alternatives``).
     """
 
     pose: Tensor
@@ -207,6 +213,7 @@ class PoseDetection:
     reprojection_error_px: float
     num_points: int
     object_name: str = ""
+    alternatives: tuple[PoseDetection, ...] = ()
 
 
 @dataclass
@@ -477,6 +484,28 @@ def search_instance(
     return _detection(rvec, tvec, keypoints, scores, err, int(mask.sum()), cfg, object_name)
 
 
+def _keep_more_confident(a: PoseDetection | None, b: PoseDetection | None
+                         ) -> PoseDetection | None:
+    """The more confident of two detections of one instance (``a`` on ties), the other one
+    among its :attr:`~PoseDetection.alternatives`."""
+    if a is None or b is None:
+        return a if b is None else b
+    kept, other = (b, a) if b.confidence > a.confidence else (a, b)
+    return with_alternatives(kept, (other,))
+
+
+def with_alternatives(det: PoseDetection, others: tuple[PoseDetection, ...] | list
+                      ) -> PoseDetection:
+    """``det`` with ``others`` (and their own alternatives, flattened) added to its
+    alternatives, most confident first."""
+    flat = list(det.alternatives)
+    for o in others:
+        flat.append(replace(o, alternatives=()))
+        flat.extend(o.alternatives)
+    flat.sort(key=lambda d: -d.confidence)
+    return replace(det, alternatives=tuple(flat))
+
+
 def decode_poses(
     belief: np.ndarray,
     affinity: np.ndarray,
@@ -515,8 +544,7 @@ def decode_poses(
                       and (det is None or det.confidence < cfg.search_below)):
             found = search_instance(inst, belief, cuboid, K, dist, stride=stride, config=cfg,
                                     pixel_scale=scale, object_name=object_name)
-            if found is not None and (det is None or found.confidence > det.confidence):
-                det = found
+            det = _keep_more_confident(det, found)
         if det is not None:
             out.append(det)
     out.sort(key=lambda d: -d.confidence)

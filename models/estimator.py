@@ -23,7 +23,7 @@ from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 from evtrack.models.crop_refine import crop_window, warp_crop
 from evtrack.models.cuboid import CENTROID_INDEX, Cuboid
-from evtrack.models.decode import DecodeConfig, PoseDetection, decode_poses
+from evtrack.models.decode import DecodeConfig, PoseDetection, decode_poses, with_alternatives
 from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD, WeightsRecord
 
 __all__ = ["PoseEstimator", "TorchPoseEstimator", "preprocess", "training_input_scale"]
@@ -184,7 +184,9 @@ class PoseEstimator(abc.ABC):
         the crop's pose (the crop's instance nearest its centre), keypoints mapped back to
         the image and its reprojection error in image pixels; its confidence is the crop's
         (the reprojection term measured in the crop's pixels, where every object has about
-        one size). The others stay as they were. Most confident first again."""
+        one size), and the first pass's detection joins its alternatives
+        (:attr:`PoseDetection.alternatives`). The others stay as they were. Most confident
+        first again."""
         size = self.crop_size(images[0].shape[1], input_scale)
         fill = tuple(255.0 * m for m in self.mean)
         jobs, crops = [], []
@@ -211,18 +213,25 @@ class PoseEstimator(abc.ABC):
                 continue
             best = min(found, key=lambda d: float(np.linalg.norm(
                 self.cuboid.project(d.pose.numpy(), K_crop, dist)[CENTROID_INDEX] - centre)))
-            refined[i][j] = PoseDetection(
-                pose=best.pose,
-                confidence=best.confidence,
-                keypoints=torch.from_numpy(window.to_image(best.keypoints.numpy())),
-                keypoint_scores=best.keypoint_scores,
-                reprojection_error_px=best.reprojection_error_px / window.scale,
-                num_points=best.num_points,
-                object_name=best.object_name,
-            )
+            in_image = [self._crop_to_image(d, window) for d in (best, *best.alternatives)]
+            refined[i][j] = with_alternatives(in_image[0], [*in_image[1:], detections[i][j]])
         for dets in refined:
             dets.sort(key=lambda d: -d.confidence)
         return refined
+
+    @staticmethod
+    def _crop_to_image(det: PoseDetection, window) -> PoseDetection:
+        """A crop's detection with its keypoints and reprojection error in image pixels
+        (its pose is already in the image's camera; its alternatives are left out)."""
+        return PoseDetection(
+            pose=det.pose,
+            confidence=det.confidence,
+            keypoints=torch.from_numpy(window.to_image(det.keypoints.numpy())),
+            keypoint_scores=det.keypoint_scores,
+            reprojection_error_px=det.reprojection_error_px / window.scale,
+            num_points=det.num_points,
+            object_name=det.object_name,
+        )
 
     def __call__(
         self, rgb: np.ndarray, camera: PinholeCamera | np.ndarray | None = None

@@ -122,6 +122,11 @@ def test_the_crop_pass_divides_the_keypoint_error_by_the_zoom(camera):
     off = np.linalg.norm(second.keypoints.numpy() - projected, axis=1)
     assert off.max() < np.linalg.norm(KEYPOINT_ERROR, axis=1).max() / zoom + 1.0
     assert second.reprojection_error_px < first.reprojection_error_px
+    # the first pass's detection, which the crop's replaced, is kept as its alternative
+    (alternative,) = second.alternatives
+    np.testing.assert_array_equal(alternative.pose.numpy(), first.pose.numpy())
+    np.testing.assert_array_equal(alternative.keypoints.numpy(), first.keypoints.numpy())
+    assert alternative.confidence == first.confidence and alternative.alternatives == ()
 
 
 def test_a_close_object_is_shrunk_and_the_crop_may_leave_the_image():
@@ -171,6 +176,7 @@ def test_a_crop_without_the_object_keeps_the_first_pose():
     assert len(blind.calls) == 2
     np.testing.assert_array_equal(kept.pose.numpy(), first.pose.numpy())
     np.testing.assert_array_equal(kept.keypoints.numpy(), first.keypoints.numpy())
+    assert kept.alternatives == ()  # nothing was replaced
 
 
 def test_crop_intrinsics_see_the_crop_as_the_camera_sees_the_image():

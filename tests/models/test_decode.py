@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from evtrack.errors import ConfigError
 from evtrack.models import Cuboid, DecodeConfig, decode_poses, find_peaks, pixel_to_grid
+from evtrack.models.decode import with_alternatives
 
 STRIDE = 8
 H, W = 480, 640
@@ -373,6 +374,14 @@ def test_search_below_falls_back_to_the_search_where_the_strongest_peaks_fail(
     assert torch.equal(found[0].pose, searched.pose)
     assert found[0].confidence == searched.confidence > 0.3
     assert_pose_close(found[0], truth, t_tol=2e-3, r_tol_deg=0.5)
+    # the strongest peaks' poor fit is kept as the detection's alternative (none: nothing)
+    alternatives = found[0].alternatives
+    if strongest_result == "none":
+        assert alternatives == ()
+    else:
+        assert len(alternatives) == 1 and alternatives[0].alternatives == ()
+        assert torch.equal(alternatives[0].pose, poor[0].pose)
+        assert alternatives[0].confidence == 0.05
     # a fit at least as confident as the threshold is not searched; no fit always is
     kept = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.04))
     expected = searched if strongest_result == "none" else poor[0]
@@ -389,12 +398,27 @@ def test_search_below_leaves_confident_poses_alone(seed):
     kept = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.5))[0]
     assert torch.equal(kept.pose, plain.pose)
     assert kept.confidence == plain.confidence
+    assert plain.alternatives == kept.alternatives == ()  # nothing else was decoded
     # a threshold above every confidence: the search runs, the more confident pose is kept
     always = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=1.0))[0]
     searched = decode_poses(belief, affinity, CUBOID, K,
                             config=DecodeConfig(correspondence="search"))[0]
     assert always.confidence == max(plain.confidence, searched.confidence)
     assert_pose_close(always, truth, t_tol=2e-3, r_tol_deg=0.5)
+    (other,) = always.alternatives  # the less confident of the two
+    assert other.confidence == min(plain.confidence, searched.confidence)
+
+
+def test_with_alternatives_flattens_and_ranks_by_confidence():
+    truth = make_pose(0)
+    belief, affinity = synth_maps([project(truth)])
+    (det,) = decode_poses(belief, affinity, CUBOID, K, config=DecodeConfig(search_below=0.0))
+    low, mid, high = (dataclasses.replace(det, confidence=c) for c in (0.1, 0.2, 0.3))
+    nested = dataclasses.replace(mid, alternatives=(low,))
+    out = with_alternatives(det, [nested, high])
+    assert out.pose is det.pose and out.confidence == det.confidence
+    assert [a.confidence for a in out.alternatives] == [0.3, 0.2, 0.1]
+    assert all(a.alternatives == () for a in out.alternatives)
 
 
 @pytest.mark.parametrize("value", [-0.1, 1.5, float("nan")])

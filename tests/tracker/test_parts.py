@@ -325,6 +325,27 @@ def test_network_source_takes_the_best_detection_into_the_event_camera() -> None
     np.testing.assert_allclose(m.pose.numpy(), T_er @ dets[1].pose)
     assert m.confidence == 0.9
     assert NetworkPoseSource(lambda rgb: dets, min_confidence=0.95)(0, None) is None
+    assert m.alternatives == ()  # detections without alternatives give none
+
+
+def test_network_source_hands_on_the_detections_alternatives() -> None:
+    """A detection's alternatives become the measurement's, mapped into the event camera like
+    the pose; those below ``min_confidence`` are left out, invalid ones counted."""
+    class Det:
+        def __init__(self, pose, c, alternatives=()):
+            self.pose, self.confidence, self.alternatives = pose, c, alternatives
+
+    T_er = _pose([0, 0.1, 0], [0.05, 0, 0])
+    sheared = _pose([0, 0, 0], [0, 0, 1.0])
+    sheared[0, 1] = 0.5  # not a rotation
+    alts = (Det(_pose([0.1, 0, 0], [0, 0, 0.9]), 0.6), Det(sheared, 0.55),
+            Det(_pose([0, 0.2, 0], [0, 0, 1.1]), 0.3))
+    src = NetworkPoseSource(lambda rgb: [Det(_pose([0, 0, 0.2], [0, 0.1, 0.8]), 0.9, alts)],
+                            T_event_rgb=torch.from_numpy(T_er), min_confidence=0.5)
+    m = src(10, np.zeros((8, 8, 3), np.uint8))
+    (alt,) = m.alternatives
+    np.testing.assert_allclose(alt.pose.numpy(), T_er @ alts[0].pose)
+    assert alt.t_us == 10 and alt.confidence == 0.6 and src.invalid == 1
 
 
 def test_twist_adjoint_against_moving_points() -> None:
