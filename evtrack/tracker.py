@@ -1598,12 +1598,14 @@ class Tracker:
 
     def _plausible_alternative(self, m: PoseMeasurement) -> PoseMeasurement | None:
         """The first of ``m``'s alternatives (most confident first) at or above
-        ``pose_min_confidence`` that passes the depth check, aligned as it checked; ``None``
-        without one or with ``pose_alternatives`` off."""
-        if not self.config.pose_alternatives:
+        ``pose_min_confidence`` and ``pose_alternatives_min_confidence`` that passes the depth
+        check, aligned as it checked; ``None`` without one or with ``pose_alternatives`` off."""
+        c = self.config
+        if not c.pose_alternatives:
             return None
+        least = max(c.pose_min_confidence, c.pose_alternatives_min_confidence)
         for alt in m.alternatives:
-            if alt.confidence < self.config.pose_min_confidence:
+            if alt.confidence < least:
                 continue
             checked = self._depth_checked(alt)
             if checked is not None:

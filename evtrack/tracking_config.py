@@ -409,6 +409,12 @@ class TrackerConfig:
             had confidence 0.00 and lay 0.6 m off while the first pass's (0.15) lay at the right
             range. Needs the same as the check; off or without alternatives, the pose is just
             dropped. Not in the paper.
+        pose_alternatives_min_confidence: alternatives less confident than this (or than
+            ``pose_min_confidence``) are not tried. A corner-identity confusion can give a pose
+            turned half a turn at the right range, which the depth confirms: on the benchmark
+            the alternatives the depth confirmed had confidences 0.64-0.85 and lay 2-9° off,
+            except one of 0.15 turned 176°, which the ``pose`` baseline (no events to hold its
+            filter) then fused (mustard bottle, paper-matched `faster`: 84° instead of 31°).
         pose_half_turn_axes: the object-frame axes (a string of ``x``, ``y``, ``z``; ``""``:
             none) whose half turns the pose network may confuse where it sees the object along
             them: each pose seen within ``pose_half_turn_max_view_deg`` of one of these axes is
@@ -516,6 +522,7 @@ class TrackerConfig:
     pose_depth_align: bool = True
     pose_depth_align_max_m: float = 0.2
     pose_alternatives: bool = True
+    pose_alternatives_min_confidence: float = 0.3
     pose_half_turn_axes: str = ""
     pose_half_turn_max_view_deg: float = 30.0
     pose_half_turn_reinit_after: int = 2
@@ -553,7 +560,8 @@ class TrackerConfig:
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
                      "pose_min_confidence", "burst_rate_hz", "reinit_agree_m",
                      "reinit_agree_m_per_s", "reinit_agree_deg", "reinit_agree_deg_per_s",
-                     "pose_depth_tolerance_m", "realtime_load"):
+                     "pose_depth_tolerance_m", "realtime_load",
+                     "pose_alternatives_min_confidence"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ConfigError(f"tracker config field {name!r} must be finite and >= 0, "

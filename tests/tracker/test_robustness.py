@@ -864,7 +864,7 @@ def test_a_pushed_pose_is_checked_against_the_depth_of_its_time(rest_sequence, l
     assert len(kept) == int(((times >= newest - span_us) & (times <= newest)).sum())
 
 
-@pytest.mark.parametrize("case", ["on", "off", "below-confidence"])
+@pytest.mark.parametrize("case", ["on", "off", "below-confidence", "below-alternatives-least"])
 def test_a_dropped_pose_gives_way_to_an_alternative_the_depth_confirms(rest_sequence, case
                                                                        ) -> None:
     """Streaming, the object at rest: the pose handed in lies 0.4 m behind the object (the
@@ -872,7 +872,8 @@ def test_a_dropped_pose_gives_way_to_an_alternative_the_depth_confirms(rest_sequ
     the true pose 5 cm off along its ray. With ``pose_alternatives`` (the default) the
     second alternative is aligned, starts the track within 1 cm of the truth and is counted
     in ``poses_from_alternatives``, not as implausible; off, or with the alternatives below
-    ``pose_min_confidence``, the pose is dropped and the filter stays uninitialised."""
+    ``pose_min_confidence`` or ``pose_alternatives_min_confidence`` (0.3), the pose is
+    dropped and the filter stays uninitialised."""
     seq = rest_sequence
     settings = {"off": {"pose_alternatives": False},
                 "below-confidence": {"pose_min_confidence": 0.5}}.get(case, {})
@@ -887,7 +888,7 @@ def test_a_dropped_pose_gives_way_to_an_alternative_the_depth_confirms(rest_sequ
         pose[:3, 3] *= 1.0 + shift_m / float(torch.linalg.vector_norm(truth[:3, 3]))
         return pose
 
-    alt_confidence = 0.3 if case == "below-confidence" else 0.6
+    alt_confidence = {"below-confidence": 0.4, "below-alternatives-least": 0.2}.get(case, 0.6)
     alternatives = (PoseMeasurement(t_pose, along_ray(-0.5), confidence=alt_confidence),
                     PoseMeasurement(t_pose, along_ray(0.05), confidence=alt_confidence))
     tracker.push_pose(PoseMeasurement(t_pose, along_ray(0.4), confidence=0.9,
