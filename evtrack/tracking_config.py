@@ -414,7 +414,7 @@ class TrackerConfig:
             turned half a turn at the right range, which the depth confirms: on the benchmark
             the alternatives the depth confirmed had confidences 0.64-0.85 and lay 2-9° off,
             except one of 0.15 turned 176°, which the ``pose`` baseline (no events to hold its
-            filter) then fused (mustard bottle, paper-matched `faster`: 84° instead of 31°).
+            filter) then fused (mustard bottle, paper-matched `faster`: 84° instead of 29°).
         pose_half_turn_axes: the object-frame axes (a string of ``x``, ``y``, ``z``; ``""``:
             none) whose half turns the pose network may confuse where it sees the object along
             them: each pose seen within ``pose_half_turn_max_view_deg`` of one of these axes is
