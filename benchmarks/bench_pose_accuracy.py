@@ -22,6 +22,7 @@ six to 0.942; ``--one-pass`` prints the one-pass rows beside it.
     python benchmarks/bench_pose_accuracy.py --weights W.pt --decode strongest --decode search
     python benchmarks/bench_pose_accuracy.py --depth-refine   # also each decoding + depth ICP
     python benchmarks/bench_pose_accuracy.py --one-pass       # also without the crop pass
+    python benchmarks/bench_pose_accuracy.py --crop-blend 45  # also the two passes blended
 
 With ``--depth-refine`` every decoding gets a second row, ``<decoding>+depth``: the same
 detections refined on the sequence's depth frames (:class:`evtrack.models.DepthRefiner`, ICP
@@ -120,6 +121,10 @@ def main() -> None:
     parser.add_argument("--one-pass", action="store_true",
                         help="also each decoding without the second pass on a crop around the "
                              "detection (DecodeConfig.crop_refine=0), as '<decoding>/1pass'")
+    parser.add_argument("--crop-blend", type=float, default=None, metavar="DEG",
+                        help="also each decoding with the crop pass's rotation turned halfway "
+                             "to the first pass's where they agree within DEG degrees "
+                             "(DecodeConfig.crop_blend_max_deg), as '<decoding>/blend'")
     args = parser.parse_args()
     if args.weights is None:
         args.weights = find_object_weights(args.object)
@@ -131,6 +136,8 @@ def main() -> None:
         decodings[name] = DecodeConfig(**kw)
         if args.one_pass:
             decodings[f"{name}/1pass"] = DecodeConfig(**kw, crop_refine=0.0)
+        if args.crop_blend is not None:
+            decodings[f"{name}/blend"] = DecodeConfig(**kw, crop_blend_max_deg=args.crop_blend)
     torch.set_num_threads(args.threads)
 
     if args.per_preset < 1:

@@ -27,7 +27,7 @@ import numpy as np
 
 from evtrack.models.cuboid import Cuboid
 
-__all__ = ["CropWindow", "box_window", "crop_window", "warp_crop"]
+__all__ = ["CropWindow", "box_window", "crop_window", "halfway_rotation", "warp_crop"]
 
 
 @dataclass(frozen=True)
@@ -114,3 +114,16 @@ def warp_crop(image: np.ndarray, window: CropWindow, fill: tuple[float, float, f
     return cv2.warpAffine(np.ascontiguousarray(image), window.affine, window.size,
                           flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                           borderValue=tuple(float(v) for v in fill))
+
+
+def halfway_rotation(pose_a: np.ndarray, pose_b: np.ndarray, max_deg: float) -> np.ndarray | None:
+    """``pose_a`` (4, 4) with its rotation moved halfway along the geodesic to ``pose_b``'s,
+    its translation kept; ``None`` when the two rotations differ by more than ``max_deg``
+    degrees (the two disagree; a mean of them would be neither)."""
+    a, b = np.asarray(pose_a, np.float64), np.asarray(pose_b, np.float64)
+    rel, _ = cv2.Rodrigues(a[:3, :3].T @ b[:3, :3])
+    if np.degrees(float(np.linalg.norm(rel))) > max_deg:
+        return None
+    out = a.copy()
+    out[:3, :3] = a[:3, :3] @ cv2.Rodrigues(0.5 * rel)[0]
+    return out

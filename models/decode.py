@@ -120,6 +120,21 @@ class DecodeConfig:
             against 0.854. Other sides were no better over both objects (see
             ``models/weights/README.md``). It costs a network call on a quarter to a third
             of a 640x480 image's pixels.
+        crop_blend_max_deg: where the crop's rotation and the first pass's differ by at most
+            this (degrees), the detection's rotation turns halfway to the first pass's
+            (:func:`~evtrack.models.crop_refine.halfway_rotation`; its position, keypoints,
+            confidence and reprojection error stay the crop's; both passes' own poses join its
+            ``alternatives``); 0 (the default): the crop's pose as it is. The two passes see
+            the object at different sizes and err apart, so their mean can beat either, but
+            only where the network's first pass is about as good as its crop. Median rotation
+            error on held-out renders (``bench_pose_accuracy.py --crop-blend 45``, six
+            sequences per preset, regular / faster, crop -> blended; session 36): mustard
+            bottle 6.86 -> 5.72 / 6.44 -> 5.83, tomato can 5.52 -> 6.10 / 7.01 -> 6.39, potted
+            meat can 3.34 -> 5.03 / 4.33 -> 4.73 (its first pass errs 8.3 / 6.2 deg), cracker
+            box 3.17 -> 3.63 / 3.47 -> 3.57, coded box 2.20 -> 2.25 / 3.04 -> 2.82 (regular ADD
+            0.942 -> 0.925). Check a network on such
+            renders before turning it on; beyond ~40 deg two poses are different answers (a
+            half turn, a corner swap) and their mean is neither.
         crop_margin: side of that crop / longer side of the projected cuboid's bounding box
             (>= 1): 1.3 (1.5 was better on the coded box's regular sequences, 0.947, worse
             on its faster ones and on the cracker box).
@@ -146,6 +161,7 @@ class DecodeConfig:
     search_gate_cells: float = 1.5
     crop_refine: float = 0.5
     crop_margin: float = 1.3
+    crop_blend_max_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.correspondence not in ("strongest", "search"):
@@ -173,6 +189,9 @@ class DecodeConfig:
                               f"input width; 0: off), got {self.crop_refine}")
         if not (math.isfinite(self.crop_margin) and self.crop_margin >= 1.0):
             raise ConfigError(f"decode.crop_margin must be >= 1, got {self.crop_margin}")
+        if not (math.isfinite(self.crop_blend_max_deg) and 0.0 <= self.crop_blend_max_deg <= 180.0):
+            raise ConfigError(f"decode.crop_blend_max_deg must be in [0, 180] (degrees; 0: off), "
+                              f"got {self.crop_blend_max_deg}")
         if self.nms_radius < 1 or self.max_instances < 1:
             raise ConfigError("decode.nms_radius and decode.max_instances must be >= 1")
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -21,7 +22,7 @@ from torch import nn
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
-from evtrack.models.crop_refine import crop_window, warp_crop
+from evtrack.models.crop_refine import crop_window, halfway_rotation, warp_crop
 from evtrack.models.cuboid import CENTROID_INDEX, Cuboid
 from evtrack.models.decode import DecodeConfig, PoseDetection, decode_poses, with_alternatives
 from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD, WeightsRecord
@@ -185,8 +186,10 @@ class PoseEstimator(abc.ABC):
         the image and its reprojection error in image pixels; its confidence is the crop's
         (the reprojection term measured in the crop's pixels, where every object has about
         one size), and the first pass's detection joins its alternatives
-        (:attr:`PoseDetection.alternatives`). The others stay as they were. Most confident
-        first again."""
+        (:attr:`PoseDetection.alternatives`). Where the two rotations agree within
+        ``decode.crop_blend_max_deg`` the detection's turns halfway to the first pass's, and
+        the crop's own pose joins the alternatives too. The others stay as they were. Most
+        confident first again."""
         size = self.crop_size(images[0].shape[1], input_scale)
         fill = tuple(255.0 * m for m in self.mean)
         jobs, crops = [], []
@@ -214,7 +217,14 @@ class PoseEstimator(abc.ABC):
             best = min(found, key=lambda d: float(np.linalg.norm(
                 self.cuboid.project(d.pose.numpy(), K_crop, dist)[CENTROID_INDEX] - centre)))
             in_image = [self._crop_to_image(d, window) for d in (best, *best.alternatives)]
-            refined[i][j] = with_alternatives(in_image[0], [*in_image[1:], detections[i][j]])
+            first, kept, others = detections[i][j], in_image[0], [*in_image[1:]]
+            blend = self.decode.crop_blend_max_deg
+            turned = (halfway_rotation(kept.pose.numpy(), first.pose.numpy(), blend)
+                      if blend > 0 else None)
+            if turned is not None:
+                others.append(kept)
+                kept = replace(kept, pose=torch.from_numpy(turned))
+            refined[i][j] = with_alternatives(kept, [*others, first])
         for dets in refined:
             dets.sort(key=lambda d: -d.confidence)
         return refined

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 from evtrack.models import Cuboid, DecodeConfig, PoseEstimator
-from evtrack.models.crop_refine import crop_window, warp_crop
+from evtrack.models.crop_refine import crop_window, halfway_rotation, warp_crop
 
 CUBOID = Cuboid((0.08, 0.12, 0.05))
 STRIDE = 8
@@ -103,7 +103,7 @@ def test_the_crop_pass_divides_the_keypoint_error_by_the_zoom(camera):
     truth = pose_at((0.03, -0.02, 0.9))  # far: the box spans ~60 px of 320
     image = paint(camera, [truth])
     one = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_refine=0.0))
-    two = DotNetwork(camera, CUBOID)
+    two = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_blend_max_deg=0.0))  # crop's own
     (first,) = one(image)
     (second,) = two(image)
     assert len(one.calls) == 1 and len(two.calls) == 2
@@ -127,6 +127,45 @@ def test_the_crop_pass_divides_the_keypoint_error_by_the_zoom(camera):
     np.testing.assert_array_equal(alternative.pose.numpy(), first.pose.numpy())
     np.testing.assert_array_equal(alternative.keypoints.numpy(), first.keypoints.numpy())
     assert alternative.confidence == first.confidence and alternative.alternatives == ()
+
+
+def test_the_detection_turns_halfway_to_the_first_pass_where_the_passes_agree():
+    truth = pose_at((0.03, -0.02, 0.9))
+    image = paint(CAM, [truth])
+    (first,) = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0))(image)
+    (crop,) = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_blend_max_deg=0.0))(image)
+    (blended,) = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_blend_max_deg=45.0))(image)
+    assert DecodeConfig().crop_blend_max_deg == 0.0  # opt-in
+    a, b = crop.pose.numpy(), first.pose.numpy()
+    assert not np.allclose(a[:3, :3], b[:3, :3])  # the passes err apart (the premise)
+    np.testing.assert_allclose(blended.pose.numpy(), halfway_rotation(a, b, 45.0), atol=1e-12)
+    np.testing.assert_array_equal(blended.pose.numpy()[:3, 3], a[:3, 3])  # the crop's position
+    # keypoints, confidence and reprojection error are the crop's; both passes' poses are kept
+    np.testing.assert_array_equal(blended.keypoints.numpy(), crop.keypoints.numpy())
+    assert blended.confidence == crop.confidence
+    kept = blended.alternatives
+    assert len(kept) == 2 and all(d.alternatives == () for d in kept)
+    assert {tuple(d.pose.numpy().ravel()) for d in kept} == {tuple(a.ravel()), tuple(b.ravel())}
+
+
+@pytest.mark.parametrize("angles", [(0.0, 0.6), (-0.3, 0.2), (0.5, 0.5)])
+def test_halfway_rotation_halves_the_geodesic_and_keeps_the_first_translation(angles):
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    base = pose_at((0.1, 0.0, 0.7))
+    a, b = base.copy(), base.copy()
+    a[:3, :3] = base[:3, :3] @ Rotation.from_rotvec(angles[0] * axis).as_matrix()
+    b[:3, :3] = base[:3, :3] @ Rotation.from_rotvec(angles[1] * axis).as_matrix()
+    b[:3, 3] += (0.0, 0.01, 0.06)
+    mid = halfway_rotation(a, b, 90.0)
+    expected = base[:3, :3] @ Rotation.from_rotvec(0.5 * sum(angles) * axis).as_matrix()
+    np.testing.assert_allclose(mid[:3, :3], expected, atol=1e-12)
+    np.testing.assert_array_equal(mid[:3, 3], a[:3, 3])
+    np.testing.assert_allclose(halfway_rotation(b, a, 90.0)[:3, :3], mid[:3, :3], atol=1e-12)
+    np.testing.assert_array_equal(mid[3], [0, 0, 0, 1])
+    apart = np.degrees(abs(angles[1] - angles[0]))  # farther apart than max_deg: no mean
+    assert halfway_rotation(a, b, apart + 0.5) is not None
+    if apart > 0.5:
+        assert halfway_rotation(a, b, apart - 0.5) is None
 
 
 def test_a_close_object_is_shrunk_and_the_crop_may_leave_the_image():
@@ -224,5 +263,8 @@ def test_crop_settings_are_checked():
         DecodeConfig(crop_refine=float("nan"))
     with pytest.raises(ConfigError, match="crop_margin"):
         DecodeConfig(crop_margin=0.9)
+    for bad in (-1.0, 181.0, float("nan")):
+        with pytest.raises(ConfigError, match="crop_blend_max_deg"):
+            DecodeConfig(crop_blend_max_deg=bad)
     est = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.01))
     assert est.crop_size(320) == 2 * STRIDE  # at least two output cells
