@@ -265,7 +265,11 @@ def training_input_scale(record: WeightsRecord | None, camera: PinholeCamera | n
 
 
 def _record_kwargs(record: WeightsRecord | None, cuboid: Cuboid | None, object_name: str | None,
-                   camera: PinholeCamera | np.ndarray, input_scale: float | None = None):
+                   camera: PinholeCamera | np.ndarray, input_scale: float | None = None,
+                   decode: DecodeConfig | None = None):
+    """The :class:`PoseEstimator` arguments a weights record supplies where not given: cuboid,
+    object name, normalisation, stride, input scale and the record's decoding
+    (``WeightsRecord.decode``; an explicit ``decode`` wins)."""
     if record is None and cuboid is None:
         raise ConfigError("the network has no weights record: pass cuboid=... (and object_name)")
     if input_scale is None:
@@ -278,6 +282,8 @@ def _record_kwargs(record: WeightsRecord | None, cuboid: Cuboid | None, object_n
         "mean": record.mean if record else IMAGENET_MEAN,
         "std": record.std if record else IMAGENET_STD,
         "output_stride": record.output_stride if record else 8,
+        "decode": decode if decode is not None else (
+            DecodeConfig.from_dict(record.decode, "record.decode") if record else None),
     }
 
 
@@ -292,7 +298,8 @@ class TorchPoseEstimator(PoseEstimator):
         cuboid, object_name: override (or supply, for a network without a record).
         input_scale: resize factor before the network; ``None`` (default): the network's
             training resolution (:func:`training_input_scale`).
-        **kwargs: ``decode`` as in :class:`PoseEstimator`.
+        **kwargs: ``decode`` as in :class:`PoseEstimator`; default: the record's
+            (``WeightsRecord.decode``, else the library's defaults).
     """
 
     def __init__(
@@ -307,8 +314,9 @@ class TorchPoseEstimator(PoseEstimator):
         **kwargs,
     ) -> None:
         record = getattr(net, "weights_record", None)
+        decode = kwargs.pop("decode", None)
         super().__init__(camera, **_record_kwargs(record, cuboid, object_name, camera,
-                                                  input_scale), **kwargs)
+                                                  input_scale, decode), **kwargs)
         self.device = torch.device(device)
         self.net = net.to(self.device).eval()
 

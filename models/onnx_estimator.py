@@ -35,7 +35,8 @@ class OnnxPoseEstimator(PoseEstimator):
         cuboid, object_name: override (or supply, for a model without a record).
         input_scale: resize factor before the network; ``None`` (default): the network's
             training resolution (:func:`~evtrack.models.estimator.training_input_scale`).
-        **kwargs: ``decode`` as in :class:`PoseEstimator`.
+        **kwargs: ``decode`` as in :class:`PoseEstimator`; default: the embedded record's
+            (``WeightsRecord.decode``, else the library's defaults).
     """
 
     def __init__(
@@ -54,8 +55,9 @@ class OnnxPoseEstimator(PoseEstimator):
 
         self.path = Path(path)
         record, self.precision = read_onnx_record(self.path)
+        decode = kwargs.pop("decode", None)
         super().__init__(camera, **_record_kwargs(record, cuboid, object_name, camera,
-                                                  input_scale), **kwargs)
+                                                  input_scale, decode), **kwargs)
         self.record = record
         options = ort.SessionOptions()
         if threads is not None:

@@ -75,6 +75,10 @@ class WeightsRecord:
         metrics: evaluation metrics, name -> value.
         training: training facts (epochs, steps, wall time in seconds, hardware).
         created: ISO-8601 UTC time the record was made.
+        decode: the decoding settings chosen for this network (:class:`DecodeConfig` fields
+            that differ from the library's defaults, e.g. ``{"crop_blend_max_deg": 45.0}``),
+            chosen on held-out renders and stated in its model card; estimators built from the
+            weights use them unless given a ``decode`` of their own. ``{}``: the defaults.
     """
 
     arch: str
@@ -91,8 +95,15 @@ class WeightsRecord:
     metrics: dict[str, float] = field(default_factory=dict)
     training: dict[str, Any] = field(default_factory=dict)
     created: str = ""
+    decode: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        from evtrack.models.decode import DecodeConfig
+
+        if not isinstance(self.decode, dict):
+            raise ConfigError(f"record.decode must be a mapping of DecodeConfig fields, got "
+                              f"{type(self.decode).__name__}")
+        DecodeConfig.from_dict(self.decode, "record.decode")  # names the bad field
         if isinstance(self.cuboid, dict):
             self.cuboid = Cuboid.from_dict(self.cuboid, "record.cuboid")
         self.input_size = tuple(int(v) for v in self.input_size)  # type: ignore[assignment]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import onnx
 import onnxruntime as ort
@@ -11,6 +13,7 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.models import (
     Cuboid,
+    DecodeConfig,
     ExportError,
     OnnxPoseEstimator,
     TorchPoseEstimator,
@@ -154,6 +157,19 @@ def test_fp16_export(tmp_path, exported):
     assert b_o.dtype == np.float32
     scale = float(np.abs(b_t.numpy()).max())
     np.testing.assert_allclose(b_o, b_t.numpy(), atol=2e-2 * scale)
+
+
+def test_the_embedded_records_decoding_is_used(tmp_path, exported):
+    net, _ = exported
+    record = net.weights_record
+    net.weights_record = dataclasses.replace(record, decode={"crop_blend_max_deg": 30.0})
+    try:
+        path = export_onnx(net, tmp_path / "decode.onnx")
+    finally:
+        net.weights_record = record
+    cam = PinholeCamera(100.0, 100.0, 79.5, 59.5, 160, 120)
+    assert OnnxPoseEstimator(path, cam, threads=1).decode.crop_blend_max_deg == 30.0
+    assert OnnxPoseEstimator(path, cam, threads=1, decode=DecodeConfig()).decode == DecodeConfig()
 
 
 def test_export_needs_a_record(tmp_path):

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import evtrack.models.weights as weights_module
+from evtrack.errors import ConfigError
 from evtrack.models import (
     Cuboid,
     WeightsError,
@@ -167,3 +168,32 @@ def test_record_validation():
         WeightsRecord.from_dict({**make_record().to_dict(), "colour": "red"})
     assert WeightsRecord.from_dict(make_record().to_dict()) == make_record(
         created=WeightsRecord.from_dict(make_record().to_dict()).created)
+
+
+def test_the_records_decoding_is_used_unless_one_is_given(saved, tmp_path):
+    """``WeightsRecord.decode``: saved with the weights, applied by estimators built from them
+    (the library's defaults elsewhere), overridden by an explicit ``decode``, checked by
+    field name."""
+    from evtrack.models import DecodeConfig, TorchPoseEstimator
+    from evtrack.models.factory import load_model
+
+    net, _ = saved
+    chosen = {"crop_blend_max_deg": 45.0, "search_below": 0.2}
+    path = save_weights(tmp_path / "chosen.pt", net, make_record(decode=chosen))
+    record, state = load_weights_file(path)
+    assert record.decode == chosen
+    assert all(torch.equal(state[k], v) for k, v in net.state_dict().items())
+    cam = torch.tensor([[100.0, 0, 64], [0, 100.0, 48], [0, 0, 1]]).numpy()
+    est = TorchPoseEstimator.from_weights(path, cam)
+    assert est.decode == DecodeConfig(crop_blend_max_deg=45.0, search_below=0.2)
+    explicit = TorchPoseEstimator.from_weights(path, cam, decode=DecodeConfig())
+    assert explicit.decode == DecodeConfig()
+    plain_net, plain_record = load_model(saved[1])
+    assert plain_record.decode == {}
+    assert TorchPoseEstimator(plain_net, cam).decode == DecodeConfig()
+    with pytest.raises(ConfigError, match=r"record\.decode.*crop_blend"):
+        make_record(decode={"crop_blend": 45.0})
+    with pytest.raises(ConfigError, match="crop_blend_max_deg"):
+        make_record(decode={"crop_blend_max_deg": 200.0})
+    with pytest.raises(WeightsError, match="decode"):
+        WeightsRecord.from_dict({**make_record().to_dict(), "decode": ["crop_blend_max_deg"]})
