@@ -260,6 +260,7 @@ def model_card(record: WeightsRecord, config: dict[str, Any] | None = None) -> s
         f"- Licence: {record.licence}",
         f"- Origin: {record.origin or 'not stated'}",
         f"- Created: {record.created}",
+        f"- Decoding: {json.dumps(record.decode) if record.decode else 'the library defaults'}",
         "",
         "## Training",
         "",
