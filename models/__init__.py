@@ -43,6 +43,7 @@ from evtrack.models.weights import (
     load_weights_file,
     model_card,
     save_weights,
+    set_record_decode,
     write_model_card,
 )
 
@@ -86,6 +87,7 @@ __all__ = [
     "read_onnx_record",
     "register_model",
     "save_weights",
+    "set_record_decode",
     "solve_pose",
     "write_model_card",
 ]

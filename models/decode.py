@@ -203,6 +203,22 @@ class DecodeConfig:
         unknown = sorted(set(data) - known)
         if unknown:
             raise ConfigError(f"{source}: unknown field(s) {unknown}; known: {sorted(known)}")
+        defaults = cls()
+        for name, value in data.items():
+            default = getattr(defaults, name)
+            if isinstance(default, bool):
+                ok = isinstance(value, bool)
+            elif isinstance(default, int):
+                ok = isinstance(value, int) and not isinstance(value, bool)
+            elif isinstance(default, float):
+                ok = isinstance(value, int | float) and not isinstance(value, bool)
+                value = float(value) if ok else value
+            else:
+                ok = isinstance(value, type(default))
+            if not ok:
+                raise ConfigError(f"{source}.{name}: expected a {type(default).__name__} like the "
+                                  f"default {default!r}, got {value!r}")
+            data[name] = value
         return cls(**data)
 
 

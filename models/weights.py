@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +31,7 @@ __all__ = [
     "WeightsError",
     "WeightsRecord",
     "save_weights",
+    "set_record_decode",
     "load_weights_file",
     "zoo_dir",
     "list_weights",
@@ -142,10 +143,30 @@ class WeightsRecord:
 
 def save_weights(path: str | Path, net: torch.nn.Module, record: WeightsRecord) -> Path:
     """Write ``net``'s state dict and ``record`` atomically to ``path`` (a ``.pt`` file)."""
+    return _save_state(path, net.state_dict(), record)
+
+
+def set_record_decode(path: str | Path, decode: dict[str, Any], out: str | Path | None = None
+                      ) -> Path:
+    """Write the weights at ``path`` with ``WeightsRecord.decode`` set to ``decode`` (the
+    network's chosen :class:`~evtrack.models.DecodeConfig` fields; ``{}``: the defaults) to
+    ``out`` (default: ``path`` itself, replaced atomically). The state dict is copied as it is.
+
+    Raises:
+        WeightsError: ``path`` unreadable; ConfigError: a field ``DecodeConfig`` lacks or a
+            value it refuses.
+    """
+    record, state = load_weights_file(path)
+    record = replace(record, decode=dict(decode))
+    return _save_state(Path(path) if out is None else out, state, record)
+
+
+def _save_state(path: str | Path, state_dict: dict[str, torch.Tensor], record: WeightsRecord
+                ) -> Path:
     from evtrack.utils import atomic_path
 
     path = Path(path)
-    state = {k: v.detach().cpu().contiguous() for k, v in net.state_dict().items()}
+    state = {k: v.detach().cpu().contiguous() for k, v in state_dict.items()}
     payload = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,

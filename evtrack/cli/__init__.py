@@ -18,8 +18,8 @@ from evtrack.errors import EvtrackError
 
 __all__ = ["main", "build_parser"]
 
-ORDER = ("info", "convert", "simulate", "flow", "train", "average_weights", "export", "track",
-         "evaluate", "demo")
+ORDER = ("info", "convert", "simulate", "flow", "train", "average_weights", "set_decode", "export",
+         "track", "evaluate", "demo")
 
 
 def _command_modules() -> list[str]:

@@ -197,3 +197,42 @@ def test_the_records_decoding_is_used_unless_one_is_given(saved, tmp_path):
         make_record(decode={"crop_blend_max_deg": 200.0})
     with pytest.raises(WeightsError, match="decode"):
         WeightsRecord.from_dict({**make_record().to_dict(), "decode": ["crop_blend_max_deg"]})
+
+
+def test_set_decode_command_writes_the_records_decoding(saved, tmp_path, capsys):
+    """``evtrack set-decode``: sets, shows and clears ``WeightsRecord.decode``; the state dict
+    is copied as it is; bad names and values are errors that name the field and write nothing."""
+    from evtrack.cli import main
+
+    net, path = saved
+    out = tmp_path / "decoded.pt"
+    assert main(["set-decode", str(path), "crop_blend_max_deg=45", "ransac=false",
+                 "--out", str(out)]) == 0
+    record, state = load_weights_file(out)
+    assert record.decode == {"crop_blend_max_deg": 45, "ransac": False}
+    assert all(torch.equal(state[k], v) for k, v in net.state_dict().items())
+    assert load_weights_file(path)[0].decode == {}  # the input is untouched with --out
+    assert main(["set-decode", str(out)]) == 0
+    assert "crop_blend_max_deg" in capsys.readouterr().out
+    assert main(["set-decode", str(out), "search_below=0.2"]) == 0  # in place, merged
+    assert load_weights_file(out)[0].decode == {"crop_blend_max_deg": 45, "ransac": False,
+                                                 "search_below": 0.2}
+    assert main(["set-decode", str(out), "--clear"]) == 0
+    assert load_weights_file(out)[0].decode == {}
+    for bad, field_name in (("crop_blend=45", "crop_blend"), ("ransac=maybe", "ransac"),
+                            ("crop_blend_max_deg=abc", "crop_blend_max_deg"),
+                            ("crop_blend_max_deg=500", "crop_blend_max_deg"), ("45", "KEY=VALUE")):
+        target = tmp_path / "never.pt"
+        assert main(["set-decode", str(path), bad, "--out", str(target)]) == 1
+        assert field_name in capsys.readouterr().err and not target.exists()
+
+
+def test_decode_config_from_dict_checks_value_types():
+    from evtrack.models import DecodeConfig
+
+    assert DecodeConfig.from_dict({"crop_blend_max_deg": 45}).crop_blend_max_deg == 45.0
+    assert isinstance(DecodeConfig.from_dict({"search_below": 0}).search_below, float)
+    for bad in ({"ransac": 1}, {"min_points": 5.5}, {"min_points": True},
+                {"correspondence": 3}, {"search_below": "0.1"}):
+        with pytest.raises(ConfigError, match=f"decode.{next(iter(bad))}: expected"):
+            DecodeConfig.from_dict(bad)
