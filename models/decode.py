@@ -111,7 +111,8 @@ class DecodeConfig:
         crop_refine: a second network pass per detection, on a square crop centred on its
             projected cuboid and resized to this fraction of the network's input width
             (:mod:`evtrack.models.crop_refine`); the crop's pose replaces the first when the
-            crop finds the object. 0: one pass. Used by :class:`PoseEstimator`, not by
+            crop finds the object (the first joins the detection's ``alternatives``). 0: one
+            pass. Used by :class:`PoseEstimator`, not by
             :func:`decode_poses`. 0.5 by default: with the shipped coded-box weights, six
             held-out sequences per preset (``bench_pose_accuracy.py --one-pass``) gave regular
             ADD 0.942 against 0.733 in one pass (median 0.62 cm / 2.20 deg against 0.91 /
