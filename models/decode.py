@@ -25,6 +25,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
@@ -531,8 +532,7 @@ def _keep_more_confident(a: PoseDetection | None, b: PoseDetection | None
     return with_alternatives(kept, (other,))
 
 
-def with_alternatives(det: PoseDetection, others: tuple[PoseDetection, ...] | list
-                      ) -> PoseDetection:
+def with_alternatives(det: PoseDetection, others: Sequence[PoseDetection]) -> PoseDetection:
     """``det`` with ``others`` (and their own alternatives, flattened) added to its
     alternatives, most confident first."""
     flat = list(det.alternatives)
