@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from evtrack.config_values import checked_scalar
 from evtrack.errors import ConfigError
 from evtrack.filters.config import (
     PoseTwistUKFConfig,
@@ -660,7 +661,7 @@ class TrackerConfig:
                             | GEConfig):
                 values[name] = _section_from(type(current), value, current, where)
             else:
-                values[name] = _scalar(name, value, current, source)
+                values[name] = checked_scalar(name, value, current, source)
         try:
             return dataclasses.replace(base, **values)
         except ConfigError as exc:
@@ -730,35 +731,11 @@ def _section_from(cls: type, value: Any, current: Any, where: str) -> Any:
     merged.update(value)
     if cls in (VelocityKFConfig, PoseUKFConfig, PoseTwistUKFConfig):
         return config_from_dict(cls, merged, where)
-    converted = {n: _scalar(n, v, getattr(current, n), where) for n, v in merged.items()}
+    converted = {n: checked_scalar(n, v, getattr(current, n), where) for n, v in merged.items()}
     try:
         return cls(**converted)
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from exc
-
-
-def _scalar(name: str, value: Any, default: Any, source: str) -> Any:
-    """Check ``value`` against the type of the field's default."""
-    def bad(kind: str) -> ConfigError:
-        return ConfigError(f"{source}: field {name!r} must be {kind}, got {value!r}")
-
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
-            raise bad("an integer")
-        return int(value)
-    if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise bad("a number")
-        return float(value)
-    if isinstance(default, str):
-        if not isinstance(value, str):
-            raise bad("a string")
-        return value
-    return value  # pragma: no cover - every scalar field is a bool, a number or a string
 
 
 def _need_int(cfg: object, name: str, low: int) -> None:

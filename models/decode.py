@@ -34,6 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from evtrack.config_values import checked_scalar
 from evtrack.errors import ConfigError
 from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
 from evtrack.models.keypoints import (
@@ -206,21 +207,8 @@ class DecodeConfig:
         if unknown:
             raise ConfigError(f"{source}: unknown field(s) {unknown}; known: {sorted(known)}")
         defaults = cls()
-        for name, value in data.items():
-            default = getattr(defaults, name)
-            if isinstance(default, bool):
-                ok = isinstance(value, bool)
-            elif isinstance(default, int):
-                ok = isinstance(value, int) and not isinstance(value, bool)
-            elif isinstance(default, float):
-                ok = isinstance(value, int | float) and not isinstance(value, bool)
-                value = float(value) if ok else value
-            else:
-                ok = isinstance(value, type(default))
-            if not ok:
-                raise ConfigError(f"{source}.{name}: expected a {type(default).__name__} like the "
-                                  f"default {default!r}, got {value!r}")
-            data[name] = value
+        data = {name: checked_scalar(name, value, getattr(defaults, name), source)
+                for name, value in data.items()}
         return cls(**data)
 
 

@@ -217,7 +217,7 @@ class PoseEstimator(abc.ABC):
             best = min(found, key=lambda d: float(np.linalg.norm(
                 self.cuboid.project(d.pose.numpy(), K_crop, dist)[CENTROID_INDEX] - centre)))
             in_image = [self._crop_to_image(d, window) for d in (best, *best.alternatives)]
-            first, kept, others = detections[i][j], in_image[0], [*in_image[1:]]
+            first, kept, others = detections[i][j], in_image[0], in_image[1:]
             blend = self.decode.crop_blend_max_deg
             turned = (halfway_rotation(kept.pose.numpy(), first.pose.numpy(), blend)
                       if blend > 0 else None)
