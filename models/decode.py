@@ -99,10 +99,11 @@ class DecodeConfig:
             a pose. 0.1 by default: with the shipped YCB networks on the benchmark's `faster`
             sequences the tracker's rotation RMSE fell from 13.35 to 12.50 deg (paper-matched
             speeds) and from 13.74 to 12.92 deg (default presets; torch on 2 threads; on one:
-            13.12 to 11.94 and 14.34 to 13.29), no object worse, `regular` unchanged (README,
-            "Tracking accuracy"). At 0.5 the search also replaced the tomato can's fits of
-            confidence 0.17-0.21, which were better than its answers (4.6 -> 15.9 deg), so
-            its confidence is not comparable with the strongest peaks' above ~0.1. The search
+            13.12 to 11.94 and 14.34 to 13.29), no object worse, `regular` unchanged
+            (``docs/results.md``, "Tracking accuracy"). At 0.5 the search also replaced the
+            tomato can's fits of confidence 0.17-0.21, which were better than its answers
+            (4.6 -> 15.9 deg), so its confidence is not comparable with the strongest peaks'
+            above ~0.1. The search
             costs ~35-45 ms per instance on 2 CPU threads, paid only where it runs.
         search_identity_weight: weight of a corner's own map against the best of all corner
             maps in the search's score, in [0, 1].
