@@ -2,17 +2,34 @@
 
 from __future__ import annotations
 
+import math
+import re
 from typing import Any
 
 from evtrack.errors import ConfigError
 
-__all__ = ["checked_scalar"]
+__all__ = ["checked_scalar", "number_from_text"]
+
+_SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
+"""A number in scientific notation. YAML 1.1 (PyYAML) reads ``1e-3`` as a string (it wants
+``1.0e-3``), so number fields also take such strings; a quoted plain number (``"16"``) stays
+a string, and an error."""
+
+
+def number_from_text(value: Any) -> Any:
+    """``value`` as a float if it is a string in scientific notation (``"1e-3"``, which YAML
+    1.1 reads as a string), else ``value`` unchanged. Parsed, never evaluated."""
+    if isinstance(value, str) and _SCIENTIFIC.fullmatch(value.strip()):
+        return float(value)
+    return value
 
 
 def checked_scalar(name: str, value: Any, default: Any, source: str) -> Any:
     """``value`` for the field ``name`` whose default is ``default``: a bool for a bool, an
     integer (``5.0`` accepted) for an int, a number for a float (returned as ``float``), a
-    string for a str; anything else passes unchanged.
+    string for a str; anything else passes unchanged. Number fields also take a string
+    in scientific notation (``"1e-3"``: YAML 1.1 reads it without a dot as a string); it is
+    parsed, never evaluated.
 
     Raises:
         ConfigError: naming ``source`` and the field.
@@ -24,14 +41,16 @@ def checked_scalar(name: str, value: Any, default: Any, source: str) -> Any:
         if not isinstance(value, bool):
             raise bad("true or false")
         return value
+    number = number_from_text(value) if isinstance(default, int | float) else value
     if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+        if (isinstance(number, bool) or not isinstance(number, int | float)
+                or not math.isfinite(number) or number != int(number)):
             raise bad("an integer")
-        return int(value)
+        return int(number)
     if isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if isinstance(number, bool) or not isinstance(number, int | float):
             raise bad("a number")
-        return float(value)
+        return float(number)
     if isinstance(default, str):
         if not isinstance(value, str):
             raise bad("a string")

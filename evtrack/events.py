@@ -6,8 +6,10 @@ Conventions (DESIGN.md): ``t`` is int64 microseconds and non-decreasing, ``p`` i
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,12 +31,46 @@ def _as_tensor(value: object, dtype: torch.dtype, name: str) -> Tensor:
         tensor = torch.as_tensor(np.ascontiguousarray(value))
     if tensor.ndim != 1:
         raise EventsError(f"Events.{name} must be 1-D, got shape {tuple(tensor.shape)}")
+    if tensor.dtype == torch.bool or tensor.is_complex():
+        raise EventsError(f"Events.{name} must hold integers, got dtype {tensor.dtype}")
     if tensor.is_floating_point() and dtype != tensor.dtype:
         if not torch.isfinite(tensor).all():
             raise EventsError(f"Events.{name} contains NaN or infinite values")
         if not torch.equal(tensor, torch.round(tensor)):
             raise EventsError(f"Events.{name} must hold integers, got fractional values")
+    if dtype != tensor.dtype and tensor.numel() and not _fits(tensor.dtype, dtype):
+        info = torch.iinfo(dtype)
+        low, high = tensor.min().item(), tensor.max().item()  # Python numbers: no promotion
+        if low < info.min or high > info.max:
+            bad = low if low < info.min else high
+            raise EventsError(f"Events.{name} holds {bad}, outside the {dtype} range "
+                              f"[{info.min}, {info.max}] it is stored in")
     return tensor.to(dtype)
+
+
+def _checked_sensor_size(sensor_size: Any) -> tuple[int, int]:
+    """``(width, height)`` as positive ints.
+
+    Raises:
+        EventsError: not two positive whole numbers.
+    """
+    try:
+        values = [float(v) for v in sensor_size]
+    except (TypeError, ValueError) as exc:
+        raise EventsError(f"sensor_size must be (width, height), got {sensor_size!r}") from exc
+    if len(values) != 2 or not all(math.isfinite(v) and v > 0 and v == int(v) for v in values):
+        raise EventsError(f"sensor_size must be two positive whole numbers (width, height), "
+                          f"got {tuple(sensor_size)!r}")
+    return int(values[0]), int(values[1])
+
+
+def _fits(source: torch.dtype, target: torch.dtype) -> bool:
+    """Whether every value of the integer dtype ``source`` fits in ``target`` (no check
+    needed before the cast)."""
+    if source.is_floating_point:
+        return False
+    s, t = torch.iinfo(source), torch.iinfo(target)
+    return t.min <= s.min and s.max <= t.max
 
 
 @dataclass(frozen=True)
@@ -124,12 +160,7 @@ class Events:
                     f"{getattr(self, name).shape[0]}"
                 )
         if sensor_size is not None:
-            w, h = (int(v) for v in sensor_size)
-            if w <= 0 or h <= 0:
-                raise EventsError(
-                    f"sensor_size must be positive (width, height), got {sensor_size}"
-                )
-            sensor_size = (w, h)
+            sensor_size = _checked_sensor_size(sensor_size)
         self.sensor_size = sensor_size
 
     # ------------------------------------------------------------------ constructors

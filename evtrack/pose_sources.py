@@ -31,6 +31,7 @@ from evtrack.errors import ConfigError
 
 __all__ = [
     "ROTATION_TOLERANCE",
+    "checked_pose",
     "PoseMeasurement",
     "PoseSource",
     "NetworkPoseSource",
@@ -41,6 +42,33 @@ __all__ = [
 ROTATION_TOLERANCE = 1e-3
 """Largest ``|RᵀR - I|`` entry (and ``|det R - 1|``) of a pose's rotation block accepted by
 :class:`PoseMeasurement`: float32 round-off passes, a scaled or sheared matrix does not."""
+
+
+def checked_pose(pose: Tensor | np.ndarray, where: str) -> Tensor:
+    """``pose`` as a float64 (4, 4) tensor, if it is a rigid transform: finite, a rotation
+    block within :data:`ROTATION_TOLERANCE`, last row ``[0, 0, 0, 1]``.
+
+    Raises:
+        ValueError: naming ``where`` and what is wrong.
+    """
+    try:
+        pose = torch.as_tensor(pose, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as exc:
+        raise ValueError(f"{where}: pose must be a (4, 4) array of numbers ({exc})") from exc
+    if pose.shape != (4, 4):
+        raise ValueError(f"{where}: pose must be (4, 4), got {tuple(pose.shape)}")
+    if not bool(torch.isfinite(pose).all()):
+        raise ValueError(f"{where}: pose is not finite")
+    R = pose[:3, :3]
+    ortho = float((R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max())
+    det = float(torch.linalg.det(R))
+    if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
+        raise ValueError(f"{where}: the rotation block is not a rotation "
+                         f"(max |RᵀR - I| = {ortho:.2g}, det = {det:.4g})")
+    bottom = pose[3].tolist()
+    if bottom != [0.0, 0.0, 0.0, 1.0]:
+        raise ValueError(f"{where}: last row must be [0, 0, 0, 1], got {bottom}")
+    return pose
 
 
 @dataclass
@@ -78,21 +106,8 @@ class PoseMeasurement:
             if not isinstance(alt, PoseMeasurement) or alt.t_us != self.t_us or alt.alternatives:
                 raise ValueError(f"pose measurement at t={self.t_us} µs: each alternative must "
                                  "be a PoseMeasurement of the same t_us without alternatives")
-        self.pose = torch.as_tensor(self.pose, dtype=torch.float64)
         where = f"pose measurement at t={self.t_us} µs"
-        if self.pose.shape != (4, 4):
-            raise ValueError(f"{where}: pose must be (4, 4), got {tuple(self.pose.shape)}")
-        if not bool(torch.isfinite(self.pose).all()):
-            raise ValueError(f"{where}: pose is not finite")
-        R = self.pose[:3, :3]
-        ortho = float((R.T @ R - torch.eye(3, dtype=torch.float64)).abs().max())
-        det = float(torch.linalg.det(R))
-        if ortho > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
-            raise ValueError(f"{where}: the rotation block is not a rotation "
-                             f"(max |RᵀR - I| = {ortho:.2g}, det = {det:.4g})")
-        bottom = self.pose[3].tolist()
-        if bottom != [0.0, 0.0, 0.0, 1.0]:
-            raise ValueError(f"{where}: last row must be [0, 0, 0, 1], got {bottom}")
+        self.pose = checked_pose(self.pose, where)
         if self.cov is not None:
             self.cov = torch.as_tensor(self.cov, dtype=torch.float64)
             if self.cov.shape != (6, 6):

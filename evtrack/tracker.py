@@ -151,7 +151,7 @@ from evtrack.jit import warm_up
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.pose_alignment import PoseRayAligner
 from evtrack.pose_flips import HalfTurnResolver
-from evtrack.pose_sources import PoseMeasurement, PoseSource
+from evtrack.pose_sources import PoseMeasurement, PoseSource, checked_pose
 from evtrack.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.silhouette import Silhouette, SilhouettePolygon
 from evtrack.tracking_config import TrackerConfig
@@ -224,6 +224,32 @@ _REMEASURE_CHECK_MIN_SUPPORT = 5
 _MIN_RUN_STEPS = 2
 
 FrameInput = np.ndarray | Callable[[], np.ndarray] | None
+
+
+def _check_rgb(t_us: int, rgb: Any, camera: PinholeCamera) -> np.ndarray:
+    """``rgb`` if it is a uint8 (H, W, 3) image of ``camera``'s size.
+
+    Raises:
+        ValueError: naming the frame's time, what it got and what was expected.
+    """
+    where = f"RGB frame at t={t_us} µs"
+    if not isinstance(rgb, np.ndarray):
+        raise ValueError(f"{where}: expected a numpy uint8 (H, W, 3) array, got "
+                         f"{type(rgb).__name__}")
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"{where}: expected an (H, W, 3) RGB image, got shape {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise ValueError(f"{where}: expected uint8 values 0-255, got dtype {rgb.dtype}")
+    if rgb.shape[:2] != (camera.height, camera.width):
+        raise ValueError(f"{where} is {rgb.shape[1]}x{rgb.shape[0]}, the RGB-D camera is "
+                         f"{camera.width}x{camera.height}")
+    return rgb
+
+
+def _checked_rgb_reader(t_us: int, read: Callable[[], Any], camera: PinholeCamera
+                        ) -> Callable[[], np.ndarray]:
+    """``read`` (a frame given as a callable), its result checked by :func:`_check_rgb`."""
+    return lambda: _check_rgb(t_us, read(), camera)
 
 
 @dataclass
@@ -639,9 +665,16 @@ class Tracker:
     # ------------------------------------------------------------------ state
     def reset(self, pose: Tensor | np.ndarray | None = None, t_us: int | None = None) -> None:
         """Start over. With ``pose`` (4, 4) the track starts at ``t_us`` (required then) from
-        that pose; without, it waits for the first pose from the pose source."""
+        that pose; without, it waits for the first pose from the pose source.
+
+        Raises:
+            ValueError: a pose without ``t_us``, or not a rigid (4, 4) transform (checked
+                before anything is reset).
+        """
         if pose is not None and t_us is None:
             raise ValueError("reset: a starting pose needs its time t_us")
+        if pose is not None:  # checked before anything is reset
+            pose = checked_pose(pose, f"reset: starting pose at t={int(t_us)} µs")
         self.flow.reset()
         self.vkf.reset(1)
         self.ukf.reset(1)
@@ -685,8 +718,7 @@ class Tracker:
         if t_us is not None:
             self._start_clock(int(t_us))
         if pose is not None:
-            t, q = pose_measurement_value(torch.as_tensor(pose, dtype=torch.float64),
-                                          torch.float64, self.device)
+            t, q = pose_measurement_value(pose, torch.float64, self.device)
             self.ukf.reset(1, t=t, q=q)
             self.timeline.start(self._t)
 
@@ -801,7 +833,9 @@ class Tracker:
         """Add the RGB-D frame taken at ``t_us`` (after the events before ``t_us``).
 
         The frame is processed once the clock reaches it (after the steps ending by ``t_us``);
-        a frame older than the clock is processed at once.
+        a frame older than the clock is processed at once. A depth frame older than the depth
+        map in use does not replace it (the RoIs keep the newer one); it still serves the
+        pose checks of its own time and the depth fusions (``depth_range``, ``depth_icp``).
 
         Args:
             t_us: frame time (µs).
@@ -809,10 +843,19 @@ class Tracker:
                 returns it (called only when the frame is needed), or ``None``.
             depth: (H, W) metres (NaN or <= 0 = missing), a callable returning it, or ``None``
                 (sensor depth: the previous depth frame is kept, see the module docstring).
+
+        Raises:
+            ValueError: an RGB or depth array of the wrong shape or type (nothing is queued).
+                A frame given as a callable is read when it is processed, so its errors are
+                raised then, from the call that processed it, naming the frame's time; the
+                tracker stays usable (the steps of the step group it interrupted get no
+                flow).
         """
         t_us = int(t_us)
         if depth is not None and not callable(depth) and isinstance(self.depth, SensorDepth):
             self.depth.check_frame(t_us, depth)
+        if rgb is not None and not callable(rgb) and self._uses_rgb:
+            _check_rgb(t_us, rgb, self.rgb_camera)
         if self._t is None:
             self._start_clock(t_us)
         self.stats.frames += 1
@@ -825,12 +868,23 @@ class Tracker:
                 self._frames_due(self._t)
             self.advance(t_us)
 
+    @property
+    def _uses_rgb(self) -> bool:
+        """Whether the RGB images are read: by the pose source or the frame-based methods."""
+        return self.pose_source is not None or self.method in ("frame-flow", "ge")
+
     def _frames_due(self, t_before: int) -> None:
         """Process the queued frames taken before ``t_before``."""
         while self._frames and self._frames[0][0] < t_before:
             t_us, _, rgb, depth = heapq.heappop(self._frames)
             with _Timer(self.stats.time_s, "frames"):
-                self._process_frame(t_us, rgb, depth)
+                try:
+                    self._process_frame(t_us, rgb, depth)
+                except Exception as exc:
+                    if hasattr(exc, "add_note"):  # Python >= 3.11
+                        exc.add_note(f"(while processing the frame pushed for t={t_us} µs; "
+                                     "the tracker goes on without it)")
+                    raise
 
     @property
     def _source_uses_depth(self) -> bool:
@@ -841,17 +895,19 @@ class Tracker:
         if depth is not None and isinstance(self.depth, SensorDepth):
             depth_map = depth() if callable(depth) else depth
             if isinstance(depth_map, _PreparedDepth):  # from track(): prepared ahead
-                self.depth.set_prepared(t_us, depth_map.event_map)
-                depth_map = depth_map.raw
+                event_map, depth_map = depth_map.event_map, depth_map.raw
             else:
-                self.depth.set_frame(t_us, depth_map)
-            self._remember_depth(t_us)
+                event_map = self.depth.prepare(t_us, depth_map)
+            if self.depth.t_us is None or t_us >= self.depth.t_us:
+                self.depth.set_prepared(t_us, event_map)  # else the newer map stays in use
+            self._remember_depth(t_us, event_map)
             if self.depth_range is not None or self.depth_icp is not None:
-                self._schedule(t_us, _DepthFrame(t_us, self.depth.map))
+                self._schedule(t_us, _DepthFrame(t_us, event_map))
                 self._apply_due(self._t)
         if rgb is None:
             return
-        get_rgb = rgb if callable(rgb) else (lambda: rgb)
+        get_rgb = _checked_rgb_reader(t_us, rgb, self.rgb_camera) if callable(rgb) else (
+            lambda: rgb)
         image: np.ndarray | None = None
         if self.method == "frame-flow":
             image = get_rgb()
@@ -882,16 +938,16 @@ class Tracker:
                 self._schedule(max(available, self._t), _Miss(t_us))
                 self._apply_due(self._t)
 
-    def _remember_depth(self, t_us: int) -> None:
+    def _remember_depth(self, t_us: int, event_map: np.ndarray) -> None:
         """Keep the sensor depth map just taken (frame time ``t_us``) for the poses of its time
         (:meth:`_depth_checked`), and forget the maps older than the kept past
         (``history_ms`` before the newest): a pose that arrives late, from the pose source
         after its latency or from the caller, is checked against the frame of its own time,
         not against whatever frame came last. Costs one map per depth frame of that past
         (640x480 float32: 1.2 MB each, ~37 MB at 30 Hz and the default 1 s)."""
-        if not self._checks_pose_depth() or self.depth.map is None:
+        if not self._checks_pose_depth():
             return
-        self._depth_frames[t_us] = self.depth.map
+        self._depth_frames[t_us] = event_map
         oldest = max(self._depth_frames) - self.config.history_ms * 1e3
         for t_old in [t for t in self._depth_frames if t < oldest]:
             del self._depth_frames[t_old]
@@ -981,6 +1037,12 @@ class Tracker:
     def push_pose(self, measurement: PoseMeasurement, available_us: int | None = None) -> None:
         """Add a pose measurement (e.g. from a pose network running in another thread).
 
+        A pose is fused at its own time and carried to the present. One older than the
+        tracker's past (before its first input, or more than ``history_ms`` before the clock)
+        cannot be and is counted in ``stats.poses_late``: to start a track from a pose taken
+        before the first events, give it to :meth:`reset` (``reset(pose, t_us)``), or push
+        it before them.
+
         Args:
             measurement: pose of the object at ``measurement.t_us`` (event camera frame).
             available_us: when the filter may use it (default: now, or its own time if later).
@@ -1023,13 +1085,18 @@ class Tracker:
         ev = concatenate(self._ev_buf) if len(self._ev_buf) > 1 else (
             self._ev_buf[0] if self._ev_buf else Events.empty(self.camera.size))
         g_start = self._t
-        while g_start < end:
-            g_end = min((g_start // group + 1) * group, end)
-            k = int(torch.searchsorted(ev.t, torch.tensor([g_end]))[0]) if len(ev) else 0
-            self._group(g_start, g_end, ev[:k])
-            ev = ev[k:]
-            g_start = g_end
-        self._ev_buf = [ev] if len(ev) else []
+        try:
+            while g_start < end:
+                g_end = min((g_start // group + 1) * group, end)
+                k = int(torch.searchsorted(ev.t, torch.tensor([g_end]))[0]) if len(ev) else 0
+                group_ev, ev = ev[:k], ev[k:]
+                self._group(g_start, g_end, group_ev)
+                g_start = g_end
+        finally:
+            # also when a step raised (e.g. a frame read lazily that failed its checks): the
+            # interrupted group's events are spent, so the stream goes on from the next group
+            # (the rest of that group gets no flow) instead of failing on every later call
+            self._ev_buf = [ev] if len(ev) else []
 
     def _group(self, t0: int, t_end: int, ev: Events) -> None:
         """:meth:`_group_steps`, timed for ``realtime_load``."""

@@ -542,6 +542,7 @@ class TrackerConfig:
     ge: GEConfig = field(default_factory=GEConfig)
 
     def __post_init__(self) -> None:
+        self._check_types()
         if self.method not in METHODS:
             raise ConfigError(f"tracker config field 'method' must be one of {METHODS}, "
                               f"got {self.method!r}")
@@ -608,10 +609,36 @@ class TrackerConfig:
                 f"tracker config: velocity_step_us ({self.velocity_step_us}) must be a multiple "
                 f"of flow.window_us ({self.flow.window_us}) so that every step's flows are "
                 "complete at its end")
+        if self.pose_rate_hz > 1e6 / self.velocity_step_us:
+            raise ConfigError(
+                f"tracker config field 'pose_rate_hz' ({self.pose_rate_hz:g}) must not exceed "
+                f"one pose per velocity step ({1e6 / self.velocity_step_us:g} Hz)")
         if self.history_ms < self.pose_latency_ms + 1e3 / self.pose_rate_hz:
             raise ConfigError(
                 f"tracker config: history_ms ({self.history_ms}) must cover pose_latency_ms "
                 f"({self.pose_latency_ms}) plus one pose period ({1e3 / self.pose_rate_hz:g} ms)")
+
+    def _check_types(self) -> None:
+        """Each field's type, as :meth:`from_dict` checks it, for the direct constructor too
+        (``TrackerConfig(depth_icp="false")`` must not turn ICP on); a section given as a
+        mapping (``velocity_kf={"flow_std": 20.0}``) becomes its config, the other fields at
+        their defaults."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            default = (f.default if f.default is not dataclasses.MISSING
+                       else f.default_factory())  # type: ignore[misc]
+            if dataclasses.is_dataclass(default):
+                if isinstance(value, Mapping):
+                    where = f"tracker config: {f.name}"
+                    value = (_flow_from(value, default, where) if f.name == "flow"
+                             else _section_from(type(default), value, default, where))
+                elif not isinstance(value, type(default)):
+                    raise ConfigError(
+                        f"tracker config field {f.name!r} must be a {type(default).__name__} "
+                        f"or a mapping of its fields, got {type(value).__name__}")
+            else:
+                value = checked_scalar(f.name, value, default, "tracker config")
+            setattr(self, f.name, value)
 
     # ------------------------------------------------------------------ derived values
     @property
@@ -665,6 +692,8 @@ class TrackerConfig:
         try:
             return dataclasses.replace(base, **values)
         except ConfigError as exc:
+            if str(exc).startswith(source):
+                raise
             raise ConfigError(f"{source}: {exc}") from exc
 
     @classmethod

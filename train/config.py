@@ -22,6 +22,7 @@ from typing import Any
 
 import yaml
 
+from evtrack.config_values import number_from_text
 from evtrack.errors import ConfigError
 from evtrack.models.cuboid import Cuboid
 from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD
@@ -85,10 +86,14 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected true/false, got {value!r}")
         return value
     if tp is int:
+        value = number_from_text(value)  # "1e3": YAML 1.1 reads it as a string
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{where}: expected an integer, got {value!r}")
         return value
     if tp is float:
+        value = number_from_text(value)  # "1e-3": YAML 1.1 reads it as a string
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         return float(value)

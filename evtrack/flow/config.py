@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from evtrack.config_values import checked_scalar
 from evtrack.errors import ConfigError
 
 __all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S", "BACKENDS", "LOOKUPS"]
@@ -303,14 +304,7 @@ class FlowConfig:
                  "refine_iters": int}
         for name, kind in types.items():
             if name in data:
-                value = data[name]
-                if isinstance(value, bool) or not isinstance(value, int | float):
-                    raise ConfigError(f"flow config field '{name}': expected a number, "
-                                      f"got {value!r}")
-                if kind is int and float(value) != int(value):
-                    raise ConfigError(f"flow config field '{name}': expected an integer, "
-                                      f"got {value!r}")
-                data[name] = kind(value)
+                data[name] = checked_scalar(name, data[name], kind(), "flow config")
         if data.get("sensor_size") is not None:
             data["sensor_size"] = tuple(data["sensor_size"])
         for name in ("device", "backend"):

@@ -25,6 +25,7 @@ from typing import Any
 import yaml
 
 from evtrack.camera import PinholeCamera
+from evtrack.config_values import number_from_text
 from evtrack.errors import ConfigError
 
 __all__ = [
@@ -383,10 +384,14 @@ def _convert(value: Any, annotation: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected true/false, got {value!r}")
         return value
     if annotation is int:
+        value = number_from_text(value)  # "1e3": YAML 1.1 reads it as a string
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{where}: expected an integer, got {value!r}")
         return value
     if annotation is float:
+        value = number_from_text(value)  # "1e-3": YAML 1.1 reads it as a string
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         return float(value)

@@ -42,6 +42,33 @@ def test_fractional_coordinates_raise():
         Events(np.array([1.5]), [1], [1], [1])
 
 
+@pytest.mark.parametrize(("fields", "match"), [
+    (([1, 2], [3, 4], [10, 20], np.array([1, 255], np.uint8)), r"Events.p holds 255"),
+    (([1, 2], [3, 4], [10, 20], [257, -1]), r"Events.p holds 257"),
+    ((np.array([2**32 + 5, 2], np.int64), [3, 4], [10, 20], [1, -1]), "Events.x holds 4294967301"),
+    ((np.array([1, 2], np.int16), np.array([3, 40000], np.int32), [10, 20], [1, -1]),
+     r"Events.y holds 40000, outside the torch.int16 range"),
+    (([1.0, 2.0], [3, 4], [1e30, 2.0], [1, 1]), "Events.t holds 1e"),
+    ((np.array([True, False]), [1, 2], [1, 2], [1, 1]), "dtype torch.bool"),
+])
+def test_values_that_would_wrap_around_in_the_stored_dtype_raise(fields, match):
+    with pytest.raises(EventsError, match=match):
+        Events(*fields)
+
+
+def test_values_of_a_narrower_dtype_are_stored_without_a_check():
+    ev = Events(np.array([639], np.uint16), np.array([479], np.uint16),
+                np.array([7], np.int32), np.array([-1], np.int8))
+    assert ev.x.dtype == torch.int32 and int(ev.x[0]) == 639 and int(ev.t[0]) == 7
+
+
+@pytest.mark.parametrize("size", [(640, 480, 3), (640.7, 480), ("a", 3), 5, (0, 480)])
+def test_sensor_size_must_be_two_positive_whole_numbers(size):
+    with pytest.raises(EventsError, match="sensor_size must be"):
+        Events([1], [1], [1], [1], sensor_size=size)
+    assert Events([1], [1], [1], [1], sensor_size=(640.0, 480)).sensor_size == (640, 480)
+
+
 def test_slicing_and_masks():
     ev = make_events(50)
     assert ev[3:7] == Events(ev.x[3:7], ev.y[3:7], ev.t[3:7], ev.p[3:7], ev.sensor_size)

@@ -50,6 +50,13 @@ def test_errors_name_the_field(data, match) -> None:
         SimConfig.from_dict(data, source="x.yaml")
 
 
+def test_scientific_notation_that_yaml_reads_as_a_string_is_a_number(tmp_path) -> None:
+    path = tmp_path / "sci.yaml"
+    path.write_text("render: {render_hz: 4e3}\nevents: {threshold_on: 5e-1}\n")
+    cfg = load_config(path)
+    assert cfg.render.render_hz == 4000.0 and cfg.events.threshold_on == 0.5
+
+
 def test_load_errors(tmp_path) -> None:
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "none.yaml")

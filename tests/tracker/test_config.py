@@ -99,3 +99,40 @@ def test_yaml_errors_name_the_file(tmp_path) -> None:
     path.write_text("- a list")
     with pytest.raises(ConfigError, match="mapping"):
         TrackerConfig.from_yaml(path)
+
+
+def test_the_constructor_checks_types_as_from_dict_does() -> None:
+    with pytest.raises(ConfigError, match="'depth_icp' must be true or false"):
+        TrackerConfig(depth_icp="false")  # a truthy string must not turn ICP on
+    with pytest.raises(ConfigError, match="'velocity_kf' must be a VelocityKFConfig"):
+        TrackerConfig(velocity_kf=5)
+    cfg = TrackerConfig(velocity_kf={"flow_std": 12}, flow={"roi_size": 16}, pose_rate_hz=10)
+    assert cfg.velocity_kf.flow_std == 12.0 and isinstance(cfg.velocity_kf.flow_std, float)
+    assert cfg.velocity_kf.q_linear == TrackerConfig().velocity_kf.q_linear
+    assert cfg.flow.roi_size == 16 and cfg.flow.window_us == TrackerConfig().flow.window_us
+    assert cfg.pose_rate_hz == 10.0 and isinstance(cfg.pose_rate_hz, float)
+    with pytest.raises(ConfigError, match="velocity_kf.*flw_std"):
+        TrackerConfig(velocity_kf={"flw_std": 12})
+
+
+@pytest.mark.parametrize(("data", "match"), [
+    ({"flow_batch_steps": float("inf")}, "'flow_batch_steps' must be an integer, got inf"),
+    ({"flow_batch_steps": float("nan")}, "'flow_batch_steps' must be an integer"),
+    ({"flow": {"window_us": float("inf")}}, "'window_us' must be an integer"),
+    ({"pose_rate_hz": 3e6}, "'pose_rate_hz'.*one pose per velocity step"),
+    ({"pose_rate_hz": "10"}, "'pose_rate_hz' must be a number, got '10'"),  # quoted: a string
+])
+def test_non_finite_integers_runaway_rates_and_quoted_numbers_are_errors(data, match) -> None:
+    with pytest.raises(ConfigError, match=match) as info:
+        TrackerConfig.from_dict(data)
+    assert "tracker config: tracker config" not in str(info.value)
+
+
+def test_scientific_notation_that_yaml_reads_as_a_string_is_a_number(tmp_path) -> None:
+    path = tmp_path / "sci.yaml"
+    path.write_text("pose_rate_hz: 1e1\nmax_searched_per_step: 2.5e3\n"
+                    "pose_ukf: {q_translation: 1e-2}\n")
+    assert yaml.safe_load(path.read_text())["pose_rate_hz"] == "1e1"  # YAML 1.1's reading
+    cfg = TrackerConfig.from_yaml(path)
+    assert cfg.pose_rate_hz == 10.0 and cfg.max_searched_per_step == 2500
+    assert cfg.pose_ukf.q_translation == 0.01

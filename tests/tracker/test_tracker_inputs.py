@@ -180,3 +180,91 @@ def test_track_command(fast_sequence, tmp_path, capsys) -> None:
     assert "depth alignments fused" in text and "depth ranges" not in text
     assert main(["track", str(fast_sequence.root), "--out", str(out)]) == 1  # no pose source
     assert "--weights PATH" in capsys.readouterr().err
+
+
+def test_a_lazy_frame_that_fails_raises_once_and_the_tracker_goes_on() -> None:
+    """A depth frame given as a callable is read when its step comes: its error comes then,
+    naming the frame, and the stream goes on (before, every later push failed on the flow's
+    "events before the last batch")."""
+    from evtrack.flow.scenes import translating_texture
+
+    ev, _ = translating_texture((128, 96), velocity=(300.0, 0.0), duration_us=120_000)
+    tracker = _tracker(flow={"roi_size": 16}, mask_margin_px=200.0)
+    tracker.reset(_pose(), t_us=0)
+    tracker.push_events(ev.between(0, 20_000))
+    tracker.push_frame(25_000, depth=lambda: np.zeros((10, 10), np.float32))
+    with pytest.raises(ValueError, match="t=25000 µs"):
+        tracker.push_events(ev.between(20_000, 50_000))
+    flows_before = tracker.stats.roi_flows
+    for t0 in (50_000, 80_000):
+        tracker.push_events(ev.between(t0, t0 + 30_000))
+    tracker.flush()
+    assert tracker.now_us >= 100_000
+    assert tracker.stats.roi_flows > flows_before  # the flow still measures
+    assert tracker.twist()[0] > 0.5  # and the filter still sees the texture move right
+
+
+class _FixedSource:
+    """A pose source that answers every frame with one pose (it reads the image it is given)."""
+
+    def __call__(self, t_us, rgb, depth):
+        assert rgb.shape == (96, 128, 3)
+        return PoseMeasurement(t_us, _pose())
+
+
+@pytest.mark.parametrize("rgb", [np.zeros((96, 128), np.uint8), np.zeros((96, 128, 3)),
+                                 np.zeros((48, 64, 3), np.uint8), [[0, 0, 0]]])
+def test_an_rgb_array_that_is_no_image_of_the_camera_is_refused_at_push_frame(rgb) -> None:
+    tracker = Tracker(TrackerConfig(), camera=CAM, mesh=CUBE, pose_source=_FixedSource())
+    with pytest.raises(ValueError, match="RGB frame at t=5000 µs"):
+        tracker.push_frame(5_000, rgb=rgb)
+    assert tracker.stats.frames == 0  # nothing queued
+    tracker.push_frame(6_000, rgb=np.zeros((96, 128, 3), np.uint8))
+    tracker.advance(220_000)  # past the pose's 200 ms latency
+    assert tracker.status == STATUS_TRACKING
+
+
+def test_a_lazy_rgb_frame_of_the_wrong_size_names_its_time_and_the_tracker_goes_on() -> None:
+    tracker = Tracker(TrackerConfig(pose_async=False, pose_latency_ms=0.0), camera=CAM,
+                      mesh=CUBE, pose_source=_FixedSource())
+    tracker.push_frame(5_000, rgb=lambda: np.zeros((48, 64, 3), np.uint8))
+    with pytest.raises(ValueError, match="RGB frame at t=5000 µs is 64x48"):
+        tracker.advance(20_000)
+    tracker.push_frame(205_000, rgb=lambda: np.zeros((96, 128, 3), np.uint8))
+    tracker.advance(220_000)
+    assert tracker.status == STATUS_TRACKING
+
+
+def test_rgb_is_not_read_nor_checked_when_nothing_uses_it() -> None:
+    tracker = _tracker()  # full method, no pose source
+    tracker.push_frame(5_000, rgb=np.zeros((3, 3), np.uint8))
+    assert tracker.stats.frames == 1
+
+
+def test_an_older_depth_frame_does_not_replace_the_newer_one() -> None:
+    tracker = _tracker()
+    tracker.reset(_pose(), t_us=0)
+    tracker.push_frame(100_000, depth=np.full((96, 128), 0.6, np.float32))
+    tracker.advance(130_000)
+    assert tracker.depth.t_us == 100_000
+    tracker.push_frame(60_000, depth=np.full((96, 128), np.nan, np.float32))
+    assert tracker.depth.t_us == 100_000
+    assert float(np.nanmax(tracker.depth.map)) == pytest.approx(0.6)
+    tracker.push_frame(140_000, depth=np.full((96, 128), 0.7, np.float32))
+    tracker.advance(150_000)
+    assert tracker.depth.t_us == 140_000
+
+
+@pytest.mark.parametrize(("pose", "match"), [
+    (np.full((4, 4), np.nan), "not finite"),
+    (2 * np.eye(4), "not a rotation"),
+    (np.eye(3), r"\(4, 4\)"),
+    ("identity", "array of numbers"),
+])
+def test_reset_refuses_a_pose_that_is_not_rigid_and_keeps_the_track(pose, match) -> None:
+    tracker = _tracker(method="pose")
+    tracker.reset(_pose(), t_us=0)
+    tracker.advance(10_000)
+    with pytest.raises(ValueError, match=f"reset: starting pose at t=20000 µs.*{match}"):
+        tracker.reset(pose, t_us=20_000)
+    assert tracker.status == STATUS_TRACKING and tracker.now_us == 10_000

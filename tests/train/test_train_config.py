@@ -63,6 +63,15 @@ def test_bad_fields_are_named(data, message):
     assert message in str(info.value)
 
 
+def test_scientific_notation_that_yaml_reads_as_a_string_is_a_number(tmp_path):
+    path = tmp_path / "sci.yaml"
+    path.write_text("object: {name: box, dimensions: [0.1, 0.1, 0.1]}\n"
+                    "optim: {lr: 1e-3}\ndata: {train_samples: 2e3}\n")
+    cfg = TrainConfig.from_yaml(path)
+    assert cfg.optim.lr == 0.001 and cfg.data.train_samples == 2000
+    assert isinstance(cfg.data.train_samples, int)
+
+
 def test_object_needs_a_mesh_or_dimensions(tmp_path):
     with pytest.raises(ConfigError, match="needs a mesh or cuboid dimensions"):
         TrainConfig.from_dict({"object": {"name": "x"}}).object.cuboid()
