@@ -96,6 +96,13 @@ def applies(state: Tensor, others: Iterable[object]) -> bool:
     return True
 
 
+def check_dt(d: Tensor) -> None:
+    """Raise ``ValueError`` unless the time step ``d`` (seconds, a scalar or (B,) tensor) is
+    finite and >= 0; only on CPU (on a GPU the check would wait for the device)."""
+    if d.is_cpu and d.numel() and not bool((torch.isfinite(d) & (d >= 0)).all()):
+        raise ValueError(f"dt must be finite seconds >= 0, got {d.tolist()}")
+
+
 def as_array(x: Tensor) -> np.ndarray:
     """A CPU float64 NumPy view (or copy, for another dtype or device) of a tensor."""
     if x.dtype is not torch.float64 or not x.is_cpu:

@@ -137,9 +137,13 @@ class _PoseFilter(CompilableSteps, nn.Module):
             self.initialized = torch.zeros(B, dtype=torch.bool, device=kw["device"])
         else:
             assert q is not None
-            self.t = _checked(t, (B, 3), "t", kw)
+            t = _checked(t, (B, 3), "t", kw)
             q = _checked(q, (B, 4), "q", kw)
-            self.q = q / q.norm(dim=-1, keepdim=True)
+            norm = q.norm(dim=-1, keepdim=True)
+            if not bool((torch.isfinite(t).all() & torch.isfinite(norm) & (norm > 0)).all()):
+                raise ValueError("reset: t and q must be finite and each q a non-zero "
+                                 "quaternion (w, x, y, z)")
+            self.t, self.q = t, q / norm
             self.initialized = torch.ones(B, dtype=torch.bool, device=kw["device"])
         n = self.n
         self.cov = (
@@ -177,7 +181,7 @@ class _PoseFilter(CompilableSteps, nn.Module):
             cov_meas: (B,6,6) or (6,6) tangent covariance ``[δt, δθ]`` (m², rad²); default
                 from the config.
             valid: (B,) bool, False for tracks without a pose this time (default all True).
-                Non-finite poses or covariances count as missing.
+                Non-finite poses or covariances, and all-zero quaternions, count as missing.
             reinit_after: ``config.reinit_after`` for this update only (``1``: a rejected
                 pose re-initialises the filter); ``None`` keeps the config's.
         """
@@ -337,6 +341,8 @@ class _PoseFilter(CompilableSteps, nn.Module):
         if valid is None:
             valid = torch.ones(B, dtype=torch.bool, device=kw["device"])
         valid = _checked(valid, (B,), "valid", {"device": kw["device"]}, copy=False)
+        if q_meas.is_cpu and not bool((q_meas != 0).any(dim=-1).all()):
+            valid = valid & (q_meas != 0).any(dim=-1)  # a zero quaternion: no pose, as NaN
         return t_meas, q_meas, R, valid
 
     # ------------------------------------------------------------------ fast path (B = 1)
@@ -351,7 +357,10 @@ class _PoseFilter(CompilableSteps, nn.Module):
     def _fast_dt(self, dt: float | Tensor) -> float:
         if isinstance(dt, Tensor) and dt.ndim > 0:
             self._dt(dt)  # raises unless (B,)
-        return float(dt)
+        value = float(dt)
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"dt must be a finite number of seconds >= 0, got {value}")
+        return value
 
     def _update_fast(self, t_meas: Tensor, q_meas: Tensor, R: Tensor, valid: Tensor,
                      reinit_after: int | None = None) -> Tensor:
@@ -519,6 +528,7 @@ class _PoseFilter(CompilableSteps, nn.Module):
 
     def _dt(self, dt: float | Tensor) -> Tensor:
         d = torch.as_tensor(dt, dtype=self.t.dtype, device=self.t.device)
+        fp.check_dt(d)
         if d.ndim == 0:
             return d.expand(self.batch_size)
         if tuple(d.shape) != (self.batch_size,):

@@ -373,7 +373,10 @@ class VelocityKF(CompilableSteps, nn.Module):
     def _fast_dt(self, dt: float | Tensor) -> float:
         if isinstance(dt, Tensor) and dt.ndim > 0:
             self._dt(dt)  # raises unless (B,)
-        return float(dt)
+        value = float(dt)
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"dt must be a finite number of seconds >= 0, got {value}")
+        return value
 
     def _predicted(self, dt: float | Tensor) -> tuple[np.ndarray, np.ndarray]:
         """The one track's predicted (6,) twist and (6,6) covariance (buffers unchanged)."""
@@ -582,6 +585,7 @@ class VelocityKF(CompilableSteps, nn.Module):
     # ------------------------------------------------------------------ input handling
     def _dt(self, dt: float | Tensor) -> Tensor:
         d = torch.as_tensor(dt, dtype=self.twist.dtype, device=self.twist.device)
+        fp.check_dt(d)
         if d.ndim == 0:
             return d.expand(self.batch_size)
         if tuple(d.shape) != (self.batch_size,):

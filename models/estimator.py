@@ -155,6 +155,7 @@ class PoseEstimator(abc.ABC):
         """Poses for a list of same-size images (one network call)."""
         if len(images) == 0:
             return []
+        images = [_check_rgb(im) for im in images]  # before the size check: clearer errors
         K, dist = self._intrinsics(camera, images[0].shape)
         belief, affinity, scale = self.predict_maps(images)
         detections = [

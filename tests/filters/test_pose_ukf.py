@@ -620,3 +620,20 @@ def test_aligned_gate_and_missing_inputs() -> None:
     assert filt.update_aligned(t0 + 0.001, q0, R).tolist() == [True, True, False]
     with pytest.raises(ValueError, match="cov_meas"):
         filt.update_aligned(t0, q0, torch.eye(5, dtype=F64))
+
+
+@pytest.mark.parametrize("fast_path", [True, False])
+def test_bad_steps_and_quaternions_are_errors_or_missing_poses(fast_path: bool) -> None:
+    ukf = PoseUKF(1, fast_path=fast_path)
+    with pytest.raises(ValueError, match="non-zero quaternion"):
+        ukf.reset(t=torch.zeros(1, 3), q=torch.zeros(1, 4))
+    with pytest.raises(ValueError, match="finite"):
+        ukf.reset(t=torch.full((1, 3), math.nan), q=torch.tensor([[1.0, 0, 0, 0]]))
+    ukf.reset(t=torch.tensor([[0.0, 0.0, 1.0]]), q=torch.tensor([[1.0, 0.0, 0.0, 0.0]]))
+    for dt in (-0.1, math.nan, math.inf, torch.tensor(-0.1)):
+        with pytest.raises(ValueError, match="dt must be"):
+            ukf.predict(torch.zeros(1, 6), dt)
+    # an all-zero quaternion carries no pose: a missing measurement, the state unchanged
+    used = ukf.update(torch.tensor([[0.1, 0.0, 1.0]]), torch.zeros(1, 4))
+    assert not bool(used[0])
+    torch.testing.assert_close(ukf.t, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))

@@ -457,3 +457,14 @@ def test_pivot_noise_fast_path_equals_the_torch_path() -> None:
         slow.set_pivot(p)
         assert torch.equal(fast.q_matrix, fast.q_matrix.T)
         torch.testing.assert_close(fast.q_matrix, slow.q_matrix, rtol=1e-14, atol=1e-12)
+
+
+@pytest.mark.parametrize("fast_path", [True, False])
+def test_a_negative_or_non_finite_step_is_an_error(fast_path: bool) -> None:
+    kf = VelocityKF(CAM, 1, fast_path=fast_path)
+    for dt in (-1.0, math.nan, math.inf, torch.tensor(-1.0), torch.tensor([math.nan])):
+        with pytest.raises(ValueError, match="dt must be"):
+            kf.predict(dt)
+    assert bool(torch.isfinite(kf.twist).all())
+    kf.predict(0.0)
+    kf.predict(torch.tensor([0.001]))

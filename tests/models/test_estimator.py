@@ -99,6 +99,11 @@ def test_bad_inputs_are_clear_errors():
         est(torch.zeros(240, 320, 3, dtype=torch.uint8))
     with pytest.raises(ValueError, match="camera is 320x240"):
         est(np.zeros((480, 640, 3), np.uint8))
+    # a batch or a CHW image is named as such, not as an image of the wrong size
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) RGB image, got uint8 \(1, 240, 320, 3\)"):
+        est(np.zeros((1, 240, 320, 3), np.uint8))
+    with pytest.raises(ValueError, match=r"\(H, W, 3\) RGB image, got uint8 \(3, 240, 320\)"):
+        est(np.zeros((3, 240, 320), np.uint8))
     with pytest.raises(ConfigError, match="no weights record"):
         TorchPoseEstimator(create("dope_lite_tiny"), CAM)
     with pytest.raises(ConfigError, match="input_scale"):
