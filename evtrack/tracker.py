@@ -117,6 +117,7 @@ import dataclasses
 import heapq
 import math
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -654,11 +655,22 @@ class Tracker:
     @classmethod
     def for_sequence(cls, sequence, config: TrackerConfig | None = None,
                      pose_source: PoseSource | None = None) -> Tracker:
-        """A tracker with the cameras, extrinsics and mesh of a :class:`~evtrack.Sequence`."""
+        """A tracker with the cameras, extrinsics and mesh of a :class:`~evtrack.Sequence`.
+
+        Warns (``UserWarning``) when the pose source's network was trained for another object
+        than the sequence's (both names known): its poses would be another object's.
+        """
         mesh = sequence.mesh_file
         if mesh is None:
             raise ConfigError(f"{sequence.root or sequence.meta.name}: the sequence names no "
                               "object mesh (meta.yaml object.mesh)")
+        trained_for = getattr(getattr(pose_source, "estimator", None), "object_name", "")
+        tracked = sequence.meta.object_name
+        if trained_for and tracked and trained_for != tracked:
+            warnings.warn(f"the pose source's network was trained for {trained_for!r}, but the "
+                          f"sequence's object is {tracked!r}: its poses are not of this object "
+                          "(use that object's weights, e.g. evtrack.models.list_weights())",
+                          UserWarning, stacklevel=2)
         return cls(config, camera=sequence.meta.event_camera, mesh=mesh, pose_source=pose_source,
                    rgb_camera=sequence.meta.rgb_camera, T_event_rgb=sequence.meta.T_event_rgb)
 

@@ -20,6 +20,7 @@ and ``meta`` (JSON).
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -67,11 +68,17 @@ class Trajectory:
     def __post_init__(self) -> None:
         self.t_us = torch.as_tensor(self.t_us, dtype=torch.int64).reshape(-1)
         n = self.t_us.shape[0]
-        self.poses = torch.as_tensor(self.poses, dtype=torch.float64).reshape(n, 4, 4)
-        self.twists = torch.as_tensor(self.twists, dtype=torch.float64).reshape(n, 6)
-        self.status = torch.as_tensor(self.status, dtype=torch.int8).reshape(n)
+        for name, shape in (("poses", (n, 4, 4)), ("twists", (n, 6)), ("status", (n,))):
+            value = torch.as_tensor(getattr(self, name),
+                                    dtype=torch.int8 if name == "status" else torch.float64)
+            if value.numel() != math.prod(shape):
+                raise ValueError(f"trajectory {name} must be {shape} for {n} timestamps, got "
+                                 f"shape {tuple(value.shape)}")
+            setattr(self, name, value.reshape(shape))
         if n > 1 and bool((self.t_us[1:] <= self.t_us[:-1]).any()):
             raise ValueError("trajectory timestamps must be strictly increasing")
+        if not isinstance(self.method, str) or any(c in self.method for c in "\r\n"):
+            raise ValueError(f"trajectory method must be a one-line string, got {self.method!r}")
 
     def __len__(self) -> int:
         return int(self.t_us.shape[0])

@@ -43,15 +43,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "simulate",
         help="simulate a sequence: events, blurred RGB-D and ground truth of a moving object",
         description=(
-            "Render a textured object moving along a random smooth 6-DoF trajectory at 500 FPS, "
-            "turn the renders into events (log-intensity event-camera model), average them into "
-            "60 FPS motion-blurred RGB with depth, and write a sequence folder with ground-truth "
-            "poses, twists and per-event optical flow."
+            "Render a textured object moving along a random smooth 6-DoF trajectory at 500 FPS "
+            "(--render-hz), turn the renders into events (log-intensity event-camera model), "
+            "average them into 60 FPS motion-blurred RGB with depth, and write a sequence "
+            "folder with ground-truth poses, twists and per-event optical flow."
         ),
     )
     p.add_argument("--object", required=True,
-                   help="box, can or bottle (procedural, no download), a YCB name such as "
-                        "003_cracker_box, or a mesh file (glTF/GLB/OBJ/PLY, metres)")
+                   help="a procedural object (no download): coded_box (the one the shipped "
+                        "demo network knows), box, can or bottle; a YCB name such as "
+                        "003_cracker_box; or a mesh file (glTF/GLB/OBJ/PLY, metres)")
     p.add_argument("--speed", choices=("regular", "faster"), default=None,
                    help="trajectory preset (default: regular, or the config's)")
     p.add_argument("--seed", type=int, default=None,

@@ -60,6 +60,19 @@ class FlowResult:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
+    def __repr__(self) -> str:
+        n = len(self)
+        parts = [f"{n} RoI flows"]
+        if n:
+            t0, t1 = int(self.t.min()), int(self.t.max())
+            speed = torch.linalg.vector_norm(self.flow.float(), dim=1)
+            parts += [f"t {t0}..{t1} µs", f"median speed {float(speed.median()):.0f} px/s",
+                      f"{int(self.normal.sum())} normal-only"]
+        if self.event_flow is not None:
+            parts.append(f"per-event flows of {self.event_flow.shape[0]} events from "
+                         f"#{self.event_start}")
+        return f"FlowResult({', '.join(parts)}, device={self.t.device})"
+
     @classmethod
     def empty(cls, device: str | torch.device = "cpu", event_start: int = 0,
               with_events: bool = False) -> FlowResult:

@@ -268,3 +268,26 @@ def test_reset_refuses_a_pose_that_is_not_rigid_and_keeps_the_track(pose, match)
     with pytest.raises(ValueError, match=f"reset: starting pose at t=20000 µs.*{match}"):
         tracker.reset(pose, t_us=20_000)
     assert tracker.status == STATUS_TRACKING and tracker.now_us == 10_000
+
+
+def test_a_network_of_another_object_is_warned_about(fast_sequence) -> None:
+    import warnings
+
+    from evtrack.pose_sources import NetworkPoseSource
+
+    class _Estimator:
+        camera = None
+
+        def __init__(self, object_name: str) -> None:
+            self.object_name = object_name
+
+        def __call__(self, rgb):
+            return []
+
+    assert fast_sequence.meta.object_name == "box"
+    with pytest.warns(UserWarning, match="trained for 'coded_box'.*object is 'box'"):
+        Tracker.for_sequence(fast_sequence, TrackerConfig(),
+                             NetworkPoseSource(_Estimator("coded_box")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Tracker.for_sequence(fast_sequence, TrackerConfig(), NetworkPoseSource(_Estimator("box")))

@@ -76,3 +76,15 @@ def test_times_must_increase() -> None:
     with pytest.raises(ValueError, match="increasing"):
         Trajectory(torch.tensor([1, 1]), torch.eye(4).repeat(2, 1, 1), torch.zeros(2, 6),
                    torch.ones(2))
+
+
+def test_field_shapes_and_the_method_name_are_checked() -> None:
+    with pytest.raises(ValueError, match=r"poses must be \(2, 4, 4\) for 2 timestamps"):
+        Trajectory(torch.tensor([1, 2]), torch.eye(4).repeat(3, 1, 1), torch.zeros(2, 6),
+                   torch.ones(2))
+    with pytest.raises(ValueError, match=r"twists must be \(2, 6\)"):
+        Trajectory(torch.tensor([1, 2]), torch.eye(4).repeat(2, 1, 1), torch.zeros(2, 7),
+                   torch.ones(2))
+    with pytest.raises(ValueError, match="one-line string"):  # its CSV header would not load
+        Trajectory(torch.tensor([1, 2]), torch.eye(4).repeat(2, 1, 1), torch.zeros(2, 6),
+                   torch.ones(2), method="full\nsecond line")
