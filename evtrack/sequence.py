@@ -295,6 +295,31 @@ def _read_timestamps(path: Path) -> Tensor:
     return t
 
 
+def _check_frame_files(folder: Path, count: int, suffixes: tuple[str, ...]) -> None:
+    """One frame file (``000000.png``, ...) per line of ``folder/timestamps.txt``.
+
+    Raises:
+        EventFileError: a frame missing, or frames the timestamps do not cover (they would
+            be left out without a word).
+    """
+    if not folder.is_dir():
+        if count:
+            raise EventFileError(folder, f"timestamps.txt lists {count} frames but the folder "
+                                         "is missing")
+        return
+    found = {int(f.stem) for f in folder.iterdir()
+             if f.suffix.lower() in suffixes and len(f.stem) == 6 and f.stem.isdigit()}
+    if found == set(range(count)):
+        return
+    missing = sorted(set(range(count)) - found)
+    if missing:
+        raise EventFileError(folder, f"timestamps.txt lists {count} frames but frame "
+                                     f"{missing[0]:06d} is missing ({len(missing)} missing)")
+    extra = sorted(found - set(range(count)))
+    raise EventFileError(folder, f"timestamps.txt lists {count} frames but the folder has "
+                                 f"{len(found)} (from {extra[0]:06d} on none has a timestamp)")
+
+
 def _frame_path(folder: Path, index: int, ext: str) -> Path:
     return folder / f"{index:06d}{ext}"
 
@@ -387,6 +412,8 @@ class Sequence:
         seq = cls(meta, root=root,
                   rgb_times_us=_read_timestamps(root / "rgb" / "timestamps.txt"),
                   depth_times_us=_read_timestamps(root / "depth" / "timestamps.txt"))
+        _check_frame_files(root / "rgb", seq.num_rgb, (".png",))
+        _check_frame_files(root / "depth", seq.num_depth, (".png", ".tiff"))
         return seq
 
     @property

@@ -61,6 +61,28 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def check_writable(path: str | Path, what: str = "output") -> None:
+    """Check before a long job that ``path`` can be written: it is no folder, and its
+    nearest existing ancestor is a writable folder (the missing ones are made when writing).
+    Nothing is created.
+
+    Raises:
+        ConfigError: naming ``what`` and the path.
+    """
+    from evtrack.errors import ConfigError
+
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{what} {path} is a folder: give a file name")
+    ancestor = path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ConfigError(f"{what} {path}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what} {path}: the folder {ancestor} is not writable")
+
+
 def usable_cpu_count() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one), at least 1."""
     try:

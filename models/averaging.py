@@ -15,6 +15,7 @@ distant ones recompute them on training images (``torch.optim.swa_utils.update_b
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -49,7 +50,8 @@ def average_weights(paths: Sequence[str | Path], out: str | Path,
         WeightsError: fewer than two files, a file that cannot be read, records that differ in
             architecture, object, cuboid, input size or normalisation, or state dicts whose
             keys or shapes differ (the message names the file and what differs).
-        ConfigError: ``factors`` of the wrong length, negative, or summing to zero.
+        ConfigError: ``factors`` of the wrong length, negative or not finite, or summing to
+            zero.
     """
     from evtrack.models.factory import create
 
@@ -60,8 +62,8 @@ def average_weights(paths: Sequence[str | Path], out: str | Path,
     factors = [1.0] * len(paths) if factors is None else [float(f) for f in factors]
     if len(factors) != len(paths):
         raise ConfigError(f"{len(factors)} factors for {len(paths)} weights files")
-    if min(factors) < 0 or sum(factors) <= 0:
-        raise ConfigError(f"factors must be >= 0 with a positive sum, got {factors}")
+    if not all(math.isfinite(f) for f in factors) or min(factors) < 0 or sum(factors) <= 0:
+        raise ConfigError(f"factors must be finite and >= 0 with a positive sum, got {factors}")
     total = sum(factors)
     loaded = [load_weights_file(p) for p in paths]
     first_record, first_state = loaded[0]

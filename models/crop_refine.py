@@ -101,7 +101,9 @@ def crop_window(pose: np.ndarray, cuboid: Cuboid, K: np.ndarray, dist: np.ndarra
     uv = cuboid.project(pose, K, dist)[:8]
     if not np.isfinite(uv).all():
         return None
-    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    # on a 1/8 px grid: the crop and its intrinsics A K (PnP's input) are then the same for
+    # poses a hair apart (the first pass on torch and on onnxruntime; see PNP_GRID_PX)
+    lo, hi = np.round(uv.min(axis=0) * 8.0) / 8.0, np.round(uv.max(axis=0) * 8.0) / 8.0
     if not margin * float((hi - lo).max()) >= 1.0:
         return None
     return box_window(lo, hi, (size, size), size / margin)

@@ -39,6 +39,8 @@ OUTPUT_NAMES = ("belief", "affinity")
 RECORD_KEY = "evtrack.record"
 PRECISION_KEY = "evtrack.precision"
 DEFAULT_OPSET = 18
+MIN_OPSET = 18
+"""The oldest opset torch's exporter (``dynamo=True``) writes; below it the export fails."""
 _TRACE_SIZE = (64, 96)  # (H, W) of the example input used for tracing; any multiple of 8
 
 
@@ -73,10 +75,12 @@ def export_onnx(
         path: output ``.onnx`` file.
         record: the weights record to embed; required if the network has none.
         fp16: compute in half precision (weights stored as float16); inputs/outputs stay float32.
-        opset: ONNX opset version.
+        opset: ONNX opset version (>= :data:`MIN_OPSET`).
 
     Raises:
-        ExportError: when the network has no record, or the exporter fails.
+        ExportError: when the network has no record, the path is no ``.onnx`` file, the opset
+            is below :data:`MIN_OPSET`, or the exporter fails or writes another opset (nothing
+            is written then).
     """
     import copy
 
@@ -85,6 +89,10 @@ def export_onnx(
     record = record or getattr(net, "weights_record", None)
     if record is None:
         raise ExportError("the network has no weights record; load weights first or pass record=")
+    if Path(path).suffix.lower() != ".onnx":
+        raise ExportError(f"{path}: the output must be an .onnx file")
+    if int(opset) < MIN_OPSET:
+        raise ExportError(f"opset {opset}: the exporter writes opset {MIN_OPSET} or later")
     model = copy.deepcopy(net).cpu().float().eval()
     if fp16:
         model = _Fp16Boundary(model).eval()
@@ -108,6 +116,11 @@ def export_onnx(
             raise ExportError(f"ONNX export of {type(net).__name__} failed: {exc}\n"
                               f"{log.getvalue()[-2000:]}") from exc
         proto = onnx.load(str(tmp))
+        written = next((o.version for o in proto.opset_import if o.domain in ("", "ai.onnx")),
+                       None)
+        if written != int(opset):
+            raise ExportError(f"asked for opset {opset}, the exporter wrote opset {written}: "
+                              f"nothing written\n{log.getvalue()[-2000:]}")
         meta = {RECORD_KEY: json.dumps(record.to_dict()), PRECISION_KEY: "fp16" if fp16 else "fp32"}
         del proto.metadata_props[:]
         for key, value in meta.items():

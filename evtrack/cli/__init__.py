@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 from collections.abc import Sequence
@@ -58,6 +59,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except EvtrackError as exc:
         print(f"evtrack {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except (OSError, ValueError) as exc:
+        # files that cannot be read or written, values out of range: the user's to fix, so
+        # one line instead of a traceback (EVTRACK_DEBUG=1 keeps the traceback)
+        if os.environ.get("EVTRACK_DEBUG"):
+            raise
+        print(f"evtrack {args.command}: error: {_one_line(exc)} (EVTRACK_DEBUG=1 shows where)",
+              file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+
+
+def _one_line(exc: BaseException) -> str:
+    """An exception as one line: its message (with its type where the message alone would not
+    say what failed, e.g. an OSError's "[Errno 21] Is a directory: 'out.csv'")."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return f"{type(exc).__name__}: {text}" if isinstance(exc, OSError) else text

@@ -110,8 +110,12 @@ def build_config(args: argparse.Namespace):
     if getattr(args, "seed", None) is not None:
         changes["seed"] = args.seed
     if args.width is not None or args.height is not None:
-        w = args.width or cfg.camera.width
-        h = args.height or round(cfg.camera.height * w / cfg.camera.width)
+        for name in ("width", "height"):
+            if getattr(args, name) is not None and getattr(args, name) <= 0:
+                raise ConfigError(f"--{name} must be positive, got {getattr(args, name)}")
+        w = args.width if args.width is not None else cfg.camera.width
+        h = args.height if args.height is not None else round(
+            cfg.camera.height * w / cfg.camera.width)
         if w <= 0 or h <= 0:
             raise ConfigError(f"--width/--height must be positive, got {w}x{h}")
         changes["camera"] = cfg.camera.resized(w, h)

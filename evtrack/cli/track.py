@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from evtrack.errors import ConfigError
+from evtrack.utils import check_writable
 
 __all__ = ["register", "run"]
 
@@ -91,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() not in (".csv", ".h5", ".hdf5"):
         raise ConfigError(f"--out {args.out}: use a .csv, .h5 or .hdf5 file")
+    check_writable(args.out, "--out")  # before the tracking, not after it
     seq = Sequence.load(args.sequence)
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     changes = {k: v for k, v in (("method", args.method), ("device", args.device),

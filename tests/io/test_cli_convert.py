@@ -75,3 +75,18 @@ def test_convert_help_explains_formats(capsys):
     out = capsys.readouterr().out
     for word in ("hdf5", "text", "npz", "aedat4", "evt2", "evt3", "read only", "--window-ms"):
         assert word in out
+
+
+def test_an_unwritable_output_is_one_line_not_a_traceback(tmp_path, events_factory, capsys,
+                                                          monkeypatch):
+    write_events(tmp_path / "a.h5", events_factory(50, seed=4))
+    (tmp_path / "file.txt").write_text("a file, not a folder")
+    out = tmp_path / "file.txt" / "b.h5"
+    monkeypatch.delenv("EVTRACK_DEBUG", raising=False)
+    assert main(["convert", str(tmp_path / "a.h5"), str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("evtrack convert: error: ") and "Traceback" not in err
+    assert "file.txt" in err and "EVTRACK_DEBUG=1" in err
+    monkeypatch.setenv("EVTRACK_DEBUG", "1")  # the traceback when asked for
+    with pytest.raises(OSError):
+        main(["convert", str(tmp_path / "a.h5"), str(out), "--quiet"])

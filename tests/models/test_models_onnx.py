@@ -198,3 +198,14 @@ def test_foreign_onnx_models_are_refused(tmp_path):
     bad.write_bytes(b"garbage")
     with pytest.raises(WeightsError, match="cannot read ONNX"):
         read_onnx_record(bad)
+
+
+def test_an_opset_the_exporter_cannot_write_or_a_wrong_suffix_is_refused(tmp_path, exported):
+    from evtrack.models.onnx_export import MIN_OPSET
+
+    net, _ = exported
+    with pytest.raises(ExportError, match=f"opset 5: the exporter writes opset {MIN_OPSET}"):
+        export_onnx(net, tmp_path / "old.onnx", opset=5)
+    with pytest.raises(ExportError, match=r"model\.txt: the output must be an \.onnx file"):
+        export_onnx(net, tmp_path / "model.txt")
+    assert list(tmp_path.iterdir()) == []  # nothing written

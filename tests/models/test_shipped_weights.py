@@ -108,3 +108,38 @@ def test_shipped_ycb_weights_locate_their_object_in_held_out_renders(index, ycb_
     dt, dr = np.nan_to_num(dt, nan=np.inf), np.nan_to_num(dr, nan=180.0)  # a miss: a failure
     assert np.median(dt) < _POSITION_BOUND_M.get(name, 0.04), np.round(dt, 3)
     assert np.median(dr) < _ROTATION_BOUND_DEG.get(name, 9.0), np.round(dr, 1)
+
+
+def test_onnx_and_torch_give_the_shipped_network_the_same_poses(tmp_path) -> None:
+    """Issue #6: identical decoded poses from the exported model, with the crop pass and
+    RANSAC on. Their maps differ in the last bits; before keypoints went to PnP on a grid
+    (``PNP_GRID_PX``), RANSAC turned that into poses 1-2 degrees apart on a third of frames."""
+    pytest.importorskip("moderngl")
+    pytest.importorskip("onnxruntime")
+    from evtrack.models import OnnxPoseEstimator
+    from evtrack.models.onnx_export import export_onnx
+    from evtrack.train.sim_source import SimSource, SimSourceOptions
+
+    path, record = _shipped()
+    net, _ = load_model(path)
+    onnx_path = export_onnx(net, tmp_path / "demo.onnx")
+    h, w = record.input_size
+    source = SimSource(DEMO_OBJECT, record.cuboid, 12, (h, w), object_name=record.object_name,
+                       seed=4321, options=SimSourceOptions(samples_per_scene=12,
+                                                          z_range=(0.4, 0.9)))
+    try:
+        samples = [source[i] for i in range(len(source))]
+    finally:
+        source.close()
+    t_est = TorchPoseEstimator.from_weights(path, samples[0].K)
+    o_est = OnnxPoseEstimator(onnx_path, samples[0].K, threads=1)
+    assert t_est.decode.ransac and t_est.decode.crop_refine > 0
+    compared = 0
+    for s in samples:
+        a, b = t_est(s.image), o_est(s.image)
+        assert len(a) == len(b)
+        for da, db in zip(a, b, strict=True):
+            torch.testing.assert_close(da.pose, db.pose, atol=1e-6, rtol=0)
+            assert da.num_points == db.num_points
+            compared += 1
+    assert compared >= 10  # the network finds the object in (nearly) every render

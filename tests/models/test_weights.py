@@ -221,7 +221,14 @@ def test_set_decode_command_writes_the_records_decoding(saved, tmp_path, capsys)
     assert load_weights_file(out)[0].decode == {}
     for bad, field_name in (("crop_blend=45", "crop_blend"), ("ransac=maybe", "ransac"),
                             ("crop_blend_max_deg=abc", "crop_blend_max_deg"),
-                            ("crop_blend_max_deg=500", "crop_blend_max_deg"), ("45", "KEY=VALUE")):
+                            ("crop_blend_max_deg=500", "crop_blend_max_deg"), ("45", "KEY=VALUE"),
+                            # once stored, then a ZeroDivisionError or no pose while tracking
+                            ("reprojection_scale_px=0", "reprojection_scale_px"),
+                            ("peak_threshold=.nan", "peak_threshold"),
+                            ("peak_threshold=2", "peak_threshold"),
+                            ("ransac_iterations=0", "ransac_iterations"),
+                            ("ransac_reprojection_px=-1", "ransac_reprojection_px"),
+                            ("min_affinity_norm=-3", "min_affinity_norm")):
         target = tmp_path / "never.pt"
         assert main(["set-decode", str(path), bad, "--out", str(target)]) == 1
         assert field_name in capsys.readouterr().err and not target.exists()

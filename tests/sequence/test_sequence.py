@@ -128,12 +128,24 @@ def test_bad_timestamps_file(tmp_path, sequence_factory):
 
 def test_missing_frame_file(tmp_path, sequence_factory):
     sequence_factory().save(tmp_path / "seq")
-    (tmp_path / "seq" / "rgb" / "000001.png").unlink()
     seq = Sequence.load(tmp_path / "seq")
-    with pytest.raises(EventFileError, match="000001.png"):
-        seq.rgb(1)
     with pytest.raises(IndexError):
         seq.rgb(3)
+    (tmp_path / "seq" / "rgb" / "000001.png").unlink()
+    with pytest.raises(EventFileError, match="frame 000001 is missing"):  # at load, not later
+        Sequence.load(tmp_path / "seq")
+    with pytest.raises(EventFileError, match="000001.png"):  # a file gone after the load
+        seq.rgb(1)
+
+
+def test_frames_without_a_timestamp_are_an_error_not_left_out(tmp_path, sequence_factory):
+    sequence_factory().save(tmp_path / "seq")
+    stamps = tmp_path / "seq" / "depth" / "timestamps.txt"
+    lines = stamps.read_text().splitlines()
+    stamps.write_text("\n".join(lines[:-1]) + "\n")
+    with pytest.raises(EventFileError, match=f"lists {len(lines) - 1} frames but the folder "
+                                             f"has {len(lines)}"):
+        Sequence.load(tmp_path / "seq")
 
 
 def test_ground_truth_interpolation_is_geodesic(sequence_factory):

@@ -180,6 +180,14 @@ def test_track_command(fast_sequence, tmp_path, capsys) -> None:
     assert "depth alignments fused" in text and "depth ranges" not in text
     assert main(["track", str(fast_sequence.root), "--out", str(out)]) == 1  # no pose source
     assert "--weights PATH" in capsys.readouterr().err
+    # an output that cannot be written is refused before the tracking, not after it
+    (tmp_path / "folder.csv").mkdir()
+    (tmp_path / "file").write_text("")
+    for bad, says in ((tmp_path / "folder.csv", "is a folder"),
+                      (tmp_path / "file" / "x.csv", "is a file, not a folder")):
+        assert main(["track", str(fast_sequence.root), "--out", str(bad), "--oracle"]) == 1
+        captured = capsys.readouterr()
+        assert says in captured.err and captured.out == ""  # no tracking summary
 
 
 def test_a_lazy_frame_that_fails_raises_once_and_the_tracker_goes_on() -> None:
