@@ -79,8 +79,10 @@ class DecodeConfig:
             with the shipped demo weights, three held-out regular sequences gave ADD 0.85
             against 0.73 without it (median 0.81 cm / 2.55 deg against 1.06 / 2.91;
             ``benchmarks/bench_pose_accuracy.py --decode ransac --decode strongest``), in the
-            same time per frame. OpenCV seeds its sampler on every call: the same maps give the same
-            pose, but its choice of inliers can follow the last bits of the maps.
+            same time per frame. OpenCV seeds its sampler on every call: the same keypoints give
+            the same pose. Its choice of inliers can follow the last bits of the keypoints,
+            so they reach it on a grid (:data:`PNP_GRID_PX`): torch and onnxruntime then give
+            the same poses.
         ransac_reprojection_px: RANSAC inlier threshold, pixels.
         ransac_iterations: RANSAC iterations.
         refine: ``"lm"`` (Levenberg-Marquardt on the reprojection error) or ``"none"``.
