@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -169,6 +170,13 @@ class PinholeCamera:
         unknown = sorted(set(data) - set(_FIELDS) - {"dist"})
         if unknown:
             raise ConfigError(f"{source}: unknown camera field(s) {unknown}")
+        for k in _FIELDS:
+            v = data[k]
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise ConfigError(f"{source}: camera field {k!r} must be a number, got {v!r}")
+            if k in ("width", "height") and v != int(v):
+                raise ConfigError(f"{source}: camera field {k!r} must be a whole number of "
+                                  f"pixels, got {v!r}")
         try:
             return cls(**{k: data[k] for k in _FIELDS}, dist=data.get("dist"))
         except (TypeError, ValueError) as exc:

@@ -8,7 +8,7 @@ from typing import Any
 
 from evtrack.errors import ConfigError
 
-__all__ = ["checked_scalar", "number_from_text"]
+__all__ = ["checked_device", "checked_scalar", "number_from_text"]
 
 _SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
 """A number in scientific notation. YAML 1.1 (PyYAML) reads ``1e-3`` as a string (it wants
@@ -56,3 +56,27 @@ def checked_scalar(name: str, value: Any, default: Any, source: str) -> Any:
             raise bad("a string")
         return value
     return value
+
+
+def checked_device(device: Any, where: str) -> Any:
+    """``device`` as a ``torch.device`` that this torch can use.
+
+    Raises:
+        ConfigError: naming ``where``: not a device name, or CUDA asked for where this torch
+            has none (or not that many GPUs).
+    """
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ConfigError(f"{where}: {device!r} is not a torch device (cpu, cuda, cuda:1, "
+                          f"...)") from exc
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"{where}: {device!r}, but this torch has no CUDA device (install "
+                              "a CUDA build of torch, or use cpu)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"{where}: {device!r}, but only {torch.cuda.device_count()} "
+                              "CUDA device(s) are visible")
+    return dev

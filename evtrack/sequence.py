@@ -34,6 +34,7 @@ from torch import Tensor
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError, EventFileError
 from evtrack.events import Events
+from evtrack.utils import make_public
 
 __all__ = ["SequenceMeta", "GroundTruth", "Sequence", "SequenceWriter", "FORMAT_VERSION"]
 
@@ -130,13 +131,19 @@ class SequenceMeta:
         rates = data.get("rates") or {}
         if not isinstance(rates, Mapping):
             raise ConfigError(f"{source}: field 'rates' must be a mapping of name to Hz")
+        for k, v in rates.items():
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ConfigError(f"{source}: field 'rates.{k}' must be a number (Hz), got {v!r}")
+        mesh = obj.get("mesh")
+        if mesh is not None and not isinstance(mesh, str):
+            raise ConfigError(f"{source}: field 'object.mesh' must be a file path, got {mesh!r}")
         try:
             return cls(
                 event_camera=PinholeCamera.from_dict(
                     data["event_camera"], f"{source}: event_camera"),
                 name=str(data.get("name") or ""),
                 object_name=str(obj.get("name") or ""),
-                mesh_path=obj.get("mesh"),
+                mesh_path=mesh,
                 rgb_camera=None if rgb is None else PinholeCamera.from_dict(
                     rgb, f"{source}: rgb_camera"),
                 T_event_rgb=T,
@@ -656,6 +663,7 @@ class SequenceWriter:
                 self._gt.save(self._tmp / GT_FILE)
             meta = dataclasses.replace(self.meta)
             (self._tmp / META_FILE).write_text(yaml.safe_dump(meta.to_dict(), sort_keys=False))
+            make_public(self._tmp)  # mkdtemp's folders are private (0700)
             if self.folder.exists():
                 if not self.overwrite:
                     raise FileExistsError(f"{self.folder} appeared while writing")

@@ -132,6 +132,7 @@ from torch import Tensor
 
 from evtrack.blas_threads import BlasThreads
 from evtrack.camera import PinholeCamera
+from evtrack.config_values import checked_device
 from evtrack.depth_range import DepthRange
 from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth, silhouette_depth_share
 from evtrack.errors import ConfigError, EventsError
@@ -562,7 +563,7 @@ class Tracker:
         self.pose_source = pose_source
         self.clock: Callable[[], float] = time.perf_counter
         self.mesh, vertices = _load_mesh(mesh)
-        self.device = torch.device(cfg.device)
+        self.device = checked_device(cfg.device, "tracker config field 'device'")
         self.silhouette = Silhouette(vertices, camera)
         self.method = cfg.method
         eye = torch.eye(4, dtype=torch.float64)

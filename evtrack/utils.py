@@ -43,6 +43,15 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         raise
 
 
+def make_public(folder: str | Path) -> None:
+    """Give ``folder`` and the folders below it the mode of one made with ``mkdir`` (``0o777``
+    less the umask) instead of a temporary folder's private ``0o700``."""
+    folder = Path(folder)
+    mode = 0o777 & ~_current_umask()
+    for sub in (folder, *(p for p in folder.rglob("*") if p.is_dir())):
+        sub.chmod(mode)
+
+
 def _current_umask() -> int:
     """The process umask (read by setting and restoring it)."""
     mask = os.umask(0o022)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -116,10 +117,8 @@ class _Frames:
 
 
 def run(args: argparse.Namespace) -> int:
-    from evtrack.flow import FlowResult, TripletFlow
-    from evtrack.flow.visualize import VideoWriter, save_png
-    from evtrack.io import iter_events, open_events
-    from evtrack.utils import atomic_write_text
+    from evtrack.flow import TripletFlow
+    from evtrack.io import open_events
 
     cfg = _config(args)
     if args.event_flow and args.format == "csv":
@@ -139,7 +138,25 @@ def run(args: argparse.Namespace) -> int:
     flow = TripletFlow(cfg, return_event_flow=args.event_flow)
     frame_us = max(cfg.window_us, int(round(args.frame_ms * 1000 / cfg.window_us))
                    * cfg.window_us)
+    if not (math.isfinite(args.frame_ms) and math.isfinite(args.read_ms)) or args.fps <= 0:
+        raise ConfigError("--frame-ms and --read-ms must be finite and --fps positive")
+    made = not args.out.exists()
     args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _flow_into_folder(args, cfg, flow, frame_us)
+    except BaseException:
+        if made and not any(args.out.iterdir()):
+            args.out.rmdir()  # a failed run leaves no empty output folder behind
+        raise
+
+
+def _flow_into_folder(args: argparse.Namespace, cfg, flow, frame_us: int) -> int:
+    """The flow of ``args.input`` into the folder ``args.out`` (made): files, picture, video."""
+    from evtrack.flow import FlowResult
+    from evtrack.flow.visualize import VideoWriter, save_png
+    from evtrack.io import iter_events
+    from evtrack.utils import atomic_write_text
+
     video = VideoWriter(args.out / "flow.mp4", args.fps) if args.video else None
     frames = _Frames(frame_us, flow, video, max_speed=cfg.max_speed / 10)
     parts = []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from evtrack.errors import ConfigError
@@ -109,6 +110,14 @@ def run(args: argparse.Namespace) -> int:
           f"{st.lost} losses" + (f", {st.depth_ranges} depth ranges fused" if cfg.depth_range
                                  else "")
           + (f", {st.depth_alignments} depth alignments fused" if cfg.depth_icp else ""))
+    if st.roi_flows and st.depth_fallbacks > 0.5 * st.roi_flows:
+        print(f"warning: {st.depth_fallbacks} of {st.roi_flows} RoI flows had no depth from the "
+              "depth frames and took the fallback (the predicted depth of the object's centre); "
+              "check the depth frames (missing, all zero, or in the wrong unit)", file=sys.stderr)
     if seq.ground_truth is not None:
-        print(f"error against ground truth: {tracking_errors(traj, seq.ground_truth)}")
+        if not bool(traj.tracked.any()):
+            print("error against ground truth: none, no sample was tracked (the pose source "
+                  f"gave {st.poses} poses; are the weights for this object?)")
+        else:
+            print(f"error against ground truth: {tracking_errors(traj, seq.ground_truth)}")
     return 0

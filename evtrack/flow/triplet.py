@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from evtrack.config_values import checked_device
 from evtrack.errors import EventsError, EvtrackError
 from evtrack.events import Events
 from evtrack.flow.candidates import Candidates, CandidateSearch
@@ -252,7 +253,7 @@ class TripletFlow(nn.Module):
             config = config.replace(**overrides)
         self.config = config
         self.return_event_flow = bool(return_event_flow)
-        self.device = torch.device(config.device)
+        self.device = checked_device(config.device, "flow config field 'device'")
         # candidate ordinals (offset * K + age_j) * K + age_i lie below this, for every call
         self._n_ordinals = len(search_offsets(config.radius)) * config.history ** 2
         self.reset()

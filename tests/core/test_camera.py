@@ -86,6 +86,15 @@ def test_invalid_values():
                                  "fz": 3})
 
 
+def test_fields_of_the_wrong_type_are_named():
+    good = {"fx": 1, "fy": 1, "cx": 0, "cy": 0, "width": 2, "height": 2}
+    with pytest.raises(ConfigError, match="camera field 'fx' must be a number, got 'abc'"):
+        PinholeCamera.from_dict({**good, "fx": "abc"})
+    with pytest.raises(ConfigError, match="'width' must be a whole number of pixels, got 320.5"):
+        PinholeCamera.from_dict({**good, "width": 320.5})  # once truncated to 320
+    assert PinholeCamera.from_dict({**good, "width": 2.0}).width == 2
+
+
 def test_scaled_keeps_pixel_centres():
     cam = PinholeCamera(500.0, 500.0, 319.5, 239.5, 640, 480)
     half = cam.scaled(0.5)

@@ -52,6 +52,22 @@ def test_flow_command_reports_bad_options(event_file, tmp_path, capsys):
     assert "radius" in capsys.readouterr().err
 
 
+def test_a_failed_flow_run_leaves_no_empty_output_folder(tmp_path, capsys):
+    from evtrack.io import write_events
+
+    ev, _ = translating_texture((64, 48), velocity=(300.0, 0.0), duration_us=20_000)
+    good = tmp_path / "ev.h5"
+    write_events(good, ev)
+    truncated = tmp_path / "cut.h5"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    out = tmp_path / "flows"
+    assert main(["flow", str(truncated), "--out", str(out)]) == 1
+    assert "cut.h5" in capsys.readouterr().err
+    assert not out.exists()
+    assert main(["flow", str(good), "--out", str(out), "--read-ms", "nan"]) == 1
+    assert "finite" in capsys.readouterr().err and not out.exists()
+
+
 def test_flow_pictures_of_no_flows(tmp_path):
     """A recording without any RoI flow (sparse noise) still gives its pictures and video."""
     from evtrack.events import Events

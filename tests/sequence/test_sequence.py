@@ -188,3 +188,14 @@ def test_extra_files_land_with_the_folder(tmp_path, sequence_factory):
                                                                       seq.meta) as w:
         w.file_path("../escape.txt")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["seq"]
+
+
+def test_meta_fields_of_the_wrong_type_are_named(tmp_path, sequence_factory):
+    sequence_factory().save(tmp_path / "seq")
+    meta_path = tmp_path / "seq" / "meta.yaml"
+    meta = yaml.safe_load(meta_path.read_text())
+    for change, says in ((("rates", {"rgb_hz": "fast"}), "'rates.rgb_hz' must be a number"),
+                         (("object", {"name": "box", "mesh": 5}), "'object.mesh' must be a file")):
+        meta_path.write_text(yaml.safe_dump({**meta, change[0]: change[1]}))
+        with pytest.raises(ConfigError, match=says):
+            Sequence.load(tmp_path / "seq")

@@ -18,6 +18,12 @@ def test_simulate_command(tmp_path, capsys) -> None:
     assert "events" in printed and "median" in printed
     seq = Sequence.load(out)
     assert seq.meta.event_camera.size == (64, 48) and seq.num_rgb == 2
+    import os
+
+    umask = os.umask(0o022)
+    os.umask(umask)
+    for folder in (out, out / "rgb", out / "depth"):  # readable by others as mkdir makes them
+        assert folder.stat().st_mode & 0o777 == 0o777 & ~umask
     assert seq.meta.extra["config"]["trajectory"]["preset"] == "faster"
     assert seq.meta.extra["seed"] == 2
     # the folder exists now: refused without --overwrite, with a clean message

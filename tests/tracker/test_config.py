@@ -136,3 +136,19 @@ def test_scientific_notation_that_yaml_reads_as_a_string_is_a_number(tmp_path) -
     cfg = TrackerConfig.from_yaml(path)
     assert cfg.pose_rate_hz == 10.0 and cfg.max_searched_per_step == 2500
     assert cfg.pose_ukf.q_translation == 0.01
+
+
+def test_a_device_this_torch_cannot_use_is_a_config_error() -> None:
+    import numpy as np
+    import torch
+
+    from evtrack.camera import PinholeCamera
+    from evtrack.tracker import Tracker
+
+    cam = PinholeCamera(100.0, 100.0, 63.5, 47.5, 128, 96)
+    cube = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
+    with pytest.raises(ConfigError, match="'foo' is not a torch device"):
+        Tracker(TrackerConfig(device="foo"), camera=cam, mesh=cube)
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA device"):
+            Tracker(TrackerConfig(device="cuda"), camera=cam, mesh=cube)

@@ -299,3 +299,27 @@ def test_a_network_of_another_object_is_warned_about(fast_sequence) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Tracker.for_sequence(fast_sequence, TrackerConfig(), NetworkPoseSource(_Estimator("box")))
+
+
+def test_track_command_says_when_nothing_was_tracked_or_depth_was_missing(
+        fast_sequence, tmp_path, capsys, monkeypatch) -> None:
+    import shutil
+
+    import cv2
+
+    import evtrack.cli.track as track_cli
+    from evtrack.cli import main
+
+    seq = tmp_path / "seq"
+    shutil.copytree(fast_sequence.root, seq)
+    for png in (seq / "depth").glob("*.png"):  # a depth camera that sees nothing
+        cv2.imwrite(str(png), np.zeros_like(cv2.imread(str(png), cv2.IMREAD_UNCHANGED)))
+    assert main(["track", str(seq), "--out", str(tmp_path / "a.csv"), "--oracle",
+                 "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "took the fallback" in captured.err and "error against ground truth" in captured.out
+    monkeypatch.setattr(track_cli, "_pose_source", lambda args, seq: lambda t, rgb, d: None)
+    assert main(["track", str(fast_sequence.root), "--out", str(tmp_path / "b.csv"),
+                 "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "no sample was tracked" in out and "nan" not in out
