@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import textwrap
 from pathlib import Path
@@ -105,8 +106,8 @@ def run(args: argparse.Namespace) -> int:
     from evtrack.errors import EvtrackError
     from evtrack.io.api import _writable_format
 
-    if args.window_ms <= 0:
-        raise EvtrackError(f"--window-ms must be positive, got {args.window_ms}")
+    if not (math.isfinite(args.window_ms) and args.window_ms > 0):
+        raise EvtrackError(f"--window-ms must be a positive number, got {args.window_ms}")
     if args.output.exists() and not args.overwrite:
         raise EvtrackError(f"{args.output} exists; pass --overwrite to replace it")
     if args.input.resolve() == args.output.resolve():

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from evtrack.errors import ConfigError, EventFileError
 
 __all__ = ["register", "run", "event_file_summary"]
 
@@ -98,9 +101,9 @@ def run(args: argparse.Namespace) -> int:
         summary = Sequence.load(path).summary()
     else:
         if not path.exists():
-            from evtrack.errors import EventFileError
-
             raise EventFileError(path, "no such file or folder")
+        if not (math.isfinite(args.window_ms) and args.window_ms > 0):
+            raise ConfigError(f"--window-ms must be a positive number, got {args.window_ms}")
         summary = event_file_summary(path, window_us=max(1, int(args.window_ms * 1000)))
     if args.json:
         print(json.dumps(summary, indent=2, default=str))

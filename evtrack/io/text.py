@@ -256,6 +256,9 @@ class TextReader(EventReader):
             if (line and not line.startswith("#")) or _TRAILER_RE.fullmatch(line.encode()):
                 break
             m = _SENSOR_RE.match(line)
+            if m is None and re.match(r"#\s*sensor_size\b", line):
+                raise EventFileError(self.path, f"line {lines + 1}: bad sensor_size header "
+                                                f"{line!r} (expected '# sensor_size W H')")
             if m and sensor_size is None:
                 w, h = int(m.group(1)), int(m.group(2))
                 if w <= 0 or h <= 0:

@@ -183,3 +183,13 @@ def test_overlong_line_is_rejected(tmp_path):
         list(TextReader(tmp_path / "long.txt", block_bytes=1 << 12).iter_chunks())
     with pytest.raises(EventFileError, match="line 2"):
         read_events(tmp_path / "long.txt")
+
+
+@pytest.mark.parametrize("header", ["# sensor_size 10 abc", "# sensor_size 640", "#sensor_size"])
+def test_a_malformed_sensor_size_header_is_an_error_not_a_comment(tmp_path, header):
+    path = tmp_path / "ev.txt"
+    path.write_text(f"{header}\n0.001 1 1 1\n")
+    with pytest.raises(EventFileError, match="line 1: bad sensor_size header"):
+        read_events(path)
+    path.write_text("# sensor_sizes are given below\n0.001 1 1 1\n")  # a word, not the header
+    assert len(read_events(path)) == 1

@@ -27,6 +27,9 @@ def test_info_event_file(tmp_path, capsys):
     assert out["x_range"] == [int(ev.x.min()), int(ev.x.max())]
     assert main(["info", str(tmp_path / "ev.h5")]) == 0
     assert "Mev/s" in capsys.readouterr().out
+    for bad in ("0", "-1", "nan", "inf"):  # once accepted, or a raw ValueError
+        assert main(["info", str(tmp_path / "ev.h5"), "--window-ms", bad]) == 1
+        assert "--window-ms must be a positive number" in capsys.readouterr().err
 
 
 def test_info_missing_file(tmp_path, capsys):
