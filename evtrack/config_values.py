@@ -8,7 +8,7 @@ from typing import Any
 
 from evtrack.errors import ConfigError
 
-__all__ = ["checked_device", "checked_scalar", "number_from_text"]
+__all__ = ["checked_device", "checked_scalar", "number_from_text", "unknown_fields"]
 
 _SCIENTIFIC = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
 """A number in scientific notation. YAML 1.1 (PyYAML) reads ``1e-3`` as a string (it wants
@@ -80,3 +80,20 @@ def checked_device(device: Any, where: str) -> Any:
             raise ConfigError(f"{where}: {device!r}, but only {torch.cuda.device_count()} "
                               "CUDA device(s) are visible")
     return dev
+
+
+def unknown_fields(unknown: Any, known: Any) -> str:
+    """``unknown field(s) [...]`` with, for each, the nearest known name where one is close
+    (``'metod' (did you mean 'method'?)``), or the known names when the list is short."""
+    import difflib
+
+    known = sorted(known)
+    hints = []
+    for name in sorted(unknown):
+        close = difflib.get_close_matches(str(name), known, n=1, cutoff=0.7)
+        if close:
+            hints.append(f"{name!r}: did you mean {close[0]!r}?")
+    text = f"unknown field(s) {sorted(unknown)}"
+    if hints:
+        return f"{text} ({'; '.join(hints)})"
+    return f"{text}; known: {known}"

@@ -341,13 +341,19 @@ def _read_rgb(path: Path) -> np.ndarray:
 def _read_depth(path_png: Path, path_tiff: Path) -> np.ndarray:
     if path_png.is_file():
         raw = cv2.imread(str(path_png), cv2.IMREAD_UNCHANGED)
-        if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
-            raise EventFileError(path_png, "depth PNG must be single-channel uint16 (mm)")
+        if raw is None:
+            raise EventFileError(path_png, "unreadable depth PNG (truncated or corrupt)")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise EventFileError(path_png, f"depth PNG must be single-channel uint16 (mm), "
+                                           f"got {raw.dtype} {raw.shape}")
         depth = raw.astype(np.float32) * 1e-3
     elif path_tiff.is_file():
         depth = cv2.imread(str(path_tiff), cv2.IMREAD_UNCHANGED)
-        if depth is None or depth.dtype != np.float32 or depth.ndim != 2:
-            raise EventFileError(path_tiff, "depth TIFF must be single-channel float32 (m)")
+        if depth is None:
+            raise EventFileError(path_tiff, "unreadable depth TIFF (truncated or corrupt)")
+        if depth.dtype != np.float32 or depth.ndim != 2:
+            raise EventFileError(path_tiff, f"depth TIFF must be single-channel float32 (m), "
+                                            f"got {depth.dtype} {depth.shape}")
     else:
         raise EventFileError(path_png.with_suffix(""), "missing depth frame (.png or .tiff)")
     depth = depth.copy()

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from evtrack.config_values import checked_scalar
+from evtrack.config_values import checked_scalar, unknown_fields
 from evtrack.errors import ConfigError
 from evtrack.filters.config import (
     PoseTwistUKFConfig,
@@ -677,7 +677,7 @@ class TrackerConfig:
                               f"{_REMOVED_FIELDS[removed[0]]}")
         unknown = sorted(set(data) - set(fields))
         if unknown:
-            raise ConfigError(f"{source}: unknown field(s) {unknown}; known: {sorted(fields)}")
+            raise ConfigError(f"{source}: {unknown_fields(unknown, fields)}")
         values: dict[str, Any] = {}
         for name, value in data.items():
             where = f"{source}: {name}"
@@ -755,7 +755,7 @@ def _section_from(cls: type, value: Any, current: Any, where: str) -> Any:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(value) - names)
     if unknown:
-        raise ConfigError(f"{where}: unknown {cls.__name__} field(s) {unknown}")
+        raise ConfigError(f"{where}: {cls.__name__}: {unknown_fields(unknown, names)}")
     merged = {n: getattr(current, n) for n in names}
     merged.update(value)
     if cls in (VelocityKFConfig, PoseUKFConfig, PoseTwistUKFConfig):

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.config_values import checked_scalar
+from evtrack.config_values import checked_scalar, unknown_fields
 from evtrack.errors import ConfigError
 from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
 from evtrack.models.keypoints import (
@@ -221,7 +221,7 @@ class DecodeConfig:
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
-            raise ConfigError(f"{source}: unknown field(s) {unknown}; known: {sorted(known)}")
+            raise ConfigError(f"{source}: {unknown_fields(unknown, known)}")
         defaults = cls()
         data = {name: checked_scalar(name, value, getattr(defaults, name), source)
                 for name, value in data.items()}

@@ -178,6 +178,16 @@ def _save_state(path: str | Path, state_dict: dict[str, torch.Tensor], record: W
     return path
 
 
+_OTHER_FORMATS = (
+    (b"\x89HDF\r\n\x1a\n", "an HDF5 file", ""),
+    (b"\x08", "an ONNX model", " (OnnxPoseEstimator runs it; export and set-decode take the "
+                                ".pt it came from)"),
+    (b"\x89PNG", "a PNG image", ""),
+)
+"""Leading bytes of files often given as weights by mistake: what they are, and a hint. (An
+ONNX model is a protobuf whose first field, ``ir_version``, starts with the byte 0x08.)"""
+
+
 def load_weights_file(path: str | Path) -> tuple[WeightsRecord, dict[str, torch.Tensor]]:
     """Read a weights file or an ``evtrack train`` Lightning checkpoint.
 
@@ -192,6 +202,15 @@ def load_weights_file(path: str | Path) -> tuple[WeightsRecord, dict[str, torch.
     path = Path(path)
     if not path.is_file():
         raise WeightsError(path, "weights file not found")
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    known = next(((kind, hint) for magic, kind, hint in _OTHER_FORMATS
+                  if head.startswith(magic)), None)
+    if known is not None:
+        raise WeightsError(path, f"this is {known[0]}, not a .pt weights file{known[1]}")
+    if not (head.startswith(b"PK") or head.startswith(b"\x80")):
+        raise WeightsError(path, "not a weights file: neither a torch.save zip archive nor a "
+                                 "pickle (truncated, or another kind of file)")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises several types for corrupt/unsafe files

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from evtrack.config_values import checked_scalar
+from evtrack.config_values import checked_scalar, unknown_fields
 from evtrack.errors import ConfigError
 
 __all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S", "BACKENDS", "LOOKUPS"]
@@ -292,7 +292,7 @@ class FlowConfig:
         known = {f.name for f in dataclasses.fields(cls) if f.init}
         unknown = sorted(set(data) - known)
         if unknown:
-            raise ConfigError(f"flow config: unknown field(s) {unknown}; known: {sorted(known)}")
+            raise ConfigError(f"flow config: {unknown_fields(unknown, known)}")
         types = {"radius": int, "history": int, "tolerance_us": int, "refractory_us": int,
                  "max_span_us": int,
                  "roi_size": int,

@@ -91,11 +91,17 @@ def test_pickled_code_is_refused(tmp_path):
         load_weights_file(path)
 
 
-@pytest.mark.parametrize("content", [b"", b"not a zip file at all"])
-def test_corrupt_files_are_clear_errors(tmp_path, content):
+@pytest.mark.parametrize(("content", "says"), [
+    (b"", "neither a torch.save zip archive nor a pickle"),
+    (b"not a zip file at all", "neither a torch.save zip archive nor a pickle"),
+    (b"\x89HDF\r\n\x1a\n" + bytes(100), "this is an HDF5 file, not a .pt weights file"),
+    (b"\x08\x08\x12\x07pytorch", "this is an ONNX model, not a .pt weights file"),
+    (b"PK\x03\x04 a cut zip", "cannot read weights"),
+])
+def test_corrupt_or_foreign_files_are_clear_errors(tmp_path, content, says):
     path = tmp_path / "bad.pt"
     path.write_bytes(content)
-    with pytest.raises(WeightsError, match="cannot read weights"):
+    with pytest.raises(WeightsError, match=says):
         load_weights_file(path)
 
 

@@ -152,3 +152,14 @@ def test_a_device_this_torch_cannot_use_is_a_config_error() -> None:
     if not torch.cuda.is_available():
         with pytest.raises(ConfigError, match="no CUDA device"):
             Tracker(TrackerConfig(device="cuda"), camera=cam, mesh=cube)
+
+
+def test_a_misspelt_field_gets_the_nearest_name() -> None:
+    with pytest.raises(ConfigError, match="'metod': did you mean 'method'"):
+        TrackerConfig.from_dict({"metod": "full"})
+    with pytest.raises(ConfigError, match="'flw_std': did you mean 'flow_std'"):
+        TrackerConfig.from_dict({"velocity_kf": {"flw_std": 1.0}})
+    with pytest.raises(ConfigError, match="'roi_sise': did you mean 'roi_size'"):
+        TrackerConfig.from_dict({"flow": {"roi_sise": 3}})
+    with pytest.raises(ConfigError, match=r"\['zzz'\]; known: \['blas_threads'"):
+        TrackerConfig.from_dict({"zzz": 1})  # nothing close: the known names
