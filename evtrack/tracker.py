@@ -728,6 +728,7 @@ class Tracker:
         self._frames: list[tuple[int, int, FrameInput, FrameInput]] = []
         self._frame_seq = 0
         self._horizon = -(1 << 62)
+        self._clock_moved_by = "reset"  # the call that last moved the clock (for errors)
         if t_us is not None:
             self._start_clock(int(t_us))
         if pose is not None:
@@ -792,18 +793,27 @@ class Tracker:
                               f"event pushed (t={self._last_event_t} µs)")
         if self._t is not None and t_first < self._t:
             raise EventsError(f"push_events: events start at t={t_first} µs, before the "
-                              f"tracker's clock ({self._t} µs); push events and frames in "
-                              "time order")
+                              f"tracker's clock ({self._t} µs, moved there by "
+                              f"{self._clock_moved_by}); push events and frames in time order, "
+                              "all on the stream's clock")
         if self._t is None:
             self._start_clock(t_first)
         self._last_event_t = t_last
+        self._clock_moved_by = f"push_events (events up to t={t_last} µs)"
         self.stats.events += len(events)
         self._ev_buf.append(events.to("cpu"))
-        self.advance(t_last)
+        self._advance_to(t_last)
 
     def advance(self, t_us: int) -> None:
         """Declare that every event before ``t_us`` was pushed: close the step groups (of
         ``flow_batch_steps`` steps) ending by then, and the frames before them."""
+        t_us = int(t_us)
+        if t_us > self._horizon:
+            self._clock_moved_by = f"advance(t_us={t_us})"
+        self._advance_to(t_us)
+
+    def _advance_to(self, t_us: int) -> None:
+        """:meth:`advance` for the input calls (which name themselves as the clock's mover)."""
         t_us = int(t_us)
         if self._t is None:
             self._start_clock(t_us)
@@ -867,6 +877,7 @@ class Tracker:
         t_us = int(t_us)
         if depth is not None and not callable(depth) and isinstance(self.depth, SensorDepth):
             self.depth.check_frame(t_us, depth)
+        self._clock_moved_by = f"push_frame(t_us={t_us})"
         if rgb is not None and not callable(rgb) and self._uses_rgb:
             _check_rgb(t_us, rgb, self.rgb_camera)
         if self._t is None:
@@ -879,7 +890,7 @@ class Tracker:
         with self._blas:
             if t_us < self._t:
                 self._frames_due(self._t)
-            self.advance(t_us)
+            self._advance_to(t_us)
 
     @property
     def _uses_rgb(self) -> bool:
@@ -1062,6 +1073,7 @@ class Tracker:
         """
         if self._t is None:
             self._start_clock(measurement.t_us)
+            self._clock_moved_by = f"push_pose(t_us={measurement.t_us})"
         avail = max(measurement.t_us, self._t if available_us is None else int(available_us))
         self.stats.poses += 1
         self._schedule(avail, measurement)

@@ -698,7 +698,8 @@ class TrackerConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> TrackerConfig:
-        """Load from a YAML file: the fields at top level, or under a ``tracker:`` key."""
+        """Load from a YAML file: the fields at top level, or under a ``tracker:`` key (the
+        file's other top-level sections, e.g. ``sim:``, are then left to their readers)."""
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text(encoding="utf-8"))
@@ -706,7 +707,12 @@ class TrackerConfig:
             raise ConfigError(f"{path}: cannot read tracker config ({exc})") from exc
         if data is None:
             data = {}
-        if isinstance(data, Mapping) and set(data) == {"tracker"}:
+        if isinstance(data, Mapping) and "tracker" in data:
+            # a file with several sections (e.g. tracker: and sim:) takes its tracker: one
+            mixed = sorted(set(data) & {f.name for f in dataclasses.fields(cls)})
+            if mixed:
+                raise ConfigError(f"{path}: tracker fields {mixed} at the top level beside a "
+                                  "'tracker:' section; put them in one place")
             data = data["tracker"]
         return cls.from_dict(data, source=str(path))
 

@@ -163,3 +163,12 @@ def test_a_misspelt_field_gets_the_nearest_name() -> None:
         TrackerConfig.from_dict({"flow": {"roi_sise": 3}})
     with pytest.raises(ConfigError, match=r"\['zzz'\]; known: \['blas_threads'"):
         TrackerConfig.from_dict({"zzz": 1})  # nothing close: the known names
+
+
+def test_a_yaml_file_with_several_sections_gives_its_tracker_section(tmp_path) -> None:
+    path = tmp_path / "all.yaml"
+    path.write_text("sim: {duration: 1.0}\ntracker: {pose_rate_hz: 10.0}\n")
+    assert TrackerConfig.from_yaml(path).pose_rate_hz == 10.0
+    path.write_text("pose_latency_ms: 50.0\ntracker: {pose_rate_hz: 10.0}\n")
+    with pytest.raises(ConfigError, match=r"\['pose_latency_ms'\] at the top level beside"):
+        TrackerConfig.from_yaml(path)

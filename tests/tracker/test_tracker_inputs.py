@@ -323,3 +323,16 @@ def test_track_command_says_when_nothing_was_tracked_or_depth_was_missing(
                  "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "no sample was tracked" in out and "nan" not in out
+
+
+def test_events_behind_the_clock_name_the_call_that_moved_it() -> None:
+    tracker = _tracker()
+    tracker.push_events(_events([100, 200]))
+    tracker.push_frame(10_000_000)  # a frame stamped by another clock
+    with pytest.raises(EventsError, match=r"moved there by push_frame\(t_us=10000000\)"):
+        tracker.push_events(_events([300]))
+    tracker = _tracker()
+    tracker.push_events(_events([100, 200]))
+    tracker.advance(50_000)
+    with pytest.raises(EventsError, match=r"moved there by advance\(t_us=50000\)"):
+        tracker.push_events(_events([300]))
