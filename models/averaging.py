@@ -51,11 +51,14 @@ def average_weights(paths: Sequence[str | Path], out: str | Path,
             architecture, object, cuboid, input size or normalisation, or state dicts whose
             keys or shapes differ (the message names the file and what differs).
         ConfigError: ``factors`` of the wrong length, negative or not finite, or summing to
-            zero.
+            zero; ``out`` one of the inputs.
     """
     from evtrack.models.factory import create
 
     paths = [Path(p) for p in paths]
+    if any(p.exists() and Path(out).exists() and p.resolve() == Path(out).resolve()
+           for p in paths):
+        raise ConfigError(f"{out}: the output is one of the inputs; write the mean elsewhere")
     if len(paths) < 2:
         raise WeightsError(", ".join(map(str, paths)) or "(none)",
                            "averaging needs at least two weights files")

@@ -312,6 +312,14 @@ class DataConfig:
                               "repeat training samples")
 
 
+_TRAINER_INTEGERS = ("max_epochs", "min_epochs", "max_steps", "min_steps", "num_nodes",
+                     "log_every_n_steps", "check_val_every_n_epoch", "accumulate_grad_batches",
+                     "num_sanity_val_steps")
+"""``lightning.Trainer`` arguments that must be integers (Lightning itself would fail only once
+the run starts, after the renders)."""
+_TRAINER_NUMBERS = ("gradient_clip_val",)
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """A whole training run (see the module docstring).
@@ -355,6 +363,13 @@ class TrainConfig:
         unknown = sorted(set(self.trainer) - accepted)
         if unknown:
             raise ConfigError(f"trainer: unknown lightning.Trainer argument(s) {unknown}")
+        for key, value in self.trainer.items():  # the common numbers, before any rendering
+            if key in _TRAINER_INTEGERS and value is not None and (
+                    isinstance(value, bool) or not isinstance(value, int)):
+                raise ConfigError(f"trainer.{key}: expected an integer, got {value!r}")
+            if key in _TRAINER_NUMBERS and value is not None and (
+                    isinstance(value, bool) or not isinstance(value, int | float)):
+                raise ConfigError(f"trainer.{key}: expected a number, got {value!r}")
 
     @property
     def name(self) -> str:

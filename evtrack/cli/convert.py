@@ -105,6 +105,7 @@ def convert(
 def run(args: argparse.Namespace) -> int:
     from evtrack.errors import EvtrackError
     from evtrack.io.api import _writable_format
+    from evtrack.io.formats import format_from_extension
 
     if not (math.isfinite(args.window_ms) and args.window_ms > 0):
         raise EvtrackError(f"--window-ms must be a positive number, got {args.window_ms}")
@@ -112,7 +113,14 @@ def run(args: argparse.Namespace) -> int:
         raise EvtrackError(f"{args.output} exists; pass --overwrite to replace it")
     if args.input.resolve() == args.output.resolve():
         raise EvtrackError("input and output are the same file")
-    fmt = _writable_format(args.output, args.to)
+    try:
+        fmt = _writable_format(args.output, args.to)
+    except EvtrackError as exc:  # the library's hint names its argument; the command's is --to
+        raise EvtrackError(str(exc).replace("or pass format=...", "or give --to")) from exc
+    named = format_from_extension(args.output)
+    if args.to and named and named != fmt:
+        print(f"warning: writing {fmt} to {args.output}, whose extension says {named}",
+              file=sys.stderr)
     options: dict[str, object] = {}
     if fmt == "hdf5" and args.compression != "none":
         options["compression"] = args.compression

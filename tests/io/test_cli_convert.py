@@ -90,3 +90,15 @@ def test_an_unwritable_output_is_one_line_not_a_traceback(tmp_path, events_facto
     monkeypatch.setenv("EVTRACK_DEBUG", "1")  # the traceback when asked for
     with pytest.raises(OSError):
         main(["convert", str(tmp_path / "a.h5"), str(out), "--quiet"])
+
+
+def test_a_format_against_the_extension_is_warned_about_and_hints_name_the_option(
+        tmp_path, events_factory, capsys):
+    write_events(tmp_path / "a.h5", events_factory(20, seed=5))
+    assert main(["convert", str(tmp_path / "a.h5"), str(tmp_path / "b.h5"), "--to", "text",
+                 "--quiet"]) == 0
+    assert "writing text to" in capsys.readouterr().err
+    assert detect_format(tmp_path / "b.h5") == "text"
+    assert main(["convert", str(tmp_path / "a.h5"), str(tmp_path / "c.xyz"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "or give --to" in err and "format=" not in err

@@ -73,6 +73,8 @@ def test_weights_of_other_networks_or_bad_factors_are_refused(tmp_path):
         average_weights([a, tmp_path / "none.pt"], tmp_path / "out.pt")
     with pytest.raises(ConfigError, match="positive sum"):
         average_weights([a, a], tmp_path / "out.pt", [1.0, -1.0])
+    with pytest.raises(ConfigError, match="the output is one of the inputs"):
+        average_weights([a, a], a)
     for bad in (float("nan"), float("inf")):  # both once wrote all-NaN weights
         with pytest.raises(ConfigError, match="finite"):
             average_weights([a, a], tmp_path / "out.pt", [bad, 1.0])

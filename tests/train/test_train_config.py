@@ -53,6 +53,8 @@ def test_defaults_fill_in():
     ({**MINIMAL, "data": {"augment": {"noise": {"sigma": 1}}}}, "config.data.augment.noise"),
     ({**MINIMAL, "optim": {"schedule": "linear"}}, "optim.schedule"),
     ({**MINIMAL, "trainer": {"max_epoch": 3}}, "unknown lightning.Trainer argument"),
+    ({**MINIMAL, "trainer": {"max_epochs": "abc"}}, "trainer.max_epochs: expected an integer"),
+    ({**MINIMAL, "trainer": {"gradient_clip_val": "x"}}, "trainer.gradient_clip_val: expected"),
     ({**MINIMAL, "trainer": {"logger": False}}, "set by evtrack train"),
     ({**MINIMAL, "logger": "wandb"}, "logger must be"),
     ({"object": {"name": "x"}, "data": {"seed": 1, "val_seed": 1}}, "validation samples"),
