@@ -126,10 +126,16 @@ def run(args: argparse.Namespace) -> int:
         options["compression"] = args.compression
     if fmt == "npz" and args.compress:
         options["compress"] = True
-    n = convert(
-        args.input, args.output, window_us=max(1, round(args.window_ms * US_PER_MS)), to=fmt,
-        sensor_size=tuple(args.sensor_size) if args.sensor_size else None,
-        progress=not args.quiet, **options,
-    )
+    try:
+        n = convert(
+            args.input, args.output, window_us=max(1, round(args.window_ms * US_PER_MS)),
+            to=fmt, sensor_size=tuple(args.sensor_size) if args.sensor_size else None,
+            progress=not args.quiet, **options,
+        )
+    except EvtrackError as exc:  # the library's hint names its argument; the command's is this
+        text = str(exc).replace("give sensor_size=(width, height)", "give --sensor-size W H")
+        if text == str(exc):
+            raise
+        raise EvtrackError(f"{args.input}: {text}") from exc
     print(f"wrote {n} events to {args.output} ({fmt})")
     return 0

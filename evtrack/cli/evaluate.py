@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from evtrack.errors import ConfigError
@@ -99,6 +100,9 @@ def pose_spec(args: argparse.Namespace):
     if args.oracle_noise is not None and not (args.oracle or fallback):
         raise ConfigError("--oracle-noise needs --oracle or --oracle-where-missing")
     noise = args.oracle_noise or (0.01, 0.03)
+    if not all(math.isfinite(v) and v >= 0 for v in noise):
+        raise ConfigError(f"--oracle-noise METRES RADIANS must be finite and >= 0, got "
+                          f"{tuple(noise)}")
     if args.oracle:
         return PoseSourceSpec("oracle", oracle_std_translation=noise[0],
                               oracle_std_rotation=noise[1], seed=args.seed,

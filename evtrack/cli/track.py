@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -64,6 +65,9 @@ def _pose_source(args: argparse.Namespace, seq):
     if args.oracle and args.depth_refine:
         raise ConfigError("--depth-refine refines a pose network's poses; not with --oracle")
     if args.oracle:
+        if not all(math.isfinite(v) and v >= 0 for v in args.oracle_noise):
+            raise ConfigError(f"--oracle-noise METRES RADIANS must be finite and >= 0, got "
+                              f"{tuple(args.oracle_noise)}")
         return OraclePoseSource.from_sequence(seq, std_translation=args.oracle_noise[0],
                                               std_rotation=args.oracle_noise[1])
     if args.weights is None:

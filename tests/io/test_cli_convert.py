@@ -102,3 +102,12 @@ def test_a_format_against_the_extension_is_warned_about_and_hints_name_the_optio
     assert main(["convert", str(tmp_path / "a.h5"), str(tmp_path / "c.xyz"), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert "or give --to" in err and "format=" not in err
+
+
+def test_a_text_file_without_a_sensor_size_to_hdf5_names_the_option(tmp_path, capsys):
+    (tmp_path / "nohdr.txt").write_text("0.001 1 1 1\n")
+    assert main(["convert", str(tmp_path / "nohdr.txt"), str(tmp_path / "o.h5"),
+                 "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "nohdr.txt" in err and "give --sensor-size W H" in err
+    assert not (tmp_path / "o.h5").exists()

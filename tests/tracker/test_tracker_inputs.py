@@ -180,6 +180,9 @@ def test_track_command(fast_sequence, tmp_path, capsys) -> None:
     assert "depth alignments fused" in text and "depth ranges" not in text
     assert main(["track", str(fast_sequence.root), "--out", str(out)]) == 1  # no pose source
     assert "--weights PATH" in capsys.readouterr().err
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--oracle",
+                 "--oracle-noise", "-1", "0"]) == 1
+    assert "--oracle-noise METRES RADIANS must be finite and >= 0" in capsys.readouterr().err
     # an output that cannot be written is refused before the tracking, not after it
     (tmp_path / "folder.csv").mkdir()
     (tmp_path / "file").write_text("")
