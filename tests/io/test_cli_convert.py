@@ -60,7 +60,7 @@ def test_convert_errors_are_clean(tmp_path, capsys):
     ev = Events([1], [1], [5], [1], None)
     write_events(tmp_path / "n.txt", ev)
     assert main(["convert", str(tmp_path / "n.txt"), str(tmp_path / "n.h5")]) == 1
-    assert "sensor_size" in capsys.readouterr().err
+    assert "--sensor-size W H" in capsys.readouterr().err
     assert main(["convert", str(tmp_path / "n.txt"), str(tmp_path / "n.raw")]) == 1
     assert "writing RAW is not supported" in capsys.readouterr().err
     assert main(["convert", str(tmp_path / "missing.h5"), str(tmp_path / "x.h5")]) == 1
