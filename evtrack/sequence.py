@@ -302,6 +302,25 @@ def _read_timestamps(path: Path) -> Tensor:
     return t
 
 
+def _check_events_sensor(events_path: Path, meta: SequenceMeta, meta_path: Path) -> None:
+    """The events file's sensor size (from its header) is the event camera's of ``meta.yaml``.
+
+    Raises:
+        EventFileError: naming both files and both sizes.
+    """
+    from evtrack.io import open_events
+
+    reader = open_events(events_path)
+    try:
+        size = reader.sensor_size
+    finally:
+        reader.close()
+    cam = meta.event_camera
+    if size is not None and tuple(size) != (cam.width, cam.height):
+        raise EventFileError(events_path, f"its sensor is {size[0]}x{size[1]}, but {meta_path.name}"
+                                          f" gives the event camera as {cam.width}x{cam.height}")
+
+
 def _check_frame_files(folder: Path, count: int, suffixes: tuple[str, ...]) -> None:
     """One frame file (``000000.png``, ...) per line of ``folder/timestamps.txt``.
 
@@ -427,6 +446,7 @@ class Sequence:
                   depth_times_us=_read_timestamps(root / "depth" / "timestamps.txt"))
         _check_frame_files(root / "rgb", seq.num_rgb, (".png",))
         _check_frame_files(root / "depth", seq.num_depth, (".png", ".tiff"))
+        _check_events_sensor(root / EVENTS_FILE, meta, meta_path)
         return seq
 
     @property

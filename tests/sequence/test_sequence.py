@@ -199,3 +199,16 @@ def test_meta_fields_of_the_wrong_type_are_named(tmp_path, sequence_factory):
         meta_path.write_text(yaml.safe_dump({**meta, change[0]: change[1]}))
         with pytest.raises(ConfigError, match=says):
             Sequence.load(tmp_path / "seq")
+
+
+def test_events_of_another_sensor_size_than_meta_yaml_says_are_an_error(tmp_path,
+                                                                          sequence_factory):
+    sequence_factory().save(tmp_path / "seq")
+    meta_path = tmp_path / "seq" / "meta.yaml"
+    meta = yaml.safe_load(meta_path.read_text())
+    width = meta["event_camera"]["width"]
+    meta["event_camera"]["width"] = width + 10
+    meta_path.write_text(yaml.safe_dump(meta))
+    with pytest.raises(EventFileError, match=f"events.h5.*its sensor is {width}x.*meta.yaml "
+                                             f"gives the event camera as {width + 10}x"):
+        Sequence.load(tmp_path / "seq")
