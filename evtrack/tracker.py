@@ -779,11 +779,11 @@ class Tracker:
         if not isinstance(events, Events):
             raise EventsError(f"push_events expects an Events container, got "
                               f"{type(events).__name__}")
-        if not len(events):
-            return
         if events.sensor_size is not None and tuple(events.sensor_size) != self.camera.size:
             raise EventsError(f"events of sensor size {tuple(events.sensor_size)} given to a "
                               f"tracker for a {self.camera.size} camera")
+        if not len(events):
+            return
         report = events.validate(self.camera.size)
         if not report.ok:
             raise EventsError(f"push_events: {report}")

@@ -57,6 +57,8 @@ def test_events_outside_the_sensor_or_of_another_sensor() -> None:
         tracker.push_events(_events([1, 2], x=np.array([5, 200])))
     with pytest.raises(EventsError, match="sensor size"):
         tracker.push_events(Events([1], [1], [5], [1], (640, 480)))
+    with pytest.raises(EventsError, match="sensor size"):  # empty, but of another sensor
+        tracker.push_events(Events.empty((640, 480)))
 
 
 def test_waiting_until_the_first_pose_then_tracking() -> None:
