@@ -172,8 +172,9 @@ class RawReader(EventReader):
         # read_chunk ends silently on undecodable data; 'finished' is set only at end of file.
         if not wizard.cargo.events_info.finished:
             raise EventFileError(
-                self.path, f"the {self.format.upper()} decoder stopped after {decoded} events "
-                "before the end of the file: corrupt or unsupported data words"
+                self.path, f"the {self.format.upper()} decoder stopped before the end of the "
+                f"file, having given {decoded} events (it decodes in chunks of {self._chunk}: "
+                "a chunk holding corrupt or unsupported data words gives none)"
             )
 
     def _read_all(self) -> Events:
