@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import math
 import re
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from evtrack.errors import ConfigError
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["checked_device", "checked_scalar", "number_from_text", "unknown_fields"]
 
@@ -58,7 +61,7 @@ def checked_scalar(name: str, value: Any, default: Any, source: str) -> Any:
     return value
 
 
-def checked_device(device: Any, where: str) -> Any:
+def checked_device(device: Any, where: str) -> torch.device:
     """``device`` as a ``torch.device`` that this torch can use.
 
     Raises:
@@ -83,8 +86,8 @@ def checked_device(device: Any, where: str) -> Any:
 
 
 def unknown_fields(unknown: Any, known: Any) -> str:
-    """``unknown field(s) [...]`` with, for each, the nearest known name where one is close
-    (``'metod' (did you mean 'method'?)``), or the known names when the list is short."""
+    """``unknown field(s) [...]`` with the nearest known name of each where one is close
+    (``'metod': did you mean 'method'?``), else the list of the known names."""
     import difflib
 
     known = sorted(known)
