@@ -10,7 +10,7 @@ Steps (each reusing the library):
 3. Write the tables, trajectories, plots and an overlay video (:mod:`evtrack.eval.report`)
    and print the RMSE of each method against the ground truth.
 
-The defaults (320x240, 1.5 s) keep the whole demo within a few minutes on 2 CPU cores; the flow's
+The defaults (320x240, 1.5 s) keep the whole demo under a minute on 2 CPU cores; the flow's
 RoI size is scaled with the image width (32 px at 640 px wide). The renders feeding the event
 model run at ``render_hz`` = 4 kHz, not the paper's 500 Hz: the event model interpolates the log
 intensity between renders, so at 500 Hz an edge moving several pixels per render gets event times

@@ -3,9 +3,12 @@
 #
 #   ./scripts/install.sh          # runtime + dev tools (pytest, hypothesis, ruff, filterpy)
 #
-# torch: a CPU build of torch 2.13.0 is installed unless the environment already has a torch
-# (install your CUDA build of torch first to use a GPU). A looser spec would pull gigabytes of
-# CUDA wheels on a CPU-only machine.
+# torch: torch 2.13.0 is installed unless the environment already has a torch (install your
+# CUDA build of torch first to use a GPU). pip takes the wheel its indexes offer: on a machine
+# with a local CPU wheel (a find-links folder) that one; from PyPI on Linux the CUDA build,
+# gigabytes. For the CPU build from PyTorch's own index:
+#   EVTRACK_TORCH_INDEX=https://download.pytorch.org/whl/cpu ./scripts/install.sh
+# A looser spec than ==2.13.0 would pull a newer torch and its CUDA wheels.
 # System libraries: the simulator renders headless through EGL (Mesa llvmpipe on CPU, or the
 # NVIDIA driver). When no EGL context can be made, this script installs Debian's Mesa packages
 # if it runs as root with apt-get, and otherwise prints the command to run.
@@ -18,7 +21,11 @@ PY=.venv/bin/python
 
 "$PY" -m pip install -q --upgrade pip
 if ! "$PY" -c "import torch" 2>/dev/null; then
-    "$PY" -m pip install -q "torch==2.13.0"
+    if [ -n "${EVTRACK_TORCH_INDEX:-}" ]; then
+        "$PY" -m pip install -q --index-url "$EVTRACK_TORCH_INDEX" "torch==2.13.0"
+    else
+        "$PY" -m pip install -q "torch==2.13.0"
+    fi
 fi
 "$PY" -m pip install -q -e ".[dev]"
 

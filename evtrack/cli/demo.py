@@ -17,8 +17,9 @@ shipped procedural object 'coded_box' (a box whose corners are colour-coded) mov
 the paper's method) -- prints each one's RMSE against the ground truth, and writes the
 trajectories, tables, plots and an overlay video into --out. The pose network is the shipped
 one for 'coded_box' (models/weights), or --weights, or --oracle (ground-truth poses with
-noise: a test of the tracker, not of a network). A few minutes on 2 CPU cores with the
-defaults.
+noise: a test of the tracker, not of a network). About half a minute on 2 CPU cores with the
+defaults (35 s on an AMD EPYC), a minute more on the very first run, while numba compiles its
+kernels.
 """
 
 
