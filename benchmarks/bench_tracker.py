@@ -74,10 +74,11 @@ def _pose_source(seq: Sequence, weights: str | None):
     if weights is None:
         return OraclePoseSource.from_sequence(seq, std_translation=0.01, std_rotation=0.03), \
             "oracle"
-    from evtrack.models import TorchPoseEstimator
+    from evtrack.models import OnnxPoseEstimator, TorchPoseEstimator
 
     cam = seq.meta.rgb_camera or seq.meta.event_camera
-    est = TorchPoseEstimator.from_weights(weights, cam)
+    est = (OnnxPoseEstimator(weights, cam) if Path(weights).suffix.lower() == ".onnx"
+           else TorchPoseEstimator.from_weights(weights, cam))
     return NetworkPoseSource(est, seq.meta.T_event_rgb), f"network {Path(weights).name}"
 
 
@@ -149,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mask-margin", type=float, default=None, metavar="PX",
                     help="mask_margin_px (default: the tracker's; on the simulated sequence "
                          "scaled to its width)")
-    ap.add_argument("--weights", help="pose-network weights (default: the oracle)")
+    ap.add_argument("--weights", help="pose-network weights, .pt (torch) or .onnx "
+                                      "(onnxruntime; default: the oracle)")
     ap.add_argument("--caps", type=int, nargs="+", default=[None], metavar="N",
                     help="max_events_per_step values to compare (0: no cap; default: the "
                          "config's)")
