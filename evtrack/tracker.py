@@ -151,6 +151,7 @@ from evtrack.jit import warm_up
 # crashes the process when Mesa's (the headless OpenGL of model depth, and of depth_range
 # before it used surface points) is already loaded.
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
+from evtrack.models.estimator import check_rgb
 from evtrack.pose_alignment import PoseRayAligner
 from evtrack.pose_flips import HalfTurnResolver
 from evtrack.pose_sources import PoseMeasurement, PoseSource, checked_pose
@@ -235,13 +236,10 @@ def _check_rgb(t_us: int, rgb: Any, camera: PinholeCamera) -> np.ndarray:
         ValueError: naming the frame's time, what it got and what was expected.
     """
     where = f"RGB frame at t={t_us} µs"
-    if not isinstance(rgb, np.ndarray):
-        raise ValueError(f"{where}: expected a numpy uint8 (H, W, 3) array, got "
-                         f"{type(rgb).__name__}")
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"{where}: expected an (H, W, 3) RGB image, got shape {rgb.shape}")
-    if rgb.dtype != np.uint8:
-        raise ValueError(f"{where}: expected uint8 values 0-255, got dtype {rgb.dtype}")
+    try:
+        check_rgb(rgb)  # the pose estimators' own check of the image's format
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
     if rgb.shape[:2] != (camera.height, camera.width):
         raise ValueError(f"{where} is {rgb.shape[1]}x{rgb.shape[0]}, the RGB-D camera is "
                          f"{camera.width}x{camera.height}")

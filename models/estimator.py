@@ -61,7 +61,12 @@ def preprocess(
     return np.ascontiguousarray(x.transpose(2, 0, 1)), (nw / w, nh / h)
 
 
-def _check_rgb(rgb: object) -> np.ndarray:
+def check_rgb(rgb: object) -> np.ndarray:
+    """``rgb`` if it is a uint8 (H, W, 3) RGB image of at least one output cell.
+
+    Raises:
+        ValueError: saying what it got.
+    """
     if not isinstance(rgb, np.ndarray):
         raise ValueError(f"expected an RGB image as a numpy array, got {type(rgb).__name__}")
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
@@ -138,7 +143,7 @@ class PoseEstimator(abc.ABC):
             ``belief (B, 9, h, w)``, ``affinity (B, 16, h, w)`` (float32) and the ``(sx, sy)``
             resize factors applied before the network.
         """
-        images = [_check_rgb(im) for im in images]
+        images = [check_rgb(im) for im in images]
         if len({im.shape for im in images}) > 1:
             raise ValueError("all images of a batch must have the same size")
         inputs, scales = zip(
@@ -155,7 +160,7 @@ class PoseEstimator(abc.ABC):
         """Poses for a list of same-size images (one network call)."""
         if len(images) == 0:
             return []
-        images = [_check_rgb(im) for im in images]  # before the size check: clearer errors
+        images = [check_rgb(im) for im in images]  # before the size check: clearer errors
         K, dist = self._intrinsics(camera, images[0].shape)
         belief, affinity, scale = self.predict_maps(images)
         detections = [

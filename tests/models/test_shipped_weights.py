@@ -31,22 +31,28 @@ def test_shipped_weights_are_safe_small_and_documented() -> None:
     assert rec.training["wall_time_s"] > 0
 
 
+def _renders(path, object_spec: str, n: int, seed: int) -> list:
+    """``n`` renders (``SimSource`` samples) of ``object_spec`` at the training resolution of
+    the weights ``path``, 0.4-0.9 m away, with a seed no training run used."""
+    from evtrack.train.sim_source import SimSource, SimSourceOptions
+
+    _, record = load_model(path)
+    source = SimSource(object_spec, record.cuboid, n, tuple(record.input_size),
+                       object_name=record.object_name, seed=seed,
+                       options=SimSourceOptions(samples_per_scene=n, z_range=(0.4, 0.9)))
+    try:
+        return [source[i] for i in range(len(source))]
+    finally:
+        source.close()
+
+
 def _held_out_errors(path, object_spec: str, n: int = 12, seed: int = 987_654):
     """Translation (m) and rotation (deg) errors, (n,) each, of the most confident detection on
     ``n`` renders of ``object_spec`` (a sim object or a mesh path) with a seed no training run
     used; NaN where nothing was detected."""
     from evtrack.eval.metrics import position_errors, rotation_errors
-    from evtrack.train.sim_source import SimSource, SimSourceOptions
 
-    _, record = load_model(path)
-    h, w = record.input_size
-    source = SimSource(object_spec, record.cuboid, n, (h, w), object_name=record.object_name,
-                       seed=seed, options=SimSourceOptions(samples_per_scene=n,
-                                                          z_range=(0.4, 0.9)))
-    try:
-        samples = [source[i] for i in range(len(source))]
-    finally:
-        source.close()
+    samples = _renders(path, object_spec, n, seed)
     est = TorchPoseEstimator.from_weights(path, samples[0].K)
     found = [(est(s.image), s.poses[0]) for s in samples]
     nan = np.full((4, 4), np.nan)
@@ -118,19 +124,11 @@ def test_onnx_and_torch_give_the_shipped_network_the_same_poses(tmp_path) -> Non
     pytest.importorskip("onnxruntime")
     from evtrack.models import OnnxPoseEstimator
     from evtrack.models.onnx_export import export_onnx
-    from evtrack.train.sim_source import SimSource, SimSourceOptions
 
-    path, record = _shipped()
+    path, _ = _shipped()
     net, _ = load_model(path)
     onnx_path = export_onnx(net, tmp_path / "demo.onnx")
-    h, w = record.input_size
-    source = SimSource(DEMO_OBJECT, record.cuboid, 12, (h, w), object_name=record.object_name,
-                       seed=4321, options=SimSourceOptions(samples_per_scene=12,
-                                                          z_range=(0.4, 0.9)))
-    try:
-        samples = [source[i] for i in range(len(source))]
-    finally:
-        source.close()
+    samples = _renders(path, DEMO_OBJECT, 12, seed=4321)
     t_est = TorchPoseEstimator.from_weights(path, samples[0].K)
     o_est = OnnxPoseEstimator(onnx_path, samples[0].K, threads=1)
     assert t_est.decode.ransac and t_est.decode.crop_refine > 0

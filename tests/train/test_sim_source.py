@@ -18,18 +18,6 @@ from evtrack.train.sim_source import SimSource, SimSourceOptions, sim_object_cub
 SIZE = (96, 128)
 
 
-@pytest.fixture(scope="module")
-def gl():
-    pytest.importorskip("moderngl")
-    from evtrack.sim.errors import RendererUnavailableError
-    from evtrack.sim.renderer import create_gl_context
-
-    try:
-        create_gl_context().release()
-    except RendererUnavailableError as exc:
-        pytest.skip(f"no headless OpenGL: {exc}")
-
-
 def hull_of(cuboid: Cuboid, pose: np.ndarray, K: np.ndarray) -> np.ndarray:
     c, d = np.asarray(cuboid.center), np.asarray(cuboid.dimensions)
     P = np.array([c + d / 2 * np.array(s) for s in itertools.product((-1, 1), repeat=3)])

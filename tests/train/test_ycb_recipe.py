@@ -13,25 +13,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from evtrack.models import load_model
 
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "train_ycb_parallel.sh"
 OBJECTS = ("003_cracker_box", "010_potted_meat_can")
-
-
-@pytest.fixture(scope="module")
-def gl():
-    pytest.importorskip("moderngl")
-    from evtrack.sim.errors import RendererUnavailableError
-    from evtrack.sim.renderer import create_gl_context
-
-    try:
-        create_gl_context().release()
-    except RendererUnavailableError as exc:
-        pytest.skip(f"no headless OpenGL: {exc}")
 
 
 def _run_recipe(tmp_path: Path, objects: str, *extra: str) -> subprocess.CompletedProcess:
