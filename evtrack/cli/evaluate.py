@@ -26,8 +26,9 @@ Pose source: a pose network per object, found in --weights-dir (searched recursi
 runs/pose) or in the shipped zoo (models/weights); or --oracle: the ground-truth pose with
 Gaussian noise, which tests the tracker but says nothing about a pose network (the tables say
 ORACLE); or --oracle-where-missing: the network for the objects that have weights, the oracle
-for the others (the caption names them). Each method on a sequence is tracked independently
-with the same pose-source seed.
+for the others (the caption names them). The networks run in torch (*.pt weights), or with
+--backend onnxruntime as deployed (*.onnx models from 'evtrack export pose', searched the
+same way). Each method on a sequence is tracked independently with the same pose-source seed.
 """
 
 EPILOG = """\
@@ -36,6 +37,8 @@ examples:
   evtrack evaluate --benchmark bench --out bench-results --oracle --ablation --jobs 2
   evtrack evaluate --benchmark bench --weights-dir runs/pose --methods full pose --video
   evtrack evaluate --benchmark bench --oracle-where-missing --jobs 2
+  evtrack export pose --weights runs/pose/box.pt --out onnx/box.onnx
+  evtrack evaluate --benchmark bench --weights-dir onnx --backend onnxruntime
 """
 
 
@@ -62,8 +65,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="results folder (default: <DIR>-results beside the benchmark)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--weights-dir", type=Path, default=None, metavar="D",
-                     help="folder searched for each object's pose-network weights (*.pt; "
-                          "default: the shipped zoo)")
+                     help="folder searched for each object's pose-network weights (*.pt, or "
+                          "*.onnx with --backend onnxruntime; default: the shipped zoo)")
     src.add_argument("--oracle", action="store_true",
                      help="ground-truth poses with noise instead of a pose network")
     p.add_argument("--oracle-where-missing", action="store_true",
@@ -73,6 +76,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    metavar=("METRES", "RADIANS"),
                    help="oracle noise per axis (default: 0.01 m, 0.03 rad; with --oracle or "
                         "--oracle-where-missing)")
+    p.add_argument("--backend", choices=("torch", "onnxruntime"), default="torch",
+                   help="run the pose networks in torch (*.pt weights, the default) or on "
+                        "onnxruntime (*.onnx models from 'evtrack export pose', as deployed; "
+                        "they decode the same poses)")
     p.add_argument("--seed", type=int, default=0, help="seed of the oracle's noise (default 0)")
     p.add_argument("--depth-refine", action="store_true",
                    help="refine each network pose on the RGB-D depth frame (ICP with the "
@@ -103,6 +110,9 @@ def pose_spec(args: argparse.Namespace):
     if not all(math.isfinite(v) and v >= 0 for v in noise):
         raise ConfigError(f"--oracle-noise METRES RADIANS must be finite and >= 0, got "
                           f"{tuple(noise)}")
+    backend = getattr(args, "backend", "torch")
+    if args.oracle and backend != "torch":
+        raise ConfigError("--backend chooses how a pose network runs; not with --oracle")
     if args.oracle:
         return PoseSourceSpec("oracle", oracle_std_translation=noise[0],
                               oracle_std_rotation=noise[1], seed=args.seed,
@@ -113,7 +123,7 @@ def pose_spec(args: argparse.Namespace):
     return PoseSourceSpec("network", weights_dir=args.weights_dir, seed=args.seed,
                           depth_refine=getattr(args, "depth_refine", False),
                           oracle_std_translation=noise[0], oracle_std_rotation=noise[1],
-                          oracle_fallback=fallback)
+                          oracle_fallback=fallback, backend=backend)
 
 
 def run(args: argparse.Namespace) -> int:

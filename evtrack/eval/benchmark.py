@@ -131,7 +131,8 @@ def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
 
     seq = sequence.load()
     cfg = spec.config(base, torch_threads)
-    tracker = Tracker.for_sequence(seq, cfg, make_pose_source(pose, seq, weights))
+    source = make_pose_source(pose, seq, weights, threads=cfg.torch_threads or None)
+    tracker = Tracker.for_sequence(seq, cfg, source)
     t0, c0 = time.perf_counter(), time.process_time()
     traj = tracker.track(seq)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0

@@ -2,7 +2,10 @@
 
 * ``network``: per object, a weights file found in a folder (searched recursively, e.g.
   ``runs/pose``) or in the shipped zoo (``models/weights``). The network sees the RGB frames
-  at its training resolution (``input_scale`` = training width / camera width).
+  at its training resolution (``input_scale`` = training width / camera width). It runs in
+  torch (``*.pt`` weights) or, with ``backend="onnxruntime"``, on onnxruntime (``*.onnx``
+  models written by ``evtrack export``: the deployed form, whose decoded poses equal torch's
+  bit for bit, see ``models.decode.PNP_GRID_PX``).
 * ``oracle``: the sequence's ground-truth pose plus Gaussian noise
   (:class:`~evtrack.pose_sources.OraclePoseSource`). **Not an estimator**: tables made with it
   measure the filters and the velocity pipeline, not a pose network, and say so.
@@ -23,7 +26,10 @@ from pathlib import Path
 from evtrack.errors import ConfigError
 from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource, PoseSource
 
-__all__ = ["PoseSourceSpec", "find_object_weights", "training_hint", "make_pose_source",
+BACKENDS = {"torch": ".pt", "onnxruntime": ".onnx"}
+"""The pose network's backends and the suffix of the files each runs."""
+
+__all__ = ["BACKENDS", "PoseSourceSpec", "find_object_weights", "training_hint", "make_pose_source",
            "pose_caption", "resolve_weights"]
 
 
@@ -43,6 +49,9 @@ class PoseSourceSpec:
             pose estimator uses RGB only.
         oracle_fallback: with ``kind="network"``, objects without weights get the oracle
             (with the oracle settings above) instead of an error.
+        backend: ``"torch"`` (weights ``*.pt``) or ``"onnxruntime"`` (exported ``*.onnx``
+            models), for the weights searched in ``weights_dir`` or the zoo; a ``weights`` file
+            runs on the backend its suffix names.
     """
 
     kind: str = "network"
@@ -53,8 +62,12 @@ class PoseSourceSpec:
     seed: int = 0
     depth_refine: bool = False
     oracle_fallback: bool = False
+    backend: str = "torch"
 
     def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"pose network backend must be one of {sorted(BACKENDS)}, got "
+                              f"{self.backend!r}")
         if self.oracle_fallback and self.kind != "network":
             raise ConfigError("--oracle-where-missing falls back from a pose network to the "
                               "oracle; with --oracle every object gets the oracle already")
@@ -83,7 +96,8 @@ class PoseSourceSpec:
         if self.weights is not None:
             return f"pose network {self.weights}{refine}"
         where = self.weights_dir if self.weights_dir is not None else "the shipped zoo"
-        return f"pose network (weights per object from {where}){refine}"
+        kind = "ONNX models" if self.backend == "onnxruntime" else "weights"
+        return f"pose network ({kind} per object from {where}){refine}"
 
 
 def training_hint(object_name: str) -> str:
@@ -101,30 +115,34 @@ def training_hint(object_name: str) -> str:
 
 
 def find_object_weights(object_name: str, folder: str | Path | None = None,
-                        arch: str | None = None) -> Path:
+                        arch: str | None = None, backend: str = "torch") -> Path:
     """A weights file trained on ``object_name``, of any (or the given) architecture.
 
-    Searches ``folder`` recursively for ``*.pt`` weights files (default: the shipped zoo,
-    ``models/weights``). With several matches, the most recently created record wins (then
-    the path order).
+    Searches ``folder`` recursively for ``*.pt`` weights files (``backend="onnxruntime"``:
+    ``*.onnx`` models written by ``evtrack export``, read by their embedded record; default
+    folder: the shipped zoo, ``models/weights``). With several matches, the most recently
+    created record wins (then the path order).
 
     Raises:
-        ConfigError: none found, saying how to train them or to use the oracle.
+        ConfigError: none found, saying how to train them or to use the oracle, and naming
+            the other backend when it has files for the object there.
     """
-    from evtrack.models.weights import WeightsError, load_weights_file, zoo_dir
+    from evtrack.models.weights import zoo_dir
 
+    if backend not in BACKENDS:
+        raise ConfigError(f"pose network backend must be one of {sorted(BACKENDS)}, got "
+                          f"{backend!r}")
     root = Path(folder) if folder is not None else zoo_dir()
-    hits = []
-    if root.is_dir():
-        for path in sorted(root.rglob("*.pt")):
-            try:
-                record, _ = load_weights_file(path)
-            except WeightsError:
-                continue  # not a weights file (e.g. an unrelated tensor dump)
-            if record.object_name == object_name and (arch is None or record.arch == arch):
-                hits.append((record.created, str(path), path))
+    hits = _matching_files(root, BACKENDS[backend], object_name, arch)
     if not hits:
         wanted = f"object {object_name!r}" + (f" and architecture {arch!r}" if arch else "")
+        other = next(b for b in BACKENDS if b != backend)
+        if _matching_files(root, BACKENDS[other], object_name, arch):
+            how = ("export them with 'evtrack export pose --weights W.pt --out W.onnx', or "
+                   if backend == "onnxruntime" else "")
+            raise ConfigError(
+                f"no {BACKENDS[backend]} pose-network files for {wanted} in {root}, but "
+                f"{BACKENDS[other]} ones: {how}pass --backend {other}")
         raise ConfigError(
             f"no pose-network weights for {wanted} in {root}; train them with "
             f"'{training_hint(object_name)}' (then copy the .pt into models/weights or pass "
@@ -132,6 +150,28 @@ def find_object_weights(object_name: str, folder: str | Path | None = None,
             "noise instead")
     hits.sort(key=lambda h: (h[0], h[1]))
     return hits[-1][2]
+
+
+def _matching_files(root: Path, suffix: str, object_name: str, arch: str | None
+                    ) -> list[tuple[str, str, Path]]:
+    """``(created, path text, path)`` of the files ``*suffix`` under ``root`` whose record
+    names ``object_name`` (and ``arch``); files without a readable record are skipped."""
+    from evtrack.models.onnx_export import read_onnx_record
+    from evtrack.models.weights import WeightsError, load_weights_file
+
+    hits = []
+    if not root.is_dir():
+        return hits
+    for path in sorted(root.rglob(f"*{suffix}")):
+        try:
+            record = (load_weights_file(path)[0] if suffix == ".pt"
+                      else read_onnx_record(path)[0])
+        except WeightsError:
+            continue  # not a weights file (e.g. an unrelated tensor dump)
+        if (record is not None and record.object_name == object_name
+                and (arch is None or record.arch == arch)):
+            hits.append((record.created, str(path), path))
+    return hits
 
 
 def resolve_weights(spec: PoseSourceSpec, objects: list[str]) -> dict[str, Path]:
@@ -149,7 +189,8 @@ def resolve_weights(spec: PoseSourceSpec, objects: list[str]) -> dict[str, Path]
     found = {}
     for name in sorted(set(objects)):
         try:
-            found[name] = find_object_weights(name, spec.weights_dir)
+            found[name] = find_object_weights(name, spec.weights_dir,
+                                              backend=spec.backend)
         except ConfigError:
             if not spec.oracle_fallback:
                 raise
@@ -166,14 +207,17 @@ def pose_caption(spec: PoseSourceSpec, weights: dict[str, Path], objects: list[s
             "rows measure the tracker's filters, not a pose network")
 
 
-def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
-                     ) -> PoseSource:
+def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None,
+                     threads: int | None = None) -> PoseSource:
     """A fresh pose source for ``sequence`` (a :class:`~evtrack.Sequence`).
 
     Args:
         spec: the kind of source and its settings.
         sequence: the sequence (its ground truth for the oracle, its RGB camera for a network).
-        weights: the network's weights file (from :func:`resolve_weights`).
+        weights: the network's weights file (from :func:`resolve_weights`): ``*.onnx`` runs
+            on onnxruntime, anything else in torch.
+        threads: onnxruntime's intra-op CPU threads (``None``: its own choice); torch's are
+            the tracker's ``torch_threads``.
     """
     if spec.kind == "oracle" or (weights is None and spec.oracle_fallback):
         return OraclePoseSource.from_sequence(
@@ -181,14 +225,24 @@ def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
             std_rotation=spec.oracle_std_rotation, seed=spec.seed)
     if weights is None:
         raise ConfigError("a network pose source needs a weights file")
-    from evtrack.models import TorchPoseEstimator
-    from evtrack.models.weights import load_weights_file
-
     cam = sequence.meta.rgb_camera or sequence.meta.event_camera
-    record, _ = load_weights_file(weights)
-    scale = record.input_size[1] / cam.width
-    est = TorchPoseEstimator.from_weights(weights, cam, object_name=sequence.meta.object_name,
-                                          input_scale=scale)
+    name = sequence.meta.object_name
+    if Path(weights).suffix.lower() == ".onnx":
+        from evtrack.models import OnnxPoseEstimator
+        from evtrack.models.onnx_export import read_onnx_record
+
+        record, _ = read_onnx_record(weights)
+        scale = record.input_size[1] / cam.width if record is not None else None
+        est = OnnxPoseEstimator(weights, cam, object_name=name, input_scale=scale,
+                                threads=threads)
+    else:
+        from evtrack.models import TorchPoseEstimator
+        from evtrack.models.weights import load_weights_file
+
+        record, _ = load_weights_file(weights)
+        scale = record.input_size[1] / cam.width
+        est = TorchPoseEstimator.from_weights(weights, cam, object_name=name,
+                                              input_scale=scale)
     refiner = None
     if spec.depth_refine:
         from evtrack.models import DepthRefiner

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 import yaml
-from eval_helpers import reference_errors, save_tiny_weights
+from eval_helpers import TINY_TRACKER_YAML, reference_errors, save_tiny_weights
 
 from evtrack import Sequence
 from evtrack.cli import main
@@ -221,3 +221,56 @@ def test_pose_warnings_name_sequences_without_any_pose(tmp_path):
     lines = pose_warnings([result("a", "full", 10, 0), result("a", "pose", 10, 0),
                            result("b", "full", 10, 3), result("c", "full", 0, 0)])
     assert len(lines) == 1 and lines[0].startswith("warning: a:") and "10 frames" in lines[0]
+
+
+def test_onnx_backend_finds_and_runs_the_exported_model(tiny_benchmark, tmp_path, capsys):
+    """--backend onnxruntime finds the exported model by its embedded record, runs it on
+    onnxruntime and tracks with its poses. (That an exported trained network decodes the
+    poses torch does is ``tests/models/test_shipped_weights.py``'s: this random tiny network's
+    flat maps are all near-ties, which no two backends break alike.) Its decoding thresholds
+    are off so that it finds poses, and so is the depth check that would drop them."""
+    pytest.importorskip("onnxruntime")
+    from evtrack.eval.pose_setup import make_pose_source
+    from evtrack.models import OnnxPoseEstimator, load_model
+    from evtrack.models.onnx_export import export_onnx
+    from evtrack.models.weights import set_record_decode
+
+    pt = save_tiny_weights(tmp_path / "pt" / "box.pt")
+    set_record_decode(pt, {"peak_threshold": 0.0, "min_affinity_norm": 0.0,
+                           "max_angle_deg": 180.0, "min_confidence": 0.0})
+    net, _ = load_model(pt)
+    (tmp_path / "onnx" / "deep").mkdir(parents=True)
+    onnx = export_onnx(net, tmp_path / "onnx" / "deep" / "box.onnx")
+    save_tiny_weights(tmp_path / "onnx" / "can.pt", object_name="can")  # not an .onnx: ignored
+    seq = Sequence.load(tiny_benchmark / "box_faster")
+    spec = PoseSourceSpec("network", weights_dir=tmp_path / "onnx", backend="onnxruntime")
+    assert resolve_weights(spec, ["box"]) == {"box": onnx}
+    source = make_pose_source(spec, seq, onnx, threads=1)
+    assert isinstance(source.estimator, OnnxPoseEstimator)
+    assert source.estimator.session.get_session_options().intra_op_num_threads == 1
+    assert source(int(seq.rgb_times_us[0]), seq.rgb(0), None) is not None
+    config = tmp_path / "tracker.yaml"
+    config.write_text(TINY_TRACKER_YAML + "pose_depth_min_share: 0.0\n")
+    out = tmp_path / "o"
+    code = main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--weights-dir",
+                 str(tmp_path / "onnx"), "--backend", "onnxruntime", "--config", str(config),
+                 "--methods", "pose", "--out", str(out), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    manifest = yaml.safe_load((out / "results.yaml").read_text())
+    assert manifest["weights"]["box"] == str(onnx)
+    assert "ONNX models per object" in (out / "results.md").read_text()
+    stats = Trajectory.load(out / "trajectories" / "box_faster" / "pose.h5").meta["stats"]
+    assert stats["poses"] > 0, stats
+
+
+def test_backend_without_its_files_names_the_other(tiny_benchmark, tmp_path, capsys):
+    save_tiny_weights(tmp_path / "w" / "box.pt")
+    code = main(["evaluate", "--benchmark", str(tiny_benchmark), "--weights-dir",
+                 str(tmp_path / "w"), "--backend", "onnxruntime", "--out", str(tmp_path / "o"),
+                 "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 1 and "no .onnx pose-network files for object 'box'" in err
+    assert "evtrack export pose" in err and not (tmp_path / "o").exists()
+    assert main(["evaluate", "--benchmark", str(tiny_benchmark), "--oracle", "--backend",
+                 "onnxruntime"]) == 1
+    assert "not with --oracle" in capsys.readouterr().err
