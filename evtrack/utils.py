@@ -1,4 +1,4 @@
-"""Small shared utilities: atomic file writes, CPU thread budgets."""
+"""Small shared utilities: atomic file writes, output folders, CPU thread budgets."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 __all__ = [
     "atomic_path", "atomic_write_text", "atomic_write_bytes", "usable_cpu_count",
-    "threads_per_job",
+    "threads_per_job", "check_writable", "claim_output_folder", "remove_outputs",
 ]
 
 
@@ -90,6 +90,52 @@ def check_writable(path: str | Path, what: str = "output") -> None:
         raise ConfigError(f"{what} {path}: {ancestor} is a file, not a folder")
     if not os.access(ancestor, os.W_OK | os.X_OK):
         raise ConfigError(f"{what} {path}: the folder {ancestor} is not writable")
+
+
+def claim_output_folder(out: str | Path, names: tuple[str, ...], overwrite: bool,
+                        what: str = "--out") -> bool:
+    """Make the folder ``out`` ready for a command's outputs ``names`` (files or folders):
+    refuse, before any work, when an earlier run's outputs are there and ``overwrite`` is
+    off; delete them when it is on. Other files in ``out`` are never touched.
+
+    Returns:
+        Whether ``out`` is new (made here): a failed run may then remove it again (see
+        :func:`remove_outputs`).
+
+    Raises:
+        ConfigError: ``out`` is a file, its place is not writable, or it holds earlier
+            outputs and ``overwrite`` is off (naming them and ``--overwrite``).
+    """
+    from evtrack.errors import ConfigError
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{what} {out}: exists and is not a folder")
+    check_writable(out / names[0], what)
+    earlier = [out / n for n in names if (out / n).exists()] if out.is_dir() else []
+    if earlier and not overwrite:
+        listed = ", ".join(p.name + ("/" if p.is_dir() else "") for p in earlier)
+        raise ConfigError(f"{what} {out} holds the outputs of an earlier run ({listed}); pass "
+                          f"--overwrite to replace them, or choose another {what}")
+    made = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    remove_outputs(out, names)
+    return made
+
+
+def remove_outputs(out: str | Path, names: tuple[str, ...], made: bool = False) -> None:
+    """Delete the outputs ``names`` in the folder ``out`` (files or folders; other files stay),
+    and ``out`` itself when ``made`` by this run and empty then: what a failed run leaves."""
+    import shutil
+
+    out = Path(out)
+    for path in (out / n for n in names):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
+    if made and out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
 
 
 def usable_cpu_count() -> int:

@@ -95,6 +95,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "--jobs N, at most each job's share of the cores)")
     p.add_argument("--jobs", type=int, default=1, metavar="N",
                    help="runs tracked in parallel worker processes (default 1)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier evaluation in RESULTS_DIR (its results.*, "
+                        "trajectories/, plots/ and videos/; other files there stay)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -127,11 +130,12 @@ def pose_spec(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from evtrack.eval.benchmark import pose_warnings, run_benchmark, run_specs
+    from evtrack.eval.benchmark import run_specs
     from evtrack.eval.pose_setup import pose_caption, resolve_weights
-    from evtrack.eval.report import write_report
+    from evtrack.eval.report import OUTPUT_NAMES
     from evtrack.eval.sequences import find_sequences, require_ground_truth
     from evtrack.tracking_config import TrackerConfig
+    from evtrack.utils import claim_output_folder, remove_outputs
 
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
@@ -147,6 +151,20 @@ def run(args: argparse.Namespace) -> int:
     caption = pose_caption(spec, weights, objects)
     bench = args.benchmark.resolve()
     out = args.out or bench.parent / f"{bench.name}-results"
+    made = claim_output_folder(out, OUTPUT_NAMES, args.overwrite)
+    try:
+        return _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out)
+    except BaseException:
+        # a failed or interrupted evaluation leaves no half-written results behind
+        remove_outputs(out, OUTPUT_NAMES, made)
+        raise
+
+
+def _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out: Path) -> int:
+    """Track, measure and write the report (see :func:`run`)."""
+    from evtrack.eval.benchmark import pose_warnings, run_benchmark
+    from evtrack.eval.report import write_report
+
     print(f"evaluating {len(sequences)} sequence(s) x {len(runs)} run(s) "
           f"[{', '.join(r.name for r in runs)}]; pose source: {caption}")
     for name, path in weights.items():

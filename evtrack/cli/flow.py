@@ -12,10 +12,13 @@ import torch
 import yaml
 
 from evtrack.errors import ConfigError
+from evtrack.utils import claim_output_folder, remove_outputs
 
 __all__ = ["register", "run"]
 
 FORMATS = ("csv", "h5", "npz")
+OUTPUT_NAMES = (*(f"flow.{f}" for f in FORMATS), "flow.png", "flow.mp4", "flow_config.yaml")
+"""What ``evtrack flow`` writes into its folder."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -40,6 +43,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--event-flow", action="store_true",
                         help="also store one flow per event (h5/npz formats)")
     parser.add_argument("--video", action="store_true", help="also write flow.mp4")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an earlier run's outputs in the folder (flow.*, "
+                             "flow_config.yaml; other files there stay)")
     parser.add_argument("--frame-ms", type=float, default=33.0,
                         help="time span of one picture / video frame in ms (default: 33)")
     parser.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
@@ -140,13 +146,11 @@ def run(args: argparse.Namespace) -> int:
                    * cfg.window_us)
     if not (math.isfinite(args.frame_ms) and math.isfinite(args.read_ms)) or args.fps <= 0:
         raise ConfigError("--frame-ms and --read-ms must be finite and --fps positive")
-    made = not args.out.exists()
-    args.out.mkdir(parents=True, exist_ok=True)
+    made = claim_output_folder(args.out, OUTPUT_NAMES, args.overwrite)
     try:
         return _flow_into_folder(args, cfg, flow, frame_us)
     except BaseException:
-        if made and not any(args.out.iterdir()):
-            args.out.rmdir()  # a failed run leaves no empty output folder behind
+        remove_outputs(args.out, OUTPUT_NAMES, made)  # a failed run leaves nothing behind
         raise
 
 

@@ -29,7 +29,11 @@ from evtrack.eval.sequences import BenchmarkSequence
 from evtrack.eval.tables import write_tables
 from evtrack.trajectory import Trajectory
 
-__all__ = ["ReportFiles", "write_report", "write_manifest"]
+__all__ = ["ReportFiles", "OUTPUT_NAMES", "write_report", "write_manifest"]
+
+OUTPUT_NAMES = ("results.md", "results.csv", "results.yaml", "trajectories", "plots", "videos")
+"""What an evaluation writes into its results folder (the layout above); nothing else there
+is its own (:func:`evtrack.utils.claim_output_folder`)."""
 
 
 @dataclass

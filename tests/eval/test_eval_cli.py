@@ -274,3 +274,54 @@ def test_backend_without_its_files_names_the_other(tiny_benchmark, tmp_path, cap
     assert main(["evaluate", "--benchmark", str(tiny_benchmark), "--oracle", "--backend",
                  "onnxruntime"]) == 1
     assert "not with --oracle" in capsys.readouterr().err
+
+
+def test_results_folder_is_not_mixed_with_an_earlier_evaluation(tiny_benchmark,
+                                                                 tiny_tracker_yaml, tmp_path,
+                                                                 capsys):
+    """A second evaluation into the same folder is refused without --overwrite (nothing
+    changes); with it, the earlier evaluation's outputs go (a run it no longer has leaves no
+    trajectory behind) and other files stay."""
+    out = tmp_path / "res"
+    bench = str(tiny_benchmark / "box_faster")
+    common = ["evaluate", "--benchmark", bench, "--oracle", "--config", str(tiny_tracker_yaml),
+              "--out", str(out), "--quiet"]
+    assert main([*common, "--methods", "pose", "velocity"]) == 0
+    (out / "notes.txt").write_text("mine")
+    before = (out / "results.yaml").read_bytes()
+    capsys.readouterr()
+    assert main([*common, "--methods", "pose"]) == 1
+    err = capsys.readouterr().err
+    assert "holds the outputs of an earlier run" in err and "--overwrite" in err
+    assert (out / "results.yaml").read_bytes() == before
+    assert main([*common, "--methods", "pose", "--overwrite"]) == 0
+    runs = {p.stem for p in (out / "trajectories" / "box_faster").glob("*.h5")}
+    assert runs == {"pose"}
+    manifest = yaml.safe_load((out / "results.yaml").read_text())
+    assert [r["name"] for r in manifest["runs"]] == ["pose"]
+    assert (out / "notes.txt").read_text() == "mine"
+
+
+def test_failed_evaluation_leaves_nothing_behind(tiny_benchmark, tiny_tracker_yaml, tmp_path,
+                                                 monkeypatch):
+    import evtrack.eval.report as report
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(report, "write_report", broken)  # after every run was tracked
+    out = tmp_path / "new" / "res"
+    with pytest.raises(RuntimeError, match="disk full"):
+        main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--oracle",
+              "--config", str(tiny_tracker_yaml), "--methods", "pose", "--out", str(out),
+              "--quiet"])
+    assert not out.exists()
+    # into an existing folder: its own files stay, the half-written evaluation goes
+    keep = tmp_path / "kept"
+    keep.mkdir()
+    (keep / "notes.txt").write_text("mine")
+    with pytest.raises(RuntimeError, match="disk full"):
+        main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--oracle",
+              "--config", str(tiny_tracker_yaml), "--methods", "pose", "--out", str(keep),
+              "--quiet"])
+    assert sorted(p.name for p in keep.iterdir()) == ["notes.txt"]

@@ -85,3 +85,19 @@ def test_flow_pictures_of_no_flows(tmp_path):
     assert main(["flow", str(path), "--out", str(out), "--frame-ms", "10", "--video"]) == 0
     assert (out / "flow.png").is_file() and (out / "flow.mp4").is_file()
     assert len((out / "flow.csv").read_text().splitlines()) == 1  # the header only
+
+
+def test_flow_into_a_folder_of_an_earlier_run(event_file, tmp_path, capsys):
+    """The outputs of an earlier run are not mixed with new ones: refused without
+    --overwrite; with it they are replaced (an earlier format's file goes too) and the
+    folder's other files stay."""
+    out = tmp_path / "out"
+    assert main(["flow", str(event_file), "--out", str(out), "--format", "npz"]) == 0
+    (out / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    assert main(["flow", str(event_file), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "flow.npz" in err and "--overwrite" in err
+    assert main(["flow", str(event_file), "--out", str(out), "--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["flow.csv", "flow.png",
+                                                      "flow_config.yaml", "notes.txt"]
