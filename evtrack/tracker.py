@@ -1351,12 +1351,17 @@ class Tracker:
         if outside < _BURST_MIN_OUTSIDE * w * h or not len(t):
             return none
         steps = (t_end - t0) // step
-        k = np.clip((t - t0) // step, 0, steps - 1)
-        rate = np.bincount(k[~on_object], minlength=steps) / (outside * step * 1e-6)
+        # the events are time-sorted: each step's are one slice (the first also takes any
+        # before t0, the last any from t_end on), counted without a pass over every event
+        cuts = [0, *np.searchsorted(t, t0 + step * np.arange(1, steps), side="left").tolist(),
+                len(t)]
+        off = np.array([(b - a) - np.count_nonzero(on_object[a:b])
+                        for a, b in zip(cuts[:-1], cuts[1:], strict=True)], np.float64)
+        rate = off / (outside * step * 1e-6)
         burst = rate > cfg.burst_rate_hz
         if not burst.any():
             return none
-        hit = burst[k]
+        hit = np.repeat(burst, np.diff(cuts))
         self.stats.burst_steps += int(burst.sum())
         self.stats.events_in_bursts += int((hit & on_object).sum())
         return hit
