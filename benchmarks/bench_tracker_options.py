@@ -1,7 +1,8 @@
 """The tracker's speed with config options against its defaults, side by side.
 
     python benchmarks/bench_tracker_options.py --sequence DIR [DIR ...]
-        --option NAME=YAML [--option NAME=YAML ...] [--repeats 3] [--frames memory]
+        --option NAME=YAML [--option NAME=YAML ...] [--repeats 2] [--frames memory]
+        [--method full] [--threads 2]
 
 Each ``--option`` names a set of :class:`~evtrack.tracking_config.TrackerConfig` overrides,
 written as a YAML mapping (parsed with ``yaml.safe_load``, checked by ``TrackerConfig`` before
@@ -10,7 +11,9 @@ anything runs), e.g.::
     --option g20='flow_batch_steps: 20'
     --option pw48='{search_per_roi_window: 48, max_searched_per_step: 1875}'
 
-``defaults`` (no override) always runs first, as the reference. Each run is a fresh child
+``defaults`` (no override) always runs first, as the reference. ``method`` and
+``torch_threads`` are this script's ``--method`` and ``--threads``, the same for every
+setting, so an option may not set them. Each run is a fresh child
 process, the settings interleaved run by run so that the machine's load drifts over all of
 them alike; each child tracks the sequence twice and times the second run (the first loads
 the compiled kernels). Oracle poses (1 cm / 0.03 rad noise), as in
@@ -33,6 +36,8 @@ import yaml
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
 REFERENCE = "defaults"
+FIXED = {"method": "--method", "torch_threads": "--threads"}
+"""Config fields every setting shares, set by the script's own arguments."""
 
 
 def parse_option(text: str) -> tuple[str, dict]:
@@ -49,19 +54,25 @@ def parse_option(text: str) -> tuple[str, dict]:
     name = name.strip()
     if not sep or not name or name == REFERENCE:
         raise argparse.ArgumentTypeError(
-            f"--option {text!r}: write NAME=YAML, e.g. g20='flow_batch_steps: 20' (NAME not "
+            f"{text!r}: write NAME=YAML, e.g. g20='flow_batch_steps: 20' (NAME not "
             f"{REFERENCE!r})")
     try:
         overrides = yaml.safe_load(body)
     except yaml.YAMLError as exc:
-        raise argparse.ArgumentTypeError(f"--option {name}: not YAML: {exc}") from None
+        problem = " ".join(str(exc).split())
+        raise argparse.ArgumentTypeError(f"{name}: not YAML ({problem})") from None
     if not isinstance(overrides, dict) or not overrides:
         raise argparse.ArgumentTypeError(
-            f"--option {name}: the overrides must be a non-empty YAML mapping, got {body!r}")
+            f"{name}: the overrides must be a non-empty YAML mapping, got {body!r}")
+    fixed = sorted(set(overrides) & set(FIXED))
+    if fixed:
+        raise argparse.ArgumentTypeError(
+            f"{name}: {', '.join(fixed)} is set for every setting by "
+            f"{', '.join(FIXED[f] for f in fixed)}, not by an option")
     try:
         TrackerConfig.from_dict(overrides)
     except ConfigError as exc:
-        raise argparse.ArgumentTypeError(f"--option {name}: {exc}") from None
+        raise argparse.ArgumentTypeError(f"{name}: {exc}") from None
     return name, overrides
 
 
@@ -91,6 +102,18 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("give at least one --option NAME=YAML to compare with the defaults")
     if args.repeats < 1:
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    if args.threads < 1:
+        ap.error(f"--threads must be >= 1, got {args.threads}")
+    from evtrack.errors import ConfigError
+    from evtrack.tracking_config import TrackerConfig
+
+    try:
+        TrackerConfig.from_dict({"method": args.method})
+    except ConfigError as exc:
+        ap.error(f"--method: {exc}")
+    missing = [str(s) for s in args.sequence if not (s / "meta.yaml").is_file()]
+    if missing:
+        ap.error(f"not sequence folders (no meta.yaml): {', '.join(missing)}")
     settings = {REFERENCE: {}}
     for name, overrides in args.option:
         if name in settings:

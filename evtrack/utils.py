@@ -11,6 +11,7 @@ from pathlib import Path
 __all__ = [
     "atomic_path", "atomic_write_text", "atomic_write_bytes", "usable_cpu_count",
     "threads_per_job", "check_writable", "claim_output_folder", "remove_outputs",
+    "terminate_as_interrupt",
 ]
 
 
@@ -93,49 +94,115 @@ def check_writable(path: str | Path, what: str = "output") -> None:
 
 
 def claim_output_folder(out: str | Path, names: tuple[str, ...], overwrite: bool,
-                        what: str = "--out") -> bool:
+                        what: str = "--out", inputs: dict[str, str | Path | None] | None = None
+                        ) -> Path | None:
     """Make the folder ``out`` ready for a command's outputs ``names`` (files or folders):
     refuse, before any work, when an earlier run's outputs are there and ``overwrite`` is
-    off; delete them when it is on. Other files in ``out`` are never touched.
+    off; delete them when it is on. Other files in ``out`` are never touched, and neither is
+    any of ``inputs`` (option -> path): one that lies at or under an output's place is an
+    error, with or without ``overwrite``. Temporary files an interrupted write left beside an
+    output (``.NAME.tmp*``) go with the outputs.
 
     Returns:
-        Whether ``out`` is new (made here): a failed run may then remove it again (see
-        :func:`remove_outputs`).
+        The first folder made here (``out`` or an ancestor), or ``None`` when ``out`` existed:
+        a failed run removes it again if empty (see :func:`remove_outputs`).
 
     Raises:
-        ConfigError: ``out`` is a file, its place is not writable, or it holds earlier
-            outputs and ``overwrite`` is off (naming them and ``--overwrite``).
+        ConfigError: ``out`` is a file or a broken link, its place is not writable, an input
+            lies among the outputs, or ``out`` holds earlier outputs and ``overwrite`` is off
+            (naming them and ``--overwrite``).
     """
     from evtrack.errors import ConfigError
 
     out = Path(out)
+    if out.is_symlink() and not out.exists():
+        raise ConfigError(f"{what} {out}: a broken symbolic link; remove it or choose another "
+                          f"{what}")
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{what} {out}: exists and is not a folder")
-    check_writable(out / names[0], what)
-    earlier = [out / n for n in names if (out / n).exists()] if out.is_dir() else []
+    if out.is_dir():
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise ConfigError(f"{what} {out}: the folder is not writable")
+    else:
+        check_writable(out, what)
+    for option, path in (inputs or {}).items():
+        if path is None:
+            continue
+        inside = Path(path).resolve()
+        for name in names:
+            place = (out / name).resolve()
+            if inside == place or place in inside.parents:
+                raise ConfigError(f"{option} {path} lies in {out / name}, which this command "
+                                  f"writes; choose another {what}")
+    earlier = _existing_outputs(out, names)
     if earlier and not overwrite:
-        listed = ", ".join(p.name + ("/" if p.is_dir() else "") for p in earlier)
+        listed = ", ".join(p.name + ("/" if p.is_dir() and not p.is_symlink() else "")
+                           for p in earlier)
         raise ConfigError(f"{what} {out} holds the outputs of an earlier run ({listed}); pass "
                           f"--overwrite to replace them, or choose another {what}")
-    made = not out.exists()
+    first_made = next((a for a in reversed([out, *out.parents]) if not a.exists()), None)
     out.mkdir(parents=True, exist_ok=True)
     remove_outputs(out, names)
-    return made
+    return first_made
 
 
-def remove_outputs(out: str | Path, names: tuple[str, ...], made: bool = False) -> None:
-    """Delete the outputs ``names`` in the folder ``out`` (files or folders; other files stay),
-    and ``out`` itself when ``made`` by this run and empty then: what a failed run leaves."""
+def _existing_outputs(out: Path, names: tuple[str, ...]) -> list[Path]:
+    """The outputs ``names`` present in ``out`` (links too, even broken ones)."""
+    if not out.is_dir():
+        return []
+    return [out / n for n in names if (out / n).exists() or (out / n).is_symlink()]
+
+
+def remove_outputs(out: str | Path, names: tuple[str, ...], made: Path | None = None) -> None:
+    """Delete the outputs ``names`` in the folder ``out`` (files, folders or links; a link is
+    removed, never followed; other files stay) and the temporary files an interrupted write
+    left beside them (``.NAME.tmp*``); then the folders from ``out`` up to ``made`` (the
+    first folder a run made, see :func:`claim_output_folder`) that are empty: what a failed
+    run leaves."""
     import shutil
 
     out = Path(out)
-    for path in (out / n for n in names):
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path)
-        elif path.exists() or path.is_symlink():
-            path.unlink()
-    if made and out.is_dir() and not any(out.iterdir()):
-        out.rmdir()
+    if out.is_dir():
+        for path in _existing_outputs(out, names):
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+        for name in names:
+            for tmp in out.glob(f".{name}.tmp*"):
+                if tmp.is_file() or tmp.is_symlink():
+                    tmp.unlink()
+    chain = [out, *out.parents]
+    if made is None or Path(made) not in chain:
+        return
+    for folder in chain[:chain.index(Path(made)) + 1]:
+        if not folder.is_dir() or any(folder.iterdir()):
+            break
+        folder.rmdir()
+
+
+@contextlib.contextmanager
+def terminate_as_interrupt() -> Iterator[None]:
+    """Within the block, a SIGTERM (the signal of ``kill``, ``timeout`` and job schedulers)
+    raises :class:`KeyboardInterrupt` in the main thread, as Ctrl-C does, so that the clean-up
+    of a long command runs instead of the process dying with half-written outputs. Outside the
+    main thread, or where the platform has no SIGTERM handler, nothing changes."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal,
+                                                                                "SIGTERM"):
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def usable_cpu_count() -> int:

@@ -66,7 +66,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--weights-dir", type=Path, default=None, metavar="D",
                      help="folder searched for each object's pose-network weights (*.pt, or "
-                          "*.onnx with --backend onnxruntime; default: the shipped zoo)")
+                          "*.onnx with --backend onnxruntime; default: the shipped zoo, which "
+                          "holds .pt weights)")
     src.add_argument("--oracle", action="store_true",
                      help="ground-truth poses with noise instead of a pose network")
     p.add_argument("--oracle-where-missing", action="store_true",
@@ -91,13 +92,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--video", action="store_true",
                    help="write an overlay video per sequence (full method and ground truth)")
     p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="torch CPU threads per run (default: the config's torch_threads, 2; with "
+                   help="torch (and onnxruntime) CPU threads per run (default: the config's "
+                        "torch_threads, 2; with "
                         "--jobs N, at most each job's share of the cores)")
     p.add_argument("--jobs", type=int, default=1, metavar="N",
                    help="runs tracked in parallel worker processes (default 1)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace an earlier evaluation in RESULTS_DIR (its results.*, "
-                        "trajectories/, plots/ and videos/; other files there stay)")
+                   help="replace an earlier evaluation in RESULTS_DIR (its results.md, "
+                        "results.csv, results.yaml, trajectories/, plots/ and videos/; other "
+                        "files there stay)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
 
@@ -135,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     from evtrack.eval.report import OUTPUT_NAMES
     from evtrack.eval.sequences import find_sequences, require_ground_truth
     from evtrack.tracking_config import TrackerConfig
-    from evtrack.utils import claim_output_folder, remove_outputs
+    from evtrack.utils import claim_output_folder, remove_outputs, terminate_as_interrupt
 
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
@@ -151,11 +154,14 @@ def run(args: argparse.Namespace) -> int:
     caption = pose_caption(spec, weights, objects)
     bench = args.benchmark.resolve()
     out = args.out or bench.parent / f"{bench.name}-results"
-    made = claim_output_folder(out, OUTPUT_NAMES, args.overwrite)
+    made = claim_output_folder(out, OUTPUT_NAMES, args.overwrite, inputs={
+        "--benchmark": args.benchmark, "--weights-dir": args.weights_dir,
+        "--config": args.config})
     try:
-        return _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out)
+        with terminate_as_interrupt():
+            return _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out)
     except BaseException:
-        # a failed or interrupted evaluation leaves no half-written results behind
+        # a failed, interrupted or terminated evaluation leaves no half-written results
         remove_outputs(out, OUTPUT_NAMES, made)
         raise
 

@@ -12,7 +12,7 @@ import torch
 import yaml
 
 from evtrack.errors import ConfigError
-from evtrack.utils import claim_output_folder, remove_outputs
+from evtrack.utils import claim_output_folder, remove_outputs, terminate_as_interrupt
 
 __all__ = ["register", "run"]
 
@@ -44,8 +44,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="also store one flow per event (h5/npz formats)")
     parser.add_argument("--video", action="store_true", help="also write flow.mp4")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace an earlier run's outputs in the folder (flow.*, "
-                             "flow_config.yaml; other files there stay)")
+                        help="replace an earlier run's outputs in the folder (flow.csv, "
+                             "flow.h5, flow.npz, flow.png, flow.mp4, flow_config.yaml; other "
+                             "files there stay)")
     parser.add_argument("--frame-ms", type=float, default=33.0,
                         help="time span of one picture / video frame in ms (default: 33)")
     parser.add_argument("--fps", type=float, default=30.0, help="video frame rate (default 30)")
@@ -146,9 +147,11 @@ def run(args: argparse.Namespace) -> int:
                    * cfg.window_us)
     if not (math.isfinite(args.frame_ms) and math.isfinite(args.read_ms)) or args.fps <= 0:
         raise ConfigError("--frame-ms and --read-ms must be finite and --fps positive")
-    made = claim_output_folder(args.out, OUTPUT_NAMES, args.overwrite)
+    made = claim_output_folder(args.out, OUTPUT_NAMES, args.overwrite,
+                               inputs={"input": args.input, "--config": args.config})
     try:
-        return _flow_into_folder(args, cfg, flow, frame_us)
+        with terminate_as_interrupt():
+            return _flow_into_folder(args, cfg, flow, frame_us)
     except BaseException:
         remove_outputs(args.out, OUTPUT_NAMES, made)  # a failed run leaves nothing behind
         raise

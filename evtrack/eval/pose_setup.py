@@ -4,8 +4,9 @@
   ``runs/pose``) or in the shipped zoo (``models/weights``). The network sees the RGB frames
   at its training resolution (``input_scale`` = training width / camera width). It runs in
   torch (``*.pt`` weights) or, with ``backend="onnxruntime"``, on onnxruntime (``*.onnx``
-  models written by ``evtrack export``: the deployed form, whose decoded poses equal torch's
-  bit for bit, see ``models.decode.PNP_GRID_PX``).
+  models written by ``evtrack export``: the deployed form, whose decoded poses equal torch's,
+  bit for bit on most frames and within ~1e-6 m and rad on the others, see
+  ``models.decode.PNP_GRID_PX``).
 * ``oracle``: the sequence's ground-truth pose plus Gaussian noise
   (:class:`~evtrack.pose_sources.OraclePoseSource`). **Not an estimator**: tables made with it
   measure the filters and the velocity pipeline, not a pose network, and say so.
@@ -140,22 +141,34 @@ def find_object_weights(object_name: str, folder: str | Path | None = None,
         if _matching_files(root, BACKENDS[other], object_name, arch):
             how = ("export them with 'evtrack export pose --weights W.pt --out W.onnx', or "
                    if backend == "onnxruntime" else "")
-            raise ConfigError(
+            raise _OtherBackendOnly(
                 f"no {BACKENDS[backend]} pose-network files for {wanted} in {root}, but "
                 f"{BACKENDS[other]} ones: {how}pass --backend {other}")
+        if backend == "onnxruntime":
+            raise ConfigError(
+                f"no .onnx pose-network models for {wanted} in {root}; export trained weights "
+                "with 'evtrack export pose --weights W.pt --out DIR/W.onnx' and pass "
+                "--weights-dir DIR, or run them in torch (--backend torch)")
         raise ConfigError(
             f"no pose-network weights for {wanted} in {root}; train them with "
             f"'{training_hint(object_name)}' (then copy the .pt into models/weights or pass "
             "its folder with --weights-dir), or pass --oracle to use ground-truth poses with "
             "noise instead")
-    hits.sort(key=lambda h: (h[0], h[1]))
-    return hits[-1][2]
+    hits.sort(key=lambda h: h[:3])
+    return hits[-1][3]
+
+
+class _OtherBackendOnly(ConfigError):
+    """No files of the asked backend for an object, but files of the other: a wrong
+    ``--backend``, never a reason for the oracle fallback."""
 
 
 def _matching_files(root: Path, suffix: str, object_name: str, arch: str | None
-                    ) -> list[tuple[str, str, Path]]:
-    """``(created, path text, path)`` of the files ``*suffix`` under ``root`` whose record
-    names ``object_name`` (and ``arch``); files without a readable record are skipped."""
+                    ) -> list[tuple[str, bool, str, Path]]:
+    """``(created, full precision, path text, path)`` of the files ``*suffix`` under ``root``
+    whose record names ``object_name`` (and ``arch``); files without a readable record are
+    skipped. Sorted, the last is the one to use: the newest record, at equal records (an FP32
+    and an FP16 export of the same weights) the full-precision one, then the path order."""
     from evtrack.models.onnx_export import read_onnx_record
     from evtrack.models.weights import WeightsError, load_weights_file
 
@@ -164,13 +177,13 @@ def _matching_files(root: Path, suffix: str, object_name: str, arch: str | None
         return hits
     for path in sorted(root.rglob(f"*{suffix}")):
         try:
-            record = (load_weights_file(path)[0] if suffix == ".pt"
-                      else read_onnx_record(path)[0])
+            record, precision = ((load_weights_file(path)[0], "fp32") if suffix == ".pt"
+                                 else read_onnx_record(path))
         except WeightsError:
             continue  # not a weights file (e.g. an unrelated tensor dump)
         if (record is not None and record.object_name == object_name
                 and (arch is None or record.arch == arch)):
-            hits.append((record.created, str(path), path))
+            hits.append((record.created, precision != "fp16", str(path), path))
     return hits
 
 
@@ -191,10 +204,27 @@ def resolve_weights(spec: PoseSourceSpec, objects: list[str]) -> dict[str, Path]
         try:
             found[name] = find_object_weights(name, spec.weights_dir,
                                               backend=spec.backend)
+        except _OtherBackendOnly:
+            raise  # weights that run on the other backend: a wrong --backend, not a gap
         except ConfigError:
             if not spec.oracle_fallback:
                 raise
+    for path in found.values():
+        if path.suffix.lower() == ".onnx":
+            _check_onnx_loads(path)
     return found
+
+
+def _check_onnx_loads(path: Path) -> None:
+    """Open ``path`` in onnxruntime once, so that a model whose graph is broken (its record
+    reads fine) is an error before any tracking, not in the middle of a benchmark."""
+    import onnxruntime as ort
+
+    try:
+        ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types
+        raise ConfigError(f"{path}: onnxruntime cannot load the model ({exc}); export it "
+                          "again with 'evtrack export pose'") from None
 
 
 def pose_caption(spec: PoseSourceSpec, weights: dict[str, Path], objects: list[str]) -> str:

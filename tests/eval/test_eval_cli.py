@@ -325,3 +325,45 @@ def test_failed_evaluation_leaves_nothing_behind(tiny_benchmark, tiny_tracker_ya
               "--config", str(tiny_tracker_yaml), "--methods", "pose", "--out", str(keep),
               "--quiet"])
     assert sorted(p.name for p in keep.iterdir()) == ["notes.txt"]
+
+
+def test_overwrite_never_deletes_the_inputs(tiny_benchmark, tmp_path, capsys):
+    """A benchmark folder that lies where the evaluation writes (here under ``videos/``) is an
+    error, with or without --overwrite, and stays whole."""
+    w = tmp_path / "w"
+    shutil.copytree(tiny_benchmark / "box_faster", w / "videos" / "box_faster")
+    before = sorted(p.relative_to(w) for p in w.rglob("*"))
+    for extra in ([], ["--overwrite"]):
+        assert main(["evaluate", "--benchmark", str(w / "videos"), "--oracle", "--methods",
+                     "pose", "--out", str(w), "--quiet", *extra]) == 1
+        assert "lies in" in capsys.readouterr().err
+    assert sorted(p.relative_to(w) for p in w.rglob("*")) == before
+
+
+def test_onnx_problems_show_before_any_tracking(tiny_benchmark, tmp_path, capsys):
+    """A model whose record reads but whose graph is broken is named before the runs; with
+    --oracle-where-missing, weights that run on the other backend are an error, not a gap
+    silently filled by the oracle."""
+    pytest.importorskip("onnxruntime")
+    import onnx
+
+    from evtrack.models import load_model
+    from evtrack.models.onnx_export import export_onnx
+
+    net, _ = load_model(save_tiny_weights(tmp_path / "pt" / "box.pt"))
+    (tmp_path / "onnx").mkdir()
+    good = export_onnx(net, tmp_path / "onnx" / "box.onnx")
+    proto = onnx.load(str(good))
+    del proto.graph.node[len(proto.graph.node) // 2]  # the record stays, the graph breaks
+    onnx.save(proto, str(good))
+    out = tmp_path / "o"
+    assert main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--weights-dir",
+                 str(tmp_path / "onnx"), "--backend", "onnxruntime", "--methods", "pose",
+                 "--out", str(out), "--quiet"]) == 1
+    captured = capsys.readouterr()
+    assert "onnxruntime cannot load the model" in captured.err and "box.onnx" in captured.err
+    assert "evaluating" not in captured.out and not out.exists()
+    assert main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--weights-dir",
+                 str(tmp_path / "pt"), "--backend", "onnxruntime", "--oracle-where-missing",
+                 "--methods", "pose", "--out", str(out), "--quiet"]) == 1
+    assert "pass --backend torch" in capsys.readouterr().err and not out.exists()

@@ -101,3 +101,13 @@ def test_flow_into_a_folder_of_an_earlier_run(event_file, tmp_path, capsys):
     assert main(["flow", str(event_file), "--out", str(out), "--overwrite"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["flow.csv", "flow.png",
                                                       "flow_config.yaml", "notes.txt"]
+
+
+def test_flow_overwrite_never_deletes_its_input(event_file, tmp_path, capsys):
+    out = tmp_path / "f"
+    out.mkdir()
+    src = out / "flow.h5"  # an input named as one of the outputs
+    src.write_bytes(event_file.read_bytes())
+    assert main(["flow", str(src), "--out", str(out), "--overwrite"]) == 1
+    assert "lies in" in capsys.readouterr().err
+    assert src.read_bytes() == event_file.read_bytes()
