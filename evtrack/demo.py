@@ -123,16 +123,25 @@ class DemoResult:
 
 
 def demo_weights(weights: Path | None = None) -> Path:
-    """The pose-network weights for the demo object: ``weights`` checked, or the shipped ones.
+    """The pose-network weights for the demo object: ``weights`` checked (``.pt`` weights, or
+    an ``.onnx`` model from ``evtrack export pose``, which then runs on onnxruntime), or the
+    shipped ones.
 
     Raises:
         ConfigError: none shipped (saying how to make them or to use ``--oracle``), or a file
             trained on another object.
     """
+    from evtrack.models.onnx_export import read_onnx_record
     from evtrack.models.weights import load_weights_file, zoo_dir
 
     if weights is not None:
-        record, _ = load_weights_file(weights)
+        if Path(weights).suffix.lower() == ".onnx":
+            record, _ = read_onnx_record(weights)
+            if record is None:
+                raise ConfigError(f"--weights {weights}: the model carries no weights record "
+                                  "(export it with 'evtrack export pose')")
+        else:
+            record, _ = load_weights_file(weights)
         if record.object_name != DEMO_OBJECT:
             raise ConfigError(f"--weights {weights}: trained on {record.object_name!r}, the demo "
                               f"tracks {DEMO_OBJECT!r}")

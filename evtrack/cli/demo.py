@@ -46,7 +46,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"camera size in pixels (default: {d.size[0]}x{d.size[1]})")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--weights", type=Path, default=None,
-                     help="pose-network weights for 'coded_box' (default: the shipped ones)")
+                     help="pose-network weights for 'coded_box' (default: the shipped ones); "
+                          "an .onnx model from 'evtrack export pose' runs on onnxruntime")
     src.add_argument("--oracle", action="store_true",
                      help="ground-truth poses with noise instead of the pose network")
     p.add_argument("--depth-refine", action="store_true",

@@ -63,6 +63,17 @@ def test_demo_weights_lookup(tmp_path, monkeypatch):
     assert demo_weights(box) == box
     with pytest.raises(ConfigError, match="trained on 'can'"):
         demo_weights(zoo / "can_dope_lite_tiny.pt")
+    # an exported model is checked by its embedded record (make_pose_source runs an .onnx on
+    # onnxruntime: tests/eval/test_eval_cli.py)
+    pytest.importorskip("onnxruntime")
+    from evtrack.models import load_model
+    from evtrack.models.onnx_export import export_onnx
+
+    onnx_box = export_onnx(load_model(box)[0], tmp_path / "box.onnx")
+    assert demo_weights(onnx_box) == onnx_box
+    with pytest.raises(ConfigError, match="trained on 'can'"):
+        demo_weights(export_onnx(load_model(zoo / "can_dope_lite_tiny.pt")[0],
+                                 tmp_path / "can.onnx"))
 
 
 def test_demo_options_are_checked(tmp_path, capsys):
