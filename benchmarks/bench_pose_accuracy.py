@@ -20,6 +20,7 @@ six to 0.942; ``--one-pass`` prints the one-pass rows beside it.
     python benchmarks/bench_pose_accuracy.py            # the shipped demo weights (coded_box)
     python benchmarks/bench_pose_accuracy.py --weights W.pt --sequence DIR [--sequence DIR ...]
     python benchmarks/bench_pose_accuracy.py --weights W.pt --decode strongest --decode search
+    python benchmarks/bench_pose_accuracy.py --weights W.onnx   # an export, e.g. --fp16
     python benchmarks/bench_pose_accuracy.py --depth-refine   # also each decoding + depth ICP
     python benchmarks/bench_pose_accuracy.py --one-pass       # also without the crop pass
     python benchmarks/bench_pose_accuracy.py --crop-blend 45  # also the two passes blended
@@ -45,7 +46,7 @@ from evtrack.cli import main as evtrack_main
 from evtrack.demo import DEMO_OBJECT
 from evtrack.eval.pose_metrics import pooled_rate_interval, pose_accuracy
 from evtrack.eval.pose_setup import find_object_weights
-from evtrack.models import DecodeConfig, DepthRefiner, TorchPoseEstimator
+from evtrack.models import DecodeConfig, DepthRefiner, OnnxPoseEstimator, TorchPoseEstimator
 
 TARGETS = {"median_translation_cm": 2.0, "median_rotation_deg": 5.0, "add_pass": 0.8}
 
@@ -64,7 +65,11 @@ def evaluate(seq: Sequence, weights: Path, max_points: int = 2000,
              ) -> tuple[list, list, np.ndarray, float]:
     """Estimates (4x4 or None), true poses (4x4, RGB camera), mesh points and ms per frame."""
     camera = seq.meta.rgb_camera or seq.meta.event_camera
-    est = TorchPoseEstimator.from_weights(weights, camera, decode=decode)
+    if weights.suffix.lower() == ".onnx":  # an exported model (FP32 or FP16) on onnxruntime
+        est = OnnxPoseEstimator(weights, camera, decode=decode,
+                                threads=torch.get_num_threads())
+    else:
+        est = TorchPoseEstimator.from_weights(weights, camera, decode=decode)
     refiner = DepthRefiner.from_mesh(seq.mesh_file) if refine else None
     K = camera.K().numpy()
     mesh = trimesh.load(seq.mesh_file, force="mesh")
@@ -92,7 +97,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--weights", type=Path, default=None,
-                        help="weights file (.pt; default: the shipped weights for --object)")
+                        help="weights file (.pt, or an .onnx model from 'evtrack export pose', "
+                             "run on onnxruntime; default: the shipped weights for --object)")
     parser.add_argument("--object", default=DEMO_OBJECT,
                         help=f"object to simulate (default: the demo's, {DEMO_OBJECT})")
     parser.add_argument("--sequence", type=Path, action="append", default=[],
