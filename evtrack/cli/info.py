@@ -1,4 +1,5 @@
-"""``evtrack info FILE|FOLDER``: summarise an event file or a sequence folder."""
+"""``evtrack info FILE|FOLDER``: summarise an event file, a sequence folder or a pose network
+(``.pt`` weights, ``.onnx`` export)."""
 
 from __future__ import annotations
 
@@ -12,21 +13,26 @@ import torch
 
 from evtrack.errors import ConfigError, EventFileError
 
-__all__ = ["register", "run", "event_file_summary"]
+__all__ = ["register", "run", "event_file_summary", "model_file_summary"]
+
+MODEL_SUFFIXES = (".pt", ".ckpt", ".onnx")
+"""Files summarised as pose networks, not as event files."""
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "info",
-        help="summarise an event file or a sequence folder",
+        help="summarise an event file, a sequence folder or a pose network",
         description=(
             "Print what an event file holds (events, duration, event rate, sensor resolution, "
-            "polarity balance, coordinate range) or a sequence folder's summary (cameras, object, "
-            "frames, ground truth). The file is streamed, so files of many GB are fine."
+            "polarity balance, coordinate range), a sequence folder's summary (cameras, object, "
+            "frames, ground truth) or a pose network's record (.pt weights, a Lightning .ckpt "
+            "or an .onnx export: object, architecture, input size, cuboid, training, decoding). "
+            "Event files are streamed, so files of many GB are fine."
         ),
     )
-    parser.add_argument("path", type=Path, help="event file (.h5, .txt, .npz, .aedat4, .raw) "
-                        "or sequence folder (with meta.yaml)")
+    parser.add_argument("path", type=Path, help="event file (.h5, .txt, .npz, .aedat4, .raw), "
+                        "sequence folder (with meta.yaml) or pose network (.pt, .ckpt, .onnx)")
     parser.add_argument("--window-ms", type=float, default=100.0,
                         help="streaming window in ms while scanning the file (default: 100)")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -79,6 +85,53 @@ def event_file_summary(path: str | Path, window_us: int = 100_000) -> dict[str, 
     }
 
 
+def model_file_summary(path: str | Path) -> dict[str, Any]:
+    """The record of a pose network's file: ``.pt`` weights or a Lightning ``.ckpt`` (read with
+    ``weights_only=True``) or an ``.onnx`` export (its embedded record, precision and opset).
+
+    Raises:
+        WeightsError: not a readable weights file or model, naming the file.
+    """
+    from evtrack.models.weights import WeightsError, load_weights_file
+
+    path = Path(path)
+    if path.suffix.lower() == ".onnx":
+        import onnx
+
+        from evtrack.models.onnx_export import read_onnx_record
+
+        record, precision = read_onnx_record(path)
+        proto = onnx.load(str(path), load_external_data=False)
+        opset = max((o.version for o in proto.opset_import if o.domain in ("", "ai.onnx")),
+                    default=None)
+        kind = f"pose network, ONNX export ({precision.upper()}, opset {opset})"
+        if record is None:
+            raise WeightsError(path, "the model carries no weights record (not exported by "
+                                     "'evtrack export pose')")
+    else:
+        record, state = load_weights_file(path)
+        n = sum(int(v.numel()) for v in state.values() if hasattr(v, "numel"))
+        kind = f"pose network weights (torch, {n:,} values)"
+    c = record.cuboid.to_dict()
+    cuboid = {"dimensions_m": [round(float(v), 6) for v in c["dimensions"]],
+              "center_m": [round(float(v), 6) for v in c["center"]]}
+    return {
+        "file": str(path),
+        "kind": kind,
+        "object": record.object_name,
+        "arch": record.arch + (f" {record.arch_kwargs}" if record.arch_kwargs else ""),
+        "input_size": f"{record.input_size[1]}x{record.input_size[0]} (width x height)",
+        "cuboid": cuboid,
+        "created": record.created,
+        "training_data": record.training_data or None,
+        "training": record.training or None,
+        "metrics": record.metrics or None,
+        "decode": record.decode or "the library's defaults",
+        "origin": record.origin or None,
+        "licence": record.licence,
+    }
+
+
 def _format_value(key: str, value: Any) -> str:
     if value is None:
         return "-"
@@ -99,6 +152,8 @@ def run(args: argparse.Namespace) -> int:
         from evtrack.sequence import Sequence
 
         summary = Sequence.load(path).summary()
+    elif path.suffix.lower() in MODEL_SUFFIXES and path.is_file():
+        summary = model_file_summary(path)
     else:
         if not path.exists():
             raise EventFileError(path, "no such file or folder")

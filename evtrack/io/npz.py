@@ -73,8 +73,10 @@ class NpzReader(EventReader):
         names = set(self._z.files)
         missing = [k for k in _FIELDS if k not in names]
         if missing:
+            have = sorted(names)
+            listed = (f"{have[:6]} and {len(have) - 6} more" if len(have) > 6 else str(have))
             raise EventFileError(
-                self.path, f"missing array(s) {missing} (has {sorted(names)}): not an event "
+                self.path, f"missing array(s) {missing} (has {listed}): not an event "
                 ".npz or truncated"
             )
         shapes = {}

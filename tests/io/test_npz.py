@@ -57,6 +57,14 @@ def test_bad_npz(tmp_path, change, message):
     assert "bad.npz" in str(info.value)
 
 
+def test_a_foreign_npz_is_named_briefly(tmp_path):
+    """An archive of many other arrays (a torch .pt is one) is refused in one short line."""
+    path = _save(tmp_path / "many.npz", **{f"w{i}": np.zeros(1) for i in range(200)})
+    with pytest.raises(EventFileError, match=r"and 194 more\): not an event") as info:
+        read_events(path)
+    assert len(str(info.value)) < 300
+
+
 def test_truncated_and_flipped_npz(tmp_path):
     path = _save(tmp_path / "g.npz", **_arrays(500))
     data = path.read_bytes()

@@ -42,3 +42,36 @@ def test_info_sequence(tmp_path, capsys, sequence_factory):
     assert main(["info", str(tmp_path / "seq")]) == 0
     out = capsys.readouterr().out
     assert "rgb frames" in out and "2,000" in out and "poses" in out
+
+
+def test_info_pose_network_files(tmp_path, capsys):
+    """.pt weights and .onnx exports: their record, not an event-file error (a .pt is a zip,
+    which the event readers took for an .npz and answered with a list of every tensor)."""
+    import pytest
+    import torch
+
+    from evtrack.models import Cuboid, WeightsRecord, create, save_weights
+
+    torch.manual_seed(0)
+    record = WeightsRecord(arch="dope_lite_tiny", object_name="box",
+                           cuboid=Cuboid((0.1, 0.2, 0.05), (0.0, 0.0, 0.01)), input_size=(72, 96),
+                           decode={"crop_refine": 0.0})
+    pt = save_weights(tmp_path / "box.pt", create("dope_lite_tiny"), record)
+    assert main(["info", str(pt), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["object"] == "box" and out["arch"] == "dope_lite_tiny"
+    assert out["input_size"].startswith("96x72") and out["decode"] == {"crop_refine": 0.0}
+    assert out["cuboid"] == {"dimensions_m": [0.1, 0.2, 0.05], "center_m": [0.0, 0.0, 0.01]}
+    assert "torch" in out["kind"]
+    pytest.importorskip("onnxruntime")
+    from evtrack.models import load_model
+    from evtrack.models.onnx_export import export_onnx
+
+    onnx_path = export_onnx(load_model(pt)[0], tmp_path / "box.onnx", fp16=True)
+    assert main(["info", str(onnx_path)]) == 0
+    text = capsys.readouterr().out
+    assert "ONNX export (FP16, opset 18)" in text and "dope_lite_tiny" in text
+    (tmp_path / "junk.pt").write_bytes(b"not a weights file")
+    assert main(["info", str(tmp_path / "junk.pt")]) == 1
+    err = capsys.readouterr().err
+    assert "junk.pt" in err and len(err.splitlines()) == 1
