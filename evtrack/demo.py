@@ -131,17 +131,13 @@ def demo_weights(weights: Path | None = None) -> Path:
         ConfigError: none shipped (saying how to make them or to use ``--oracle``), or a file
             trained on another object.
     """
-    from evtrack.models.onnx_export import read_onnx_record
-    from evtrack.models.weights import load_weights_file, zoo_dir
+    from evtrack.models.weights import read_record, zoo_dir
 
     if weights is not None:
-        if Path(weights).suffix.lower() == ".onnx":
-            record, _ = read_onnx_record(weights)
-            if record is None:
-                raise ConfigError(f"--weights {weights}: the model carries no weights record "
-                                  "(export it with 'evtrack export pose')")
-        else:
-            record, _ = load_weights_file(weights)
+        record, _ = read_record(weights)
+        if record is None:
+            raise ConfigError(f"--weights {weights}: the model carries no weights record "
+                              "(export it with 'evtrack export pose')")
         if record.object_name != DEMO_OBJECT:
             raise ConfigError(f"--weights {weights}: trained on {record.object_name!r}, the demo "
                               f"tracks {DEMO_OBJECT!r}")

@@ -11,7 +11,7 @@ from pathlib import Path
 __all__ = [
     "atomic_path", "atomic_write_text", "atomic_write_bytes", "usable_cpu_count",
     "threads_per_job", "check_writable", "claim_output_folder", "remove_outputs",
-    "terminate_as_interrupt",
+    "terminate_as_interrupt", "output_folder",
 ]
 
 
@@ -203,6 +203,24 @@ def terminate_as_interrupt() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+@contextlib.contextmanager
+def output_folder(out: str | Path, names: tuple[str, ...], overwrite: bool,
+                  what: str = "--out", inputs: dict[str, str | Path | None] | None = None
+                  ) -> Iterator[Path]:
+    """A long command's work into the folder ``out``: :func:`claim_output_folder` before the
+    block (its checks and errors), SIGTERM as Ctrl-C inside it (:func:`terminate_as_interrupt`),
+    and on any failure or interruption :func:`remove_outputs`, so that nothing half-written is
+    left behind. Yields ``out`` as a ``Path``."""
+    out = Path(out)
+    made = claim_output_folder(out, names, overwrite, what, inputs)
+    try:
+        with terminate_as_interrupt():
+            yield out
+    except BaseException:
+        remove_outputs(out, names, made)
+        raise
 
 
 def usable_cpu_count() -> int:

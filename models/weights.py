@@ -33,6 +33,7 @@ __all__ = [
     "save_weights",
     "set_record_decode",
     "load_weights_file",
+    "read_record",
     "zoo_dir",
     "list_weights",
     "find_default_weights",
@@ -244,6 +245,22 @@ def load_weights_file(path: str | Path) -> tuple[WeightsRecord, dict[str, torch.
     if not isinstance(state, dict) or not state:
         raise WeightsError(path, "holds no network state dict")
     return record, state
+
+
+def read_record(path: str | Path) -> tuple[WeightsRecord | None, str]:
+    """The record and precision (``"fp32"``/``"fp16"``) of a pose network's file, whatever its
+    kind: ``.onnx`` (an export: :func:`~evtrack.models.onnx_export.read_onnx_record`, whose
+    record may be ``None``) or ``.pt`` weights / a Lightning checkpoint
+    (:func:`load_weights_file`, always FP32).
+
+    Raises:
+        WeightsError: missing or unreadable, naming the file.
+    """
+    if Path(path).suffix.lower() == ".onnx":
+        from evtrack.models.onnx_export import read_onnx_record
+
+        return read_onnx_record(path)
+    return load_weights_file(path)[0], "fp32"
 
 
 def zoo_dir() -> Path:

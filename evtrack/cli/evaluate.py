@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     from evtrack.eval.report import OUTPUT_NAMES
     from evtrack.eval.sequences import find_sequences, require_ground_truth
     from evtrack.tracking_config import TrackerConfig
-    from evtrack.utils import claim_output_folder, remove_outputs, terminate_as_interrupt
+    from evtrack.utils import output_folder
 
     if args.threads is not None and args.threads < 1:
         raise ConfigError(f"--threads must be >= 1, got {args.threads}")
@@ -154,16 +154,11 @@ def run(args: argparse.Namespace) -> int:
     caption = pose_caption(spec, weights, objects)
     bench = args.benchmark.resolve()
     out = args.out or bench.parent / f"{bench.name}-results"
-    made = claim_output_folder(out, OUTPUT_NAMES, args.overwrite, inputs={
-        "--benchmark": args.benchmark, "--weights-dir": args.weights_dir,
-        "--config": args.config})
-    try:
-        with terminate_as_interrupt():
-            return _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out)
-    except BaseException:
-        # a failed, interrupted or terminated evaluation leaves no half-written results
-        remove_outputs(out, OUTPUT_NAMES, made)
-        raise
+    # a failed, interrupted or terminated evaluation leaves no half-written results
+    with output_folder(out, OUTPUT_NAMES, args.overwrite, inputs={
+            "--benchmark": args.benchmark, "--weights-dir": args.weights_dir,
+            "--config": args.config}):
+        return _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out)
 
 
 def _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out: Path) -> int:

@@ -12,7 +12,7 @@ import torch
 import yaml
 
 from evtrack.errors import ConfigError
-from evtrack.utils import claim_output_folder, remove_outputs, terminate_as_interrupt
+from evtrack.utils import output_folder
 
 __all__ = ["register", "run"]
 
@@ -147,14 +147,9 @@ def run(args: argparse.Namespace) -> int:
                    * cfg.window_us)
     if not (math.isfinite(args.frame_ms) and math.isfinite(args.read_ms)) or args.fps <= 0:
         raise ConfigError("--frame-ms and --read-ms must be finite and --fps positive")
-    made = claim_output_folder(args.out, OUTPUT_NAMES, args.overwrite,
-                               inputs={"input": args.input, "--config": args.config})
-    try:
-        with terminate_as_interrupt():
-            return _flow_into_folder(args, cfg, flow, frame_us)
-    except BaseException:
-        remove_outputs(args.out, OUTPUT_NAMES, made)  # a failed run leaves nothing behind
-        raise
+    with output_folder(args.out, OUTPUT_NAMES, args.overwrite,  # a failed run leaves nothing
+                       inputs={"input": args.input, "--config": args.config}):
+        return _flow_into_folder(args, cfg, flow, frame_us)
 
 
 def _flow_into_folder(args: argparse.Namespace, cfg, flow, frame_us: int) -> int:

@@ -92,15 +92,13 @@ def model_file_summary(path: str | Path) -> dict[str, Any]:
     Raises:
         WeightsError: not a readable weights file or model, naming the file.
     """
-    from evtrack.models.weights import WeightsError, load_weights_file
+    from evtrack.models.weights import WeightsError, load_weights_file, read_record
 
     path = Path(path)
     if path.suffix.lower() == ".onnx":
         import onnx
 
-        from evtrack.models.onnx_export import read_onnx_record
-
-        record, precision = read_onnx_record(path)
+        record, precision = read_record(path)
         proto = onnx.load(str(path), load_external_data=False)
         opset = max((o.version for o in proto.opset_import if o.domain in ("", "ai.onnx")),
                     default=None)

@@ -169,16 +169,14 @@ def _matching_files(root: Path, suffix: str, object_name: str, arch: str | None
     whose record names ``object_name`` (and ``arch``); files without a readable record are
     skipped. Sorted, the last is the one to use: the newest record, at equal records (an FP32
     and an FP16 export of the same weights) the full-precision one, then the path order."""
-    from evtrack.models.onnx_export import read_onnx_record
-    from evtrack.models.weights import WeightsError, load_weights_file
+    from evtrack.models.weights import WeightsError, read_record
 
     hits = []
     if not root.is_dir():
         return hits
     for path in sorted(root.rglob(f"*{suffix}")):
         try:
-            record, precision = ((load_weights_file(path)[0], "fp32") if suffix == ".pt"
-                                 else read_onnx_record(path))
+            record, precision = read_record(path)
         except WeightsError:
             continue  # not a weights file (e.g. an unrelated tensor dump)
         if (record is not None and record.object_name == object_name
@@ -255,22 +253,17 @@ def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
             std_rotation=spec.oracle_std_rotation, seed=spec.seed)
     if weights is None:
         raise ConfigError("a network pose source needs a weights file")
+    from evtrack.models import OnnxPoseEstimator, TorchPoseEstimator
+    from evtrack.models.weights import read_record
+
     cam = sequence.meta.rgb_camera or sequence.meta.event_camera
     name = sequence.meta.object_name
+    record, _ = read_record(weights)
+    scale = record.input_size[1] / cam.width if record is not None else None
     if Path(weights).suffix.lower() == ".onnx":
-        from evtrack.models import OnnxPoseEstimator
-        from evtrack.models.onnx_export import read_onnx_record
-
-        record, _ = read_onnx_record(weights)
-        scale = record.input_size[1] / cam.width if record is not None else None
         est = OnnxPoseEstimator(weights, cam, object_name=name, input_scale=scale,
                                 threads=threads)
     else:
-        from evtrack.models import TorchPoseEstimator
-        from evtrack.models.weights import load_weights_file
-
-        record, _ = load_weights_file(weights)
-        scale = record.input_size[1] / cam.width
         est = TorchPoseEstimator.from_weights(weights, cam, object_name=name,
                                               input_scale=scale)
     refiner = None

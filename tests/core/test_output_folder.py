@@ -97,3 +97,16 @@ def test_terminate_as_interrupt_turns_sigterm_into_keyboard_interrupt():
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(5)  # the handler interrupts it at once
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_output_folder_cleans_up_a_failed_block(tmp_path):
+    from evtrack.utils import output_folder
+
+    out = tmp_path / "new" / "res"
+    with pytest.raises(RuntimeError), output_folder(out, NAMES, overwrite=False) as folder:
+        (folder / "results.md").write_text("half")
+        raise RuntimeError("failed")
+    assert not (tmp_path / "new").exists()
+    with output_folder(out, NAMES, overwrite=False) as folder:
+        (folder / "results.md").write_text("done")
+    assert (out / "results.md").read_text() == "done"
