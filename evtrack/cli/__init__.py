@@ -59,6 +59,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except EvtrackError as exc:
         print(f"evtrack {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except BrokenPipeError:
+        # the reader of stdout went away (``evtrack info F | head``): not an error of the
+        # command; point stdout at devnull so that the interpreter's exit flush stays quiet
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (OSError, ValueError) as exc:
         # files that cannot be read or written, values out of range: the user's to fix, so
         # one line instead of a traceback (EVTRACK_DEBUG=1 keeps the traceback)
