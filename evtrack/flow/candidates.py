@@ -204,6 +204,14 @@ class CandidateSearch:
         self.last_p = torch.zeros(pixels, dtype=torch.int8, device=self.device)
         self.next_seq = 0
 
+    def continue_bursts(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> None:
+        """Make each given event the continuation of a burst: its pixel's latest event
+        becomes one of the same polarity 1 µs before it (see :meth:`TripletFlow.continue_bursts
+        <evtrack.flow.TripletFlow.continue_bursts>`). One event per pixel."""
+        pix = (y.long() * self.width + x.long()).to(self.device)
+        self.last_t.index_copy_(0, pix, t.to(device=self.device, dtype=torch.int64) - 1)
+        self.last_p.index_copy_(0, pix, p.to(device=self.device, dtype=torch.int8))
+
     # ------------------------------------------------------------------ driver
     def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor,
                  search: Tensor | None = None) -> Candidates:

@@ -466,6 +466,21 @@ class CompiledSearch:
         self.t_base: int | None = None
         """The base (µs) of the state's relative times; ``None`` before the first event."""
 
+    def continue_bursts(self, x: np.ndarray, y: np.ndarray, t: np.ndarray,
+                        p: np.ndarray) -> None:
+        """Make each given event the continuation of a burst: its pixel's latest event
+        becomes one of the same polarity 1 µs before it, so that the burst filter skips it
+        when it is searched next (see :meth:`TripletFlow.continue_bursts
+        <evtrack.flow.TripletFlow.continue_bursts>`). One event per pixel, time-sorted, not
+        before the events seen."""
+        if not len(t):
+            return
+        t = np.asarray(t, np.int64)
+        self._ensure_range(int(t[0]) - 1, int(t[-1]))
+        pix = np.asarray(y, np.int64) * self.width + np.asarray(x, np.int64)
+        positive = (np.asarray(p) > 0).astype(np.int64)
+        self.last[pix] = (2 * (t - 1 - self.t_base) + positive).astype(np.int32)
+
     def _allocate(self, strips: int) -> None:
         """Fresh state with private rows for ``strips`` strips after the shared ones."""
         pixels = self.width * self.height

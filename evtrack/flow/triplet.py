@@ -267,6 +267,41 @@ class TripletFlow(nn.Module):
         self._emitted = 0
         self._pending = self._empty_pending()
 
+    def continue_bursts(self, events: Events) -> None:
+        """Take the first event of each pixel in ``events`` as the continuation of a burst:
+        the burst filter (``refractory_us``) skips it when :meth:`update` gets it, as if the
+        pixel's previous event, of the same polarity, had just been seen.
+
+        For a stream from which a stretch of events was taken out (an event burst the
+        tracker dropped): each pixel's first event after the gap would otherwise start a
+        burst even in the middle of an edge's, and such onsets, nearly simultaneous along
+        the edge, pair into triplets of spurious fast flows. Nothing changes with
+        ``refractory_us = 0``.
+
+        Args:
+            events: the next events of the stream, before they are given to :meth:`update`
+                (time-sorted, not before the events seen).
+
+        Raises:
+            EventsError: as :meth:`update` for the same events.
+        """
+        if not isinstance(events, Events):
+            self._check(events)  # raises
+        if self.config.refractory_us == 0 or not len(events):
+            return
+        last_t = self._last_t
+        self._check(events)
+        self._last_t = last_t  # update() gets these events next
+        pixel = (events.y.long() * self._sensor[0] + events.x.long()).cpu().numpy()
+        first = np.sort(np.unique(pixel, return_index=True)[1])  # each pixel's first, in order
+        if isinstance(self._search, CompiledSearch):
+            self._search.continue_bursts(events.x.numpy()[first], events.y.numpy()[first],
+                                         events.t.numpy()[first], events.p.numpy()[first])
+        else:
+            index = torch.from_numpy(first)
+            self._search.continue_bursts(*(v.index_select(0, index) for v in (
+                events.x, events.y, events.t, events.p)))
+
     def to(self, device: str | torch.device) -> TripletFlow:  # type: ignore[override]
         """Move the state to ``device`` (the history is kept)."""
         device = torch.device(device)
