@@ -160,8 +160,19 @@ def _tracker_flow_defaults() -> FlowConfig:
     # (3 on the 4 kHz sets: between; 1: worse position). With the pose networks of the
     # cracker box and the tomato can at 5 Hz (4 kHz set): 2.75 / 9.45 and 5.19 / 13.87 ->
     # 2.60 / 10.62 and 4.86 / 13.81 (the regular rotation 1.2 deg worse).
+    # Only the last event of each pixel and polarity is tried as e_j and e_i (history 1;
+    # generic: 2), 2026-12-01, shipped networks, `evaluate --methods full`, e_p cm / e_r deg,
+    # paper-matched regular, faster / default presets' regular, faster: 1.17 / 6.66, 2.48 /
+    # 10.75, 1.67 / 6.84, 4.29 / 11.73 -> 1.10 / 7.00, 2.48 / 10.68, 1.70 / 6.93, 4.07 /
+    # 11.70; the demo (seeds 0-2, full) 2.69 / 7.89, 3.29 / 10.56, 10.27 / 18.43 -> 2.16 /
+    # 8.68, 3.18 / 10.72, 10.53 / 17.89, its `velocity` better on all three; the flow 15-25 %
+    # faster (one candidate pair per displacement instead of four): the default presets'
+    # cracker box `faster` 1.99 -> 1.76 x real time, the tomato can 0.99 -> 0.79
+    # (benchmarks/bench_tracker_options.py, median of 3). The older events of a pixel mostly
+    # add triplets of an earlier edge passage, whose slower, spurious flows the registration
+    # then has to outvote.
     return FlowConfig(window_us=1000, roi_size=12, max_hypotheses=16, max_events_per_roi=32,
-                      max_span_us=40_000, tolerance_rel=0.05, min_support=2)
+                      max_span_us=40_000, tolerance_rel=0.05, min_support=2, history=1)
 
 
 def _pose_ukf_defaults() -> PoseUKFConfig:
@@ -471,9 +482,10 @@ class TrackerConfig:
             ``velocity_kf.assume_normal`` (the paper treats every flow as a normal flow).
         flow: the event optical flow (:class:`~evtrack.flow.FlowConfig`); ``velocity_step_us``
             must be a multiple of ``flow.window_us``. The tracker's defaults differ from the
-            flow's: 1 ms windows, 12 px RoIs, Eq. 3 over 16 hypotheses from 32 events, and
+            flow's: 1 ms windows, 12 px RoIs, Eq. 3 over 16 hypotheses from 32 events,
             triplets over at most 40 ms with a 5 % tolerance (fast objects; for slow motion
-            ``configs/tracker_slow.yaml``). The measurements are in ``_tracker_flow_defaults``.
+            ``configs/tracker_slow.yaml``) from the last event of each pixel and polarity.
+            The measurements are in ``_tracker_flow_defaults``.
         velocity_kf: the velocity Kalman filter (ablations: ``normal_flow``, ``weighting``).
         pose_ukf: the pose UKF of ``full``, ``velocity`` and ``ge``.
         pose_only_ukf: the pose UKF of the ``pose`` baseline (random-walk process noise).
