@@ -165,10 +165,11 @@ def _tracker_flow_defaults() -> FlowConfig:
     # paper-matched regular, faster / default presets' regular, faster: 1.17 / 6.66, 2.48 /
     # 10.75, 1.67 / 6.84, 4.29 / 11.73 -> 1.10 / 7.00, 2.48 / 10.68, 1.70 / 6.93, 4.07 /
     # 11.70; the demo (seeds 0-2, full) 2.69 / 7.89, 3.29 / 10.56, 10.27 / 18.43 -> 2.16 /
-    # 8.68, 3.18 / 10.72, 10.53 / 17.89, its `velocity` better on all three; the flow 15-25 %
-    # faster (one candidate pair per displacement instead of four): the default presets'
-    # cracker box `faster` 1.99 -> 1.76 x real time, the tomato can 0.99 -> 0.79
-    # (benchmarks/bench_tracker_options.py, median of 3). The older events of a pixel mostly
+    # 8.68, 3.18 / 10.72, 10.53 / 17.89, its `velocity` better on all three; the flow 14-25 %
+    # faster (one candidate pair per displacement instead of four), the tracker 8-20 %
+    # (benchmarks/bench_tracker_options.py, median of 3, two runs on a noisy VM: the default
+    # presets' cracker box `faster` 1.99 -> 1.76 and 2.12 -> 1.93 x real time, the tomato
+    # can 0.99 -> 0.79 and 1.26 -> 1.17). The older events of a pixel mostly
     # add triplets of an earlier edge passage, whose slower, spurious flows the registration
     # then has to outvote.
     return FlowConfig(window_us=1000, roi_size=12, max_hypotheses=16, max_events_per_roi=32,
