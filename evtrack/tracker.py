@@ -707,7 +707,7 @@ class Tracker:
         self._thin_level = 0  # event thinning keeps 0.75**level of the RoI cells (_thin)
         self._burst_ends: list[int] = []  # µs: ends of this group's bursts (_in_burst)
         self._resync: tuple[int, int] | None = None  # µs: a flow re-sync going on (_flow_update)
-        self._resync_seen: np.ndarray | None = None  # pixels with an event in it so far
+        self._resync_seen = np.zeros(0, bool)  # pixels with an event in that re-sync so far
         self._search_budget = self.config.max_searched_per_step  # per step (realtime_load)
         self._backlog_s = 0.0  # processing beyond realtime_load of the stream time, s
         self._load: float | None = None  # smoothed processing / stream time (realtime_load)
@@ -1358,16 +1358,16 @@ class Tracker:
         for i, (start, end) in enumerate(windows):
             if i + 1 < len(windows):  # a later burst ends it (its events are taken out)
                 end = min(end, windows[i + 1][0])
+            if not (i == 0 and carried):  # a new re-sync: no pixel seen yet
+                self._resync_seen = np.zeros(self.camera.width * self.camera.height, bool)
             if start >= t_end:  # a burst ending the group: the next group's
-                self._resync, self._resync_seen = (start, end), None
+                self._resync = (start, end)
                 break
             cut = max(pos, int(torch.searchsorted(ev.t, start))) if len(ev) else 0
             if cut > pos:
                 parts.append(self.flow.update(ev[pos:cut], until_us=start, search=None
                                               if search is None else search[pos:cut]))
                 pos = cut
-            if self._resync_seen is None or not (i == 0 and carried):
-                self._resync_seen = np.zeros(self.camera.width * self.camera.height, bool)
             hi = int(torch.searchsorted(ev.t, min(end, t_end))) if len(ev) else 0
             pixel = (ev.y[cut:hi].long() * self.camera.width + ev.x[cut:hi].long()).numpy()
             first = np.unique(pixel, return_index=True)[1]  # each pixel's first event
