@@ -29,7 +29,7 @@ from evtrack.filters import PoseTwistUKF, PoseUKF
 
 __all__ = ["PoseTimeline", "Measurement"]
 
-_STATE_NAMES = ("t", "q", "cov", "twist", "initialized", "rejected_run", "rejected",
+_STATE_NAMES = ("t", "q", "cov", "twist", "bias", "initialized", "rejected_run", "rejected",
                 "reinitialised")
 
 

@@ -6,7 +6,7 @@ Data flow of the ``full`` method (DESIGN.md), once per velocity step (1 ms by de
         ──► TripletFlow (one flow window per step) ──► RoI flows (px/s)
         ──► depth at the RoIs (sensor depth frame or mesh rendered at the predicted pose)
         ──► VelocityKF (decaying-velocity predict + flow update) ──► twist [v_o, ω]
-        ──► PoseUKF.predict(twist, step)
+        ──► PoseUKF.predict(twist, step)  (+ the velocity bias it learns from the poses)
     RGB frames at pose_rate_hz ──► pose source ──► pose available at t + pose_latency
         ──► PoseUKF.update at the frame's time t (the filter rolls back and replays)
 
@@ -15,7 +15,10 @@ its result is only taken when it becomes available, so the trajectory is the sam
 
 The methods (``TrackerConfig.method``) share this code:
 
-* ``full``: as above (the paper).
+* ``full``: as above (the paper), with one addition by default: the pose filter learns a bias
+  of the twist's velocity that grows with the object's speed from the pose innovations
+  (``pose_ukf.velocity_bias``; the twists the tracker outputs are the velocity filter's,
+  without it).
 * ``velocity``: the same velocity pipeline; poses are used only to initialise (and to
   re-initialise after the object was lost).
 * ``pose``: no velocity; the pose UKF (``pose_only_ukf``, random-walk process noise) with poses.

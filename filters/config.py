@@ -171,6 +171,17 @@ class PoseUKFConfig:
             the rotation spread ``γσ_θ`` stays below π; tests pin both paths together). The
             constant-velocity filter always propagates sigma points in its predict, which is
             nonlinear in the state.
+        velocity_bias: estimate a bias of the driving twist's velocity that grows with the
+            object's speed: a camera-frame vector ``b`` (m/s per m/s) in the state, the
+            position moving by ``ṫ = v_o + ω × t + b |v_o + ω × t|`` (the speed of the
+            object's origin under the twist, so nothing moves at rest), a random walk learnt
+            from the pose updates (their innovations are its only measurement), as an inertial
+            navigation filter learns its sensors' errors from GPS. Off by default (the paper's
+            filter); :class:`~evtrack.filters.PoseUKF` only.
+        q_velocity_bias: 1/s, random-walk density of ``b`` (its variance grows by this per
+            second).
+        init_std_velocity_bias: standard deviation of ``b`` (zero) after :meth:`reset`,
+            dimensionless (m/s per m/s).
     """
 
     q_translation: float = 1e-3
@@ -187,9 +198,14 @@ class PoseUKFConfig:
     sigma_kappa: float = 0.0
     mean_iterations: int = 2
     sigma_points: bool = False
+    velocity_bias: bool = False
+    q_velocity_bias: float = 0.01
+    init_std_velocity_bias: float = 0.05
 
     def __post_init__(self) -> None:
         _check_ukf_common(self)
+        _check_positive(self, "q_velocity_bias", allow_zero=True)
+        _check_positive(self, "init_std_velocity_bias")
 
 
 @dataclass
@@ -224,6 +240,9 @@ class PoseTwistUKFConfig(PoseUKFConfig):
 
     def __post_init__(self) -> None:
         _check_ukf_common(self)
+        if self.velocity_bias:
+            raise ConfigError("PoseTwistUKFConfig.velocity_bias: the constant-velocity filter "
+                              "has no driving twist to correct; set it on the PoseUKF's config")
         _check_range(self, "alpha", 0.0, 1.0, low_open=True)
         _check_positive(self, "alpha_dt")
         for name in ("init_std_linear", "init_std_angular", "meas_std_linear", "meas_std_angular"):

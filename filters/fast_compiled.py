@@ -390,14 +390,24 @@ def velocity_run(
 
 
 @_njit
-def _pose_predict_kernel(t, q, cov, twist, dt, q_matrix):
+def _pose_predict_kernel(t, q, cov, twist, dt, q_matrix, bias):
     """:func:`evtrack.filters.fast_path.pose_predict` on arrays: ``t`` (1,3), ``q`` (1,4),
-    ``cov`` (1,6,6), ``twist`` (1,6), ``q_matrix`` (6,6) -> new (1,3), (1,4), (1,6,6)."""
+    ``cov`` (1,n,n), ``twist`` (1,6), ``q_matrix`` (n,n), ``bias`` (1,k) (``k = n - 6``: 0, or
+    3 for a velocity bias) -> new (1,3), (1,4), (1,n,n)."""
+    n = cov.shape[1]
     w = twist[0]
     qd, pd = se3_exp((w[0] * dt, w[1] * dt, w[2] * dt), (w[3] * dt, w[4] * dt, w[5] * dt))
     r = quat_rotate(qd, (t[0, 0], t[0, 1], t[0, 2]))
     t_out = np.empty((1, 3))
     t_out[0, 0], t_out[0, 1], t_out[0, 2] = r[0] + pd[0], r[1] + pd[1], r[2] + pd[2]
+    db = 0.0  # the bias's share of the step: dt times the origin's speed |v_o + ω × t|
+    if n > 6:  # t' = R t + p + b db
+        cx = w[0] + w[4] * t[0, 2] - w[5] * t[0, 1]
+        cy = w[1] + w[5] * t[0, 0] - w[3] * t[0, 2]
+        cz = w[2] + w[3] * t[0, 1] - w[4] * t[0, 0]
+        db = dt * math.sqrt(cx * cx + cy * cy + cz * cz)
+        for i in range(3):
+            t_out[0, i] += bias[0, i] * db
     qn = normalized(quat_mul(qd, (q[0, 0], q[0, 1], q[0, 2], q[0, 3])))
     q_out = np.empty((1, 4))
     q_out[0, 0], q_out[0, 1], q_out[0, 2], q_out[0, 3] = qn
@@ -405,62 +415,85 @@ def _pose_predict_kernel(t, q, cov, twist, dt, q_matrix):
     rot = np.empty((3, 3))
     for i in range(3):
         rot[i, 0], rot[i, 1], rot[i, 2] = rows[i]
-    # A P Aᵀ with A = diag(R, R), block by block: R P_ab Rᵀ
+    # A P Aᵀ with A = diag(R, R) (and, with a bias, A = [[R, 0, db I], [0, R, 0], [0, 0, I]]),
+    # block by block: R P_ab Rᵀ plus the bias terms
     p = cov[0]
-    half = np.empty((6, 6))  # A P
-    for i in range(6):
+    half = np.empty((n, n))  # A P
+    for i in range(n):
+        if i >= 6:
+            for j in range(n):
+                half[i, j] = p[i, j]
+            continue
         b, k = (i // 3) * 3, i % 3
-        for j in range(6):
+        for j in range(n):
             half[i, j] = rot[k, 0] * p[b, j] + rot[k, 1] * p[b + 1, j] + rot[k, 2] * p[b + 2, j]
-    full = np.empty((6, 6))  # (A P) Aᵀ
-    for i in range(6):
-        for j in range(6):
+            if n > 6 and i < 3:
+                half[i, j] += db * p[6 + i, j]
+    full = np.empty((n, n))  # (A P) Aᵀ
+    for i in range(n):
+        for j in range(n):
+            if j >= 6:
+                full[i, j] = half[i, j]
+                continue
             b, k = (j // 3) * 3, j % 3
             full[i, j] = (half[i, b] * rot[k, 0] + half[i, b + 1] * rot[k, 1]
                           + half[i, b + 2] * rot[k, 2])
-    cov_out = np.empty((1, 6, 6))
-    for i in range(6):
-        for j in range(6):
+            if n > 6 and j < 3:
+                full[i, j] += db * half[i, 6 + j]
+    cov_out = np.empty((1, n, n))
+    for i in range(n):
+        for j in range(n):
             cov_out[0, i, j] = 0.5 * (full[i, j] + full[j, i]) + dt * q_matrix[i, j]
     return t_out, q_out, cov_out
 
 
 @_njit
-def _pose_predict_run_kernel(t, q, cov, twists, dts, q_matrix):
-    """:func:`_pose_predict_kernel` ``n`` times in a row: step ``k`` by ``twists[k]`` over
-    ``dts[k]``; returns the states after each step, (n,1,3), (n,1,4), (n,1,6,6)."""
-    n = twists.shape[0]
-    t_all = np.empty((n, 1, 3))
-    q_all = np.empty((n, 1, 4))
-    cov_all = np.empty((n, 1, 6, 6))
-    for k in range(n):
-        t, q, cov = _pose_predict_kernel(t, q, cov, twists[k:k + 1], dts[k], q_matrix)
+def _pose_predict_run_kernel(t, q, cov, twists, dts, q_matrix, bias):
+    """:func:`_pose_predict_kernel` ``m`` times in a row: step ``k`` by ``twists[k]`` over
+    ``dts[k]`` (the bias, unchanged by a predict, the same for all); returns the states after
+    each step, (m,1,3), (m,1,4), (m,1,n,n)."""
+    m = twists.shape[0]
+    n = cov.shape[1]
+    t_all = np.empty((m, 1, 3))
+    q_all = np.empty((m, 1, 4))
+    cov_all = np.empty((m, 1, n, n))
+    for k in range(m):
+        t, q, cov = _pose_predict_kernel(t, q, cov, twists[k:k + 1], dts[k], q_matrix, bias)
         t_all[k] = t
         q_all[k] = q
         cov_all[k] = cov
     return t_all, q_all, cov_all
 
 
+def _bias_array(bias: np.ndarray | None) -> np.ndarray:
+    """A velocity bias (1,3) m/s as the kernels take it; (1,0) without one."""
+    return np.zeros((1, 0)) if bias is None else np.ascontiguousarray(bias, np.float64)
+
+
 def pose_predict_run(t: np.ndarray, q: np.ndarray, cov: np.ndarray, twists: np.ndarray,
-                     dts: np.ndarray, q_matrix: np.ndarray
+                     dts: np.ndarray, q_matrix: np.ndarray, bias: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`pose_predict` for ``n`` steps in one call (the same arithmetic, bit for bit):
-    ``twists`` (n,6), ``dts`` (n,) s; returns the states after each step, ``t`` (n,1,3),
-    ``q`` (n,1,4), ``cov`` (n,1,6,6). Needs numba (:func:`available`)."""
+    """:func:`pose_predict` for ``m`` steps in one call (the same arithmetic, bit for bit):
+    ``twists`` (m,6), ``dts`` (m,) s; returns the states after each step, ``t`` (m,1,3),
+    ``q`` (m,1,4), ``cov`` (m,1,n,n). Needs numba (:func:`available`)."""
     f64 = np.float64
     return _pose_predict_run_kernel(
         np.ascontiguousarray(t, f64), np.ascontiguousarray(q, f64),
         np.ascontiguousarray(cov, f64), np.ascontiguousarray(twists, f64).reshape(-1, 6),
-        np.ascontiguousarray(dts, f64).reshape(-1), np.ascontiguousarray(q_matrix, f64))
+        np.ascontiguousarray(dts, f64).reshape(-1), np.ascontiguousarray(q_matrix, f64),
+        _bias_array(bias))
 
 
 def pose_predict(t: np.ndarray, q: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt: float,
-                 q_matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 q_matrix: np.ndarray, bias: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`evtrack.filters.fast_path.pose_predict` compiled, on one track's arrays with
-    their batch dimension: ``t`` (1,3) m, ``q`` (1,4) wxyz, ``cov`` (1,6,6), ``twist`` (1,6)
-    ``[v_o (m/s), ω (rad/s)]``, ``dt`` s, ``q_matrix`` (6,6) process-noise density; returns
-    new float64 arrays ``(t (1,3), q (1,4), cov (1,6,6))``. Needs numba (:func:`available`)."""
+    their batch dimension: ``t`` (1,3) m, ``q`` (1,4) wxyz, ``cov`` (1,n,n), ``twist`` (1,6)
+    ``[v_o (m/s), ω (rad/s)]``, ``dt`` s, ``q_matrix`` (n,n) process-noise density, ``bias``
+    (1,3): the velocity bias (m/s per m/s) of a filter with one (n = 9), else ``None`` (n = 6);
+    returns
+    new float64 arrays ``(t (1,3), q (1,4), cov (1,n,n))``. Needs numba (:func:`available`)."""
     f64 = np.float64
     return _pose_predict_kernel(np.ascontiguousarray(t, f64), np.ascontiguousarray(q, f64),
                                 np.ascontiguousarray(cov, f64), np.ascontiguousarray(twist, f64),
-                                float(dt), np.ascontiguousarray(q_matrix, f64))
+                                float(dt), np.ascontiguousarray(q_matrix, f64), _bias_array(bias))

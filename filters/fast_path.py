@@ -26,7 +26,7 @@ dimension: a twist is (6,), a covariance (n, n), RoI inputs (N, 2) and (N,).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -357,23 +357,34 @@ def spd_inverse(A: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- PoseUKF
 def pose_predict(
-    t: Vec3, q: Quat, cov: np.ndarray, twist: list[float], dt: float, q_matrix: np.ndarray
+    t: Vec3, q: Quat, cov: np.ndarray, twist: list[float], dt: float, q_matrix: np.ndarray,
+    bias: Sequence[float] | None = None,
 ) -> tuple[Vec3, Quat, np.ndarray]:
     """The closed-form unscented predict of :meth:`PoseUKF.predict_state`.
 
     ``t' = R_Δ t + p_Δ``, ``q' = q_Δ ⊗ q`` (normalised), ``P' = A P Aᵀ + Q dt`` with
-    ``A = diag(R_Δ, R_Δ)``, made exactly symmetric before ``Q dt`` is added.
+    ``A = diag(R_Δ, R_Δ)``, made exactly symmetric before ``Q dt`` is added. With a velocity
+    ``bias`` (3 floats, m/s per m/s of the object's speed; ``cov`` 9x9): ``t' = R_Δ t + p_Δ +
+    b s dt`` with ``s = |v_o + ω × t|`` (the prior ``t``), and
+    ``A = [[R_Δ, 0, s dt I], [0, R_Δ, 0], [0, 0, I]]``.
     """
     rho = (twist[0] * dt, twist[1] * dt, twist[2] * dt)
     phi = (twist[3] * dt, twist[4] * dt, twist[5] * dt)
     qd, pd = se3_exp(rho, phi)
     r = quat_rotate(qd, t)
-    t = (r[0] + pd[0], r[1] + pd[1], r[2] + pd[2])
+    t_new = (r[0] + pd[0], r[1] + pd[1], r[2] + pd[2])
     q = normalized(quat_mul(qd, q))
     R = np.array(rotation_matrix(qd))
-    A = np.zeros((6, 6))
+    n = cov.shape[0]
+    A = np.eye(n)
     A[:3, :3] = R
-    A[3:, 3:] = R
+    A[3:6, 3:6] = R
+    if bias is not None:
+        c = cross((twist[3], twist[4], twist[5]), t)
+        db = dt * math.sqrt(sum((twist[i] + c[i]) ** 2 for i in range(3)))
+        t_new = (t_new[0] + bias[0] * db, t_new[1] + bias[1] * db, t_new[2] + bias[2] * db)
+        A[:3, 6:] = db * np.eye(3)
+    t = t_new
     rotated = A @ cov @ A.T
     return t, q, 0.5 * (rotated + rotated.T) + dt * q_matrix
 

@@ -11,7 +11,8 @@ number of RoIs N are dynamic. Shapes and dtypes of the inputs, in order:
 * ``PoseUKF``: ``t (B,3)``, ``q (B,4)``, ``cov (B,6,6)``, ``initialized (B,)`` bool,
   ``rejected_run (B,)`` int64, ``twist (B,6)``, ``dt (B,)``, ``t_meas (B,3)``, ``q_meas (B,4)``,
   ``cov_meas (B,6,6)``, ``valid (B,)`` bool -> ``t, q, cov, initialized, rejected_run, used,
-  rejected, reinitialised``.
+  rejected, reinitialised``. With a velocity bias (``config.velocity_bias``): ``cov (B,9,9)``
+  and a last input ``bias (B,3)`` m/s, and a last output, the new ``bias``.
 * ``PoseTwistUKF``: as ``PoseUKF`` with ``twist (B,6)`` after ``q`` in the state and no twist
   input -> ``t, q, twist, cov, initialized, rejected_run, used, rejected, reinitialised``.
 
@@ -117,14 +118,19 @@ class FilterStep(nn.Module):
 
     @property
     def input_names(self) -> tuple[str, ...]:
-        return _NAMES[type(self.filt)][0]
+        return _NAMES[type(self.filt)][0] + (("bias",) if _has_bias(self.filt) else ())
 
     @property
     def output_names(self) -> tuple[str, ...]:
-        return _NAMES[type(self.filt)][1]
+        return _NAMES[type(self.filt)][1] + (("bias_out",) if _has_bias(self.filt) else ())
 
     def forward(self, *inputs: Tensor) -> tuple[Tensor, ...]:
         return tuple(self.filt.step(*inputs))
+
+
+def _has_bias(filt: nn.Module) -> bool:
+    """Whether ``filt`` is a :class:`PoseUKF` with a velocity bias in its state."""
+    return isinstance(filt, PoseUKF) and filt.config.velocity_bias
 
 
 def step_inputs(
@@ -179,6 +185,9 @@ def step_inputs(
         cov_meas = spd(6, 1e-3)
         if isinstance(filt, PoseTwistUKF):
             out = (t, q, rnd(batch, 6), spd(12, 0.01), init, run, dt, t_meas, q_meas, cov_meas, B)
+        elif _has_bias(filt):
+            out = (t, q, spd(9, 0.01), init, run, rnd(batch, 6), dt, t_meas, q_meas, cov_meas, B,
+                   rnd(batch, 3, scale=0.05))
         else:
             out = (t, q, spd(6, 0.01), init, run, rnd(batch, 6), dt, t_meas, q_meas, cov_meas, B)
     return tuple(x.to(device) for x in out)

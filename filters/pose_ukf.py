@@ -81,6 +81,7 @@ class _PoseFilter(CompilableSteps, nn.Module):
     init_var: Tensor
     gamma: Tensor
     gate: Tensor
+    _extra_name: str | None = None  # the buffer of the state beyond the pose, if any
 
     def __init__(
         self,
@@ -366,7 +367,7 @@ class _PoseFilter(CompilableSteps, nn.Module):
                      reinit_after: int | None = None) -> Tensor:
         """:meth:`update` of one float64 CPU track through :func:`fast_path.pose_update`."""
         buf = self._buffers
-        extra = buf["twist"].numpy()[0] if self.n > 6 else _NO_EXTRA
+        extra = buf[self._extra_name].numpy()[0] if self._extra_name else _NO_EXTRA
         out = fp.pose_update(
             tuple(buf["t"].tolist()[0]),
             tuple(buf["q"].tolist()[0]),
@@ -381,7 +382,7 @@ class _PoseFilter(CompilableSteps, nn.Module):
             buf["gate"].tolist(),
             self.config.reinit_after if reinit_after is None else reinit_after,
         )
-        self._set_state_fast(out.t, out.q, out.extra if self.n > 6 else None, out.cov)
+        self._set_state_fast(out.t, out.q, out.extra if self._extra_name else None, out.cov)
         buf.update(
             initialized=torch.from_numpy(np.array([out.initialized])),
             rejected_run=torch.from_numpy(np.array([out.rejected_run], dtype=np.int64)),
@@ -397,14 +398,15 @@ class _PoseFilter(CompilableSteps, nn.Module):
         self, t: fp.Vec3, q: fp.Quat, extra: np.ndarray | None, cov: np.ndarray
     ) -> None:
         """Store one track's state from :mod:`fast_path` results (``extra``: the twist of
-        :class:`PoseTwistUKF`, or ``None``)."""
+        :class:`PoseTwistUKF` or the velocity bias of a :class:`PoseUKF` with one, else
+        ``None``)."""
         self._buffers.update(
             t=torch.from_numpy(np.array([t])),
             q=torch.from_numpy(np.array([q])),
             cov=torch.from_numpy(cov[None]),
         )
         if extra is not None:
-            self._buffers["twist"] = torch.from_numpy(extra[None])
+            self._buffers[self._extra_name] = torch.from_numpy(extra[None])
 
     def update_pose_state(
         self,
@@ -513,6 +515,8 @@ class _PoseFilter(CompilableSteps, nn.Module):
             qd, pd = se3_exp(twist * dt.unsqueeze(-1))
             qd, pd = qd.unsqueeze(1), pd.unsqueeze(1)
         ts = quat_rotate(qd, ts) + pd
+        if twist is not None and es.shape[-1]:  # a velocity bias: t' = R t + p + b s dt
+            ts = ts + es * (dt * _origin_speed(twist, t))[:, None, None]
         qs = quat_mul(qd, qs)
         if twist is None:
             es = es * self.decay_rate.mul(dt).exp()[:, None, None]  # V' = alpha^(dt/alpha_dt) V
@@ -555,7 +559,13 @@ class PoseUKF(_PoseFilter):
 
     Buffers (all in ``state_dict``): ``t`` (B,3), ``q`` (B,4), ``cov`` (B,6,6),
     ``initialized`` (B,) bool, ``rejected_run`` (B,) consecutive rejections, and cumulative
-    counts ``rejected`` and ``reinitialised`` (B,).
+    counts ``rejected`` and ``reinitialised`` (B,). With ``config.velocity_bias`` also
+    ``bias`` (B,3), the estimated bias of the twists' velocity per unit of the object's speed
+    (m/s per m/s, camera frame): each predict moves the pose by the twist and the position
+    further by ``b s dt``, ``s = |v_o + ω × t|`` the speed of the object's origin under the
+    twist (at the prior mean ``t``), so the track does not drift at rest; ``cov`` is (B,9,9)
+    over ``[δt, δθ, δb]``. The pose updates estimate ``b`` through its correlation with the
+    position, the only measurement it has.
 
     Example:
         >>> ukf = PoseUKF(batch_size=1)
@@ -565,6 +575,8 @@ class PoseUKF(_PoseFilter):
     """
 
     _STEP_NAMES = ("predict_state", "update_pose_state", "step")
+
+    bias: Tensor
 
     def __init__(
         self,
@@ -577,7 +589,13 @@ class PoseUKF(_PoseFilter):
         cfg = config if config is not None else PoseUKFConfig()
         qd = [cfg.q_translation] * 3 + [cfg.q_rotation] * 3
         var = [cfg.init_std_translation**2] * 3 + [cfg.init_std_rotation**2] * 3
-        super().__init__(cfg, 6, qd, var, batch_size, dtype, device, fast_path)
+        if cfg.velocity_bias:
+            qd += [cfg.q_velocity_bias] * 3
+            var += [cfg.init_std_velocity_bias**2] * 3
+        super().__init__(cfg, len(qd), qd, var, batch_size, dtype, device, fast_path)
+        if cfg.velocity_bias:
+            self._extra_name = "bias"
+            self.register_buffer("bias", torch.zeros(0, 3, dtype=dtype, device=device))
         self.reset(batch_size)
 
     def reset(
@@ -588,12 +606,18 @@ class PoseUKF(_PoseFilter):
         cov: Tensor | None = None,
     ) -> None:
         """Start over with B tracks: at pose ``(t (B,3), q (B,4))`` (initialised), or without a
-        pose (the first pose update initialises each track). Counters are zeroed."""
-        self._reset_pose(self.batch_size if batch_size is None else int(batch_size), t, q, cov)
+        pose (the first pose update initialises each track). Counters are zeroed, and a
+        velocity bias (``config.velocity_bias``) is zero with its initial spread again."""
+        B = self.batch_size if batch_size is None else int(batch_size)
+        self._reset_pose(B, t, q, cov)
+        if self._extra_name:
+            self.bias = torch.zeros(B, 3, dtype=self.t.dtype, device=self.t.device)
 
     def predict(self, twist: Tensor, dt: float | Tensor) -> tuple[Tensor, Tensor]:
-        """Move the pose by the twist (B,6) ``[v_o, ω]`` over ``dt`` s; returns ``(t, q)``."""
+        """Move the pose by the twist (B,6) ``[v_o, ω]`` (and the velocity bias, if the
+        filter has one) over ``dt`` s; returns ``(t, q)``."""
         buf = self._buffers
+        bias = buf["bias"] if self._extra_name else None
         if (
             isinstance(twist, Tensor)
             and twist.shape == (1, 6)
@@ -609,6 +633,7 @@ class PoseUKF(_PoseFilter):
                 fp.as_array(twist),
                 self._fast_dt(dt),
                 buf["q_matrix"].numpy(),
+                None if bias is None else bias.numpy(),
             )
             buf.update(t=torch.from_numpy(t), q=torch.from_numpy(q), cov=torch.from_numpy(cov))
             return buf["t"], buf["q"]
@@ -627,11 +652,12 @@ class PoseUKF(_PoseFilter):
                 twist.tolist()[0],
                 self._fast_dt(dt),
                 buf["q_matrix"].numpy(),
+                None if bias is None else bias.tolist()[0],
             )
             self._set_state_fast(t, q, None, cov)
             return self.t, self.q
         self.t, self.q, self.cov = self.step_function("predict_state")(
-            self.t, self.q, self.cov, twist, self._dt(dt)
+            self.t, self.q, self.cov, twist, self._dt(dt), bias
         )
         return self.t, self.q
 
@@ -645,8 +671,9 @@ class PoseUKF(_PoseFilter):
         than the step.
 
         Returns:
-            the states after each step, ``t`` (n,1,3), ``q`` (n,1,4), ``cov`` (n,1,6,6), the
-            last of which is now the filter's; or ``None``, with the filter unchanged, when
+            the states after each step, ``t`` (n,1,3), ``q`` (n,1,4), ``cov`` (n,1,6,6)
+            ((n,1,9,9) with a velocity bias, which a predict leaves as it is), the last of
+            which is now the filter's; or ``None``, with the filter unchanged, when
             :meth:`predict` would not take its compiled single-track path (a batch, CUDA,
             float32, gradients, sigma points, no numba...): then call :meth:`predict` per step.
         """
@@ -668,29 +695,41 @@ class PoseUKF(_PoseFilter):
             np.concatenate([fp.as_array(w) for w in twists]),
             np.array([self._fast_dt(dt) for dt in dts], dtype=np.float64),
             buf["q_matrix"].numpy(),
+            buf["bias"].numpy() if self._extra_name else None,
         )
         buf.update(t=torch.from_numpy(t[-1].copy()), q=torch.from_numpy(q[-1].copy()),
                    cov=torch.from_numpy(cov[-1].copy()))
         return torch.from_numpy(t), torch.from_numpy(q), torch.from_numpy(cov)
 
     def predict_state(
-        self, t: Tensor, q: Tensor, cov: Tensor, twist: Tensor, dt: Tensor
+        self, t: Tensor, q: Tensor, cov: Tensor, twist: Tensor, dt: Tensor,
+        bias: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Pure predict: (B,3), (B,4), (B,6,6), twist (B,6), dt (B,) -> (t, q, cov)."""
+        """Pure predict: (B,3), (B,4), (B,n,n), twist (B,6), dt (B,) -> (t, q, cov); ``bias``
+        (B,3) m/s: the velocity bias of a filter with one (n = 9), else ``None`` (n = 6)."""
         if self.config.sigma_points:
-            t, q, _, cov = self._propagate(t, q, t[:, :0], cov, twist, dt)
+            extra = t[:, :0] if bias is None else bias
+            t, q, _, cov = self._propagate(t, q, extra, cov, twist, dt)
             return t, q, cov
         # Every sigma point moves by the same rigid motion, which acts on the tangent linearly:
-        # δt' = R_Δ δt, δθ' = R_Δ δθ. The unscented transform is exact: P' = A P Aᵀ + Q dt.
+        # δt' = R_Δ δt (+ s dt δb), δθ' = R_Δ δθ (δb' = δb). The unscented transform is exact:
+        # P' = A P Aᵀ + Q dt.
         qd, pd = se3_exp(twist * dt.unsqueeze(-1))
+        db = dt if bias is None else dt * _origin_speed(twist, t)  # the bias's share: s dt
         t = quat_rotate(qd, t) + pd
+        if bias is not None:
+            t = t + bias * db.unsqueeze(-1)
         q = quat_mul(qd, q)
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
         # P' = A P Aᵀ with A = diag(R_Δ, R_Δ): rotate the 3-vector blocks of P's rows, then of
         # the columns (elementwise work: batched 6x6 matmuls are slow at large B).
         qb = qd[:, None, None, :]
-        half = quat_rotate(qb, cov.unflatten(-1, (2, 3))).flatten(-2)  # P Aᵀ
-        cov = quat_rotate(qb, half.transpose(-1, -2).unflatten(-1, (2, 3))).flatten(-2)  # A P Aᵀ
+        if bias is None:
+            half = quat_rotate(qb, cov.unflatten(-1, (2, 3))).flatten(-2)  # P Aᵀ
+            cov = quat_rotate(qb, half.transpose(-1, -2).unflatten(-1, (2, 3))).flatten(-2)
+        else:
+            half = _times_bias_transition(cov, qb, db)  # P Aᵀ
+            cov = _times_bias_transition(half.transpose(-1, -2), qb, db)  # A P Aᵀ
         cov = symmetrize(cov) + dt[:, None, None] * self.q_matrix
         return t, q, cov
 
@@ -722,23 +761,30 @@ class PoseUKF(_PoseFilter):
         q_meas: Tensor,
         cov_meas: Tensor,
         valid: Tensor,
+        bias: Tensor | None = None,
     ) -> tuple[Tensor, ...]:
-        """Pure predict + gated update (the step exported to ONNX).
+        """Pure predict + gated update (the step exported to ONNX); ``bias`` (B,3): the
+        velocity bias of a filter with one (``cov`` (B,9,9)).
 
         Returns:
-            ``(t, q, cov, initialized, rejected_run, used, rejected, reinitialised)``.
+            ``(t, q, cov, initialized, rejected_run, used, rejected, reinitialised)``, and the
+            new ``bias`` after them where one was given.
         """
-        t, q, cov = self.predict_state(t, q, cov, twist, dt)
-        t, q, _, cov, initialized, run, used, rej, reinit = self.update_pose_state(
-            t, q, t[:, :0], cov, initialized, rejected_run, t_meas, q_meas, cov_meas, valid
+        t, q, cov = self.predict_state(t, q, cov, twist, dt, bias)
+        extra = t[:, :0] if bias is None else bias
+        t, q, extra, cov, initialized, run, used, rej, reinit = self.update_pose_state(
+            t, q, extra, cov, initialized, rejected_run, t_meas, q_meas, cov_meas, valid
         )
-        return t, q, cov, initialized, run, used, rej, reinit
+        out = (t, q, cov, initialized, run, used, rej, reinit)
+        return out if bias is None else (*out, extra)
 
     def _state(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        return self.t, self.q, self.t[:, :0], self.cov
+        return self.t, self.q, self.bias if self._extra_name else self.t[:, :0], self.cov
 
     def _set_state(self, t: Tensor, q: Tensor, extra: Tensor, cov: Tensor) -> None:
         self.t, self.q, self.cov = t, q, cov
+        if self._extra_name:
+            self.bias = extra
 
 
 class PoseTwistUKF(_PoseFilter):
@@ -765,6 +811,7 @@ class PoseTwistUKF(_PoseFilter):
     """
 
     _STEP_NAMES = ("predict_state", "update_pose_state", "update_twist_state", "step")
+    _extra_name = "twist"
 
     twist: Tensor
     decay_rate: Tensor
@@ -970,6 +1017,27 @@ class PoseTwistUKF(_PoseFilter):
 
     def _set_state(self, t: Tensor, q: Tensor, extra: Tensor, cov: Tensor) -> None:
         self.t, self.q, self.twist, self.cov = t, q, extra, cov
+
+
+def _origin_speed(twist: Tensor, t: Tensor) -> Tensor:
+    """(B,) speed (m/s) ``|v_o + ω × t|`` of the object's origin at ``t`` (B,3) under the
+    camera-frame twist (B,6) (the cross product written out: it exports to ONNX)."""
+    v, w = twist[:, :3], twist[:, 3:]
+    c = torch.stack([w[:, 1] * t[:, 2] - w[:, 2] * t[:, 1],
+                     w[:, 2] * t[:, 0] - w[:, 0] * t[:, 2],
+                     w[:, 0] * t[:, 1] - w[:, 1] * t[:, 0]], dim=-1)
+    return torch.linalg.vector_norm(v + c, dim=-1)
+
+
+def _times_bias_transition(M: Tensor, qb: Tensor, db: Tensor) -> Tensor:
+    """``M Aᵀ`` for ``M`` (B,9,9) and the transition of a pose filter with a velocity bias,
+    ``A = [[R_Δ, 0, db I], [0, R_Δ, 0], [0, 0, I]]`` (``R_Δ`` the rotation of ``qb``
+    (B,1,1,4), ``db = s dt`` (B,) s·m/s): each row's first two 3-blocks rotated, ``db`` times
+    its bias block added to the first."""
+    rotated = quat_rotate(qb, M[..., :6].unflatten(-1, (2, 3))).flatten(-2)
+    bias_cols = M[..., 6:]
+    return torch.cat([rotated[..., :3] + db[:, None, None] * bias_cols, rotated[..., 3:],
+                      bias_cols], dim=-1)
 
 
 def _reinit_cov(cov: Tensor, R: Tensor) -> Tensor:

@@ -40,8 +40,8 @@ def test_evaluate_writes_everything(evaluated, tiny_benchmark):
     out = evaluated
     for name in ("results.md", "results.csv", "results.yaml"):
         assert (out / name).stat().st_size > 100
-    runs = {"full", "pose", "full-no-normal-flow", "full-no-weighting", "full-depth-range",
-            "full-depth-icp"}
+    runs = {"full", "pose", "full-no-normal-flow", "full-no-weighting", "full-no-velocity-bias",
+            "full-depth-range", "full-depth-icp"}
     for seq in ("box_regular", "box_faster"):
         assert {p.stem for p in (out / "trajectories" / seq).glob("*.h5")} == runs
         assert (out / "plots" / f"{seq}_tracking.png").stat().st_size > 5000
@@ -52,7 +52,7 @@ def test_evaluate_writes_everything(evaluated, tiny_benchmark):
     text = (out / "results.md").read_text()
     assert "ORACLE" in text and "Table III" in text
     manifest = yaml.safe_load((out / "results.yaml").read_text())
-    assert len(manifest["results"]) == 12 and manifest["tracker_config"]["pose_rate_hz"] == 10.0
+    assert len(manifest["results"]) == 14 and manifest["tracker_config"]["pose_rate_hz"] == 10.0
     assert not list(out.rglob(".*tmp*"))
 
 

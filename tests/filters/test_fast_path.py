@@ -282,12 +282,21 @@ def _play(filt: PoseUKF | PoseTwistUKF, steps: list, check) -> None:  # noqa: AN
             check(filt.update(filt.t + t_off, q, cov, valid))
 
 
-@pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF])
+class _BiasedPoseUKF(PoseUKF):
+    """A PoseUKF with a velocity bias in its state (``bias``, a 9x9 covariance)."""
+
+    def __init__(self, batch_size: int = 1, fast_path: bool = True) -> None:
+        cfg = PoseUKFConfig(velocity_bias=True, init_std_velocity_bias=0.3)
+        super().__init__(batch_size, cfg, fast_path=fast_path)
+
+
+@pytest.mark.parametrize("cls", [PoseUKF, PoseTwistUKF, _BiasedPoseUKF],
+                         ids=["PoseUKF", "PoseTwistUKF", "PoseUKF-velocity-bias"])
 def test_pose_steps_equal_torch(cls: type, calls: dict, update_form: str) -> None:
     g = torch.Generator().manual_seed(5)
     steps = _pose_run(g)
     fast, ref = cls(1, fast_path=True), cls(1, fast_path=False)
-    names = ("t", "q", "cov") + (("twist",) if cls is PoseTwistUKF else ())
+    names = ("t", "q", "cov") + {PoseTwistUKF: ("twist",), _BiasedPoseUKF: ("bias",)}.get(cls, ())
     counters = ("initialized", "rejected_run", "rejected", "reinitialised")
     # Each step from the same state: play the script on the reference, and replay every step
     # on the fast filter from the reference's state before it.
@@ -306,7 +315,9 @@ def test_pose_steps_equal_torch(cls: type, calls: dict, update_form: str) -> Non
     n_updates = sum(s[0] == "update" for s in steps)
     n_predicts = len(steps) - n_updates
     assert calls.get("pose_update") == n_updates
-    twist_driven = n_predicts if cls is PoseUKF else 0
+    twist_driven = n_predicts if issubclass(cls, PoseUKF) else 0
+    if cls is _BiasedPoseUKF:  # the updates moved the bias, and the predicts used it
+        assert float(ref.bias.abs().max()) > 1e-3
     compiled = update_form == "compiled"
     assert calls.get("compiled_pose_predict", 0) == (twist_driven if compiled else 0)
     assert calls.get("pose_predict", 0) == (0 if compiled else twist_driven)

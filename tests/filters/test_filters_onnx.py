@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from evtrack.camera import PinholeCamera
-from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
+from evtrack.filters import PoseTwistUKF, PoseUKF, PoseUKFConfig, VelocityKF
 from evtrack.filters.onnx_export import FilterStep, export_step, run_onnx, step_inputs
 
 CAM = PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480)
@@ -21,6 +21,7 @@ def _make(kind: str, dtype: torch.dtype) -> VelocityKF | PoseUKF | PoseTwistUKF:
     filt = {
         "velocity": lambda: VelocityKF(CAM, 2),
         "pose": lambda: PoseUKF(2),
+        "pose_bias": lambda: PoseUKF(2, PoseUKFConfig(velocity_bias=True)),
         "pose_twist": lambda: PoseTwistUKF(2),
     }[kind]()
     return filt.to(dtype)
@@ -42,7 +43,7 @@ def _compare(filt, path: Path, batch: int, rois: int, seed: int, tol: float) -> 
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
-@pytest.mark.parametrize("kind", ["velocity", "pose", "pose_twist"])
+@pytest.mark.parametrize("kind", ["velocity", "pose", "pose_bias", "pose_twist"])
 def test_exported_step_equals_torch(kind: str, dtype: torch.dtype, tmp_path: Path) -> None:
     filt = _make(kind, dtype)
     path = export_step(filt, tmp_path / f"{kind}.onnx")

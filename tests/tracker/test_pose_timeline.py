@@ -5,10 +5,23 @@ from __future__ import annotations
 import pytest
 import torch
 
-from evtrack.filters import PoseTwistUKF, PoseUKF
+from evtrack.filters import PoseTwistUKF, PoseUKF, PoseUKFConfig
 from evtrack.pose_timeline import PoseTimeline
 
 STEP = 1000
+
+
+def _plain() -> PoseUKF:
+    return PoseUKF(1, dtype=torch.float64)
+
+
+def _biased() -> PoseUKF:
+    """A filter with a velocity bias in its state (one more state tensor, ``bias``)."""
+    return PoseUKF(1, PoseUKFConfig(velocity_bias=True, init_std_velocity_bias=0.2),
+                   dtype=torch.float64)
+
+
+FILTERS = [pytest.param(_plain, id="plain"), pytest.param(_biased, id="velocity_bias")]
 
 
 def _twists(n: int) -> torch.Tensor:
@@ -30,10 +43,10 @@ def _start(filt):
                q=torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64))
 
 
-def _on_time_reference(twists: torch.Tensor, times, fuse) -> PoseUKF:
-    """A plain filter stepped through ``twists`` (one per STEP µs) that calls
+def _on_time_reference(twists: torch.Tensor, times, fuse, make=_plain) -> PoseUKF:
+    """A plain filter (from ``make``) stepped through ``twists`` (one per STEP µs) that calls
     ``fuse(filter, t_us)`` at each measurement time of ``times`` when that time comes."""
-    ref = PoseUKF(1, dtype=torch.float64)
+    ref = make()
     _start(ref)
     t_cur = 0
     for k in range(len(twists)):
@@ -48,14 +61,15 @@ def _on_time_reference(twists: torch.Tensor, times, fuse) -> PoseUKF:
     return ref
 
 
-def test_late_poses_equal_on_time_poses() -> None:
+@pytest.mark.parametrize("make", FILTERS)
+def test_late_poses_equal_on_time_poses(make) -> None:
     n = 60
     twists = _twists(n)
     times = {2300: 0, 17000: 1, 17000 + 1: 2, 40500: 3}  # µs -> measurement id
     # reference: a plain filter, measurements fused when their time comes
-    ref = _on_time_reference(twists, times, lambda f, tm: f.update(*_meas(times[tm])))
+    ref = _on_time_reference(twists, times, lambda f, tm: f.update(*_meas(times[tm])), make)
     # timeline: every measurement arrives 12 ms late, two of them in reverse order
-    filt = PoseUKF(1, dtype=torch.float64)
+    filt = make()
     _start(filt)
     line = PoseTimeline(filt, horizon_us=30_000)
     arrivals = sorted((tm + 12_000, -tm if tm == 17001 else tm) for tm in times)
@@ -69,6 +83,9 @@ def test_late_poses_equal_on_time_poses() -> None:
     torch.testing.assert_close(filt.q, ref.q, rtol=0, atol=1e-12)
     torch.testing.assert_close(filt.cov, ref.cov, rtol=1e-9, atol=1e-15)
     assert int(filt.rejected[0]) == int(ref.rejected[0])
+    if make is _biased:  # the bias was learnt from the late poses as from the on-time ones
+        assert "bias" in line.names and float(filt.bias.abs().max()) > 1e-3
+        torch.testing.assert_close(filt.bias, ref.bias, rtol=0, atol=1e-12)
 
 
 def test_late_ranges_equal_on_time_ranges() -> None:
@@ -276,8 +293,9 @@ def test_remeasure_keeps_a_twist_when_asked_for_none_and_checks_its_input() -> N
         PoseTimeline(PoseTwistUKF(1), 10_000).remeasure(0, lambda a, b: None)
 
 
+@pytest.mark.parametrize("make", FILTERS)
 @pytest.mark.parametrize("kinds", [("pose",), ("pose", "range", "aligned")])
-def test_batched_replay_equals_step_by_step_replay_bit_for_bit(kinds) -> None:
+def test_batched_replay_equals_step_by_step_replay_bit_for_bit(kinds, make) -> None:
     """The measurement-free runs of a replay go through one ``PoseUKF.predict_run`` call
     each: every kept snapshot (probed by ``pose_at``) and the final state equal the replay
     step by step exactly, counters included."""
@@ -285,7 +303,7 @@ def test_batched_replay_equals_step_by_step_replay_bit_for_bit(kinds) -> None:
     twists = _twists(n)
     lines = []
     for batched in (True, False):
-        filt = PoseUKF(1, dtype=torch.float64)
+        filt = make()
         _start(filt)
         line = PoseTimeline(filt, horizon_us=50_000)
         line.batch_replay = batched
@@ -314,12 +332,16 @@ def test_batched_replay_equals_step_by_step_replay_bit_for_bit(kinds) -> None:
             assert torch.equal(x, y)
 
 
-def test_predict_run_equals_predict_calls_and_declines_batches() -> None:
+@pytest.mark.parametrize("make", FILTERS)
+def test_predict_run_equals_predict_calls_and_declines_batches(make) -> None:
     twists = _twists(7)
     dts = [1e-3, 2.5e-4, 1e-3, 3e-3, 1e-6, 1e-3, 7e-4]
-    run, ref = PoseUKF(1, dtype=torch.float64), PoseUKF(1, dtype=torch.float64)
+    run, ref = make(), make()
     _start(run)
     _start(ref)
+    if make is _biased:
+        for filt in (run, ref):
+            filt.bias = torch.tensor([[0.05, -0.02, 0.3]], dtype=torch.float64)
     states = run.predict_run(list(twists), dts)
     assert states is not None
     for k in range(len(dts)):
@@ -327,6 +349,8 @@ def test_predict_run_equals_predict_calls_and_declines_batches() -> None:
         assert torch.equal(states[0][k], ref.t) and torch.equal(states[1][k], ref.q)
         assert torch.equal(states[2][k], ref.cov)
     assert torch.equal(run.t, ref.t) and torch.equal(run.cov, ref.cov)
+    if make is _biased:
+        assert run.cov.shape == (1, 9, 9) and torch.equal(run.bias, ref.bias)
     # not the compiled single-track path: None, nothing changed
     two = PoseUKF(2, dtype=torch.float64)
     before = two.t.clone()
@@ -338,7 +362,8 @@ def test_predict_run_equals_predict_calls_and_declines_batches() -> None:
         run.predict_run(list(twists[:2]), [1e-3])
 
 
-def test_step_run_equals_steps_bit_for_bit_and_late_poses_replay_the_same() -> None:
+@pytest.mark.parametrize("make", FILTERS)
+def test_step_run_equals_steps_bit_for_bit_and_late_poses_replay_the_same(make) -> None:
     """``step_run`` (one compiled predict for a run of steps) keeps the same times, twists and
     snapshots as ``step`` per step, so a late pose then replays to the same state; the past
     beyond the horizon is trimmed the same."""
@@ -346,7 +371,7 @@ def test_step_run_equals_steps_bit_for_bit_and_late_poses_replay_the_same() -> N
     twists = _twists(n)
     lines = []
     for runs in (True, False):
-        filt = PoseUKF(1, dtype=torch.float64)
+        filt = make()
         _start(filt)
         line = PoseTimeline(filt, horizon_us=40_000)
         k = 0
