@@ -195,14 +195,13 @@ def _pose_ukf_defaults() -> PoseUKFConfig:
     # approaching faster than it does (-0.05 to -0.09 m/s along the optical axis on the
     # default presets' `faster` sequences, ~0 on `regular`; docs/measurement-log.md, sessions
     # 38-40), so between two poses, and over the network's 200 ms latency, the track falls
-    # behind in depth. The filter learns that bias from the pose updates' innovations.
-    # evaluate --methods full, shipped networks, the four columns (paper-matched regular,
-    # faster; default presets regular, faster), without -> with (q 0.01, init 0.05): 1.10 /
-    # 7.00, 2.48 / 10.68, 1.70 / 6.93, 4.07 / 11.70 -> 1.05 / 7.00, 2.49 / 10.68, 1.52 / 6.93,
-    # 3.88 / 11.67; the default presets' `faster` with (q, init) (0.003, 0.05) 3.93, (0.01,
-    # 0.03) 3.87, (0.01, 0.1) 3.97, (0.03, 0.05) 3.91 cm: a plateau. It cannot learn more than
-    # the networks' own depth errors allow (the mustard bottle's `faster`, whose 5 Hz poses
-    # err by up to 8 cm in depth, 4.62 -> 4.76 cm).
+    # behind in depth. The filter learns that bias, scaled by the object's speed (nothing
+    # moves at rest), from the pose updates' innovations. evaluate --methods full, shipped
+    # networks, the four columns (paper-matched regular, faster; default presets regular,
+    # faster), without -> with: 1.10 / 7.00, 2.48 / 10.68, 1.70 / 6.93, 4.07 / 11.70 -> 1.10 /
+    # 7.00, 2.48 / 10.68, 1.66 / 6.93, 3.89 / 11.67; default presets with (q, init) (0.01,
+    # 0.1) 1.64, 3.95 cm, (0.03, 0.1) 1.60, 3.95. It cannot learn more than the networks' own
+    # range errors allow (the known mean bias would give 3.44 cm on the default `faster`).
     return PoseUKFConfig(q_translation=0.01, q_rotation=0.3, reinit_after=3,
                          velocity_bias=True, q_velocity_bias=0.01, init_std_velocity_bias=0.05)
 
