@@ -30,13 +30,19 @@ def _same_rotation(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 # ---------------------------------------------------------------------------- exactness
-def test_closed_form_equals_sigma_points() -> None:
+@pytest.mark.parametrize("velocity_bias", [False, True], ids=["plain", "velocity_bias"])
+def test_closed_form_equals_sigma_points(velocity_bias: bool) -> None:
     g = torch.Generator().manual_seed(0)
     B = 8
     t0, q0 = torch.randn(B, 3, generator=g, dtype=F64), _unit_q(g, B)
-    fast, slow = PoseUKF(B), PoseUKF(B, PoseUKFConfig(sigma_points=True))
+    cfg = {"velocity_bias": velocity_bias, "init_std_velocity_bias": 0.2}
+    fast, slow = PoseUKF(B, PoseUKFConfig(**cfg)), PoseUKF(B, PoseUKFConfig(sigma_points=True,
+                                                                             **cfg))
     fast.reset(t=t0, q=q0)
     slow.reset(t=t0, q=q0)
+    if velocity_bias:  # a bias (m/s per m/s) moving the points, and learnt by the updates
+        bias0 = 0.3 * torch.randn(B, 3, generator=torch.Generator().manual_seed(10), dtype=F64)
+        fast.bias, slow.bias = bias0.clone(), bias0.clone()
     for i in range(60):
         twist = torch.randn(B, 6, generator=g, dtype=F64) * 2
         fast.predict(twist, 0.01)
@@ -51,6 +57,10 @@ def test_closed_form_equals_sigma_points() -> None:
     assert _same_rotation(fast.q, slow.q) < 1e-12
     torch.testing.assert_close(fast.cov, slow.cov, rtol=0, atol=1e-12 * fast.cov.abs().max())
     assert fast.rejected[0] == 1 == slow.rejected[0]
+    if velocity_bias:
+        assert fast.cov.shape == (B, 9, 9)
+        torch.testing.assert_close(fast.bias, slow.bias, rtol=0, atol=1e-12)
+        assert float((fast.bias - bias0).abs().max()) > 1e-3
 
 
 @pytest.mark.parametrize("sigma_points", MODES)
@@ -642,31 +652,6 @@ def test_bad_steps_and_quaternions_are_errors_or_missing_poses(fast_path: bool) 
 # ---------------------------------------------------------------------------- velocity bias
 def _biased(B: int = 1, **kw) -> PoseUKF:
     return PoseUKF(B, PoseUKFConfig(velocity_bias=True, init_std_velocity_bias=0.2, **kw))
-
-
-def test_velocity_bias_closed_form_equals_sigma_points() -> None:
-    g = torch.Generator().manual_seed(10)
-    B = 6
-    t0, q0 = torch.randn(B, 3, generator=g, dtype=F64), _unit_q(g, B)
-    bias0 = 0.3 * torch.randn(B, 3, generator=g, dtype=F64)
-    fast, slow = _biased(B), _biased(B, sigma_points=True)
-    for filt in (fast, slow):
-        filt.reset(t=t0, q=q0)
-        filt.bias = bias0.clone()
-    for i in range(60):
-        twist = torch.randn(B, 6, generator=g, dtype=F64) * 2
-        fast.predict(twist, 0.01)
-        slow.predict(twist, 0.01)
-        if i % 5 == 0:
-            t_m = fast.t + 0.02 * torch.randn(B, 3, generator=g, dtype=F64)
-            q_m = fast.q + 0.02 * torch.randn(B, 4, generator=g, dtype=F64)
-            assert torch.equal(fast.update(t_m, q_m), slow.update(t_m, q_m))
-    assert fast.cov.shape == (B, 9, 9)
-    torch.testing.assert_close(fast.t, slow.t, rtol=0, atol=1e-12)
-    torch.testing.assert_close(fast.bias, slow.bias, rtol=0, atol=1e-12)
-    assert _same_rotation(fast.q, slow.q) < 1e-12
-    torch.testing.assert_close(fast.cov, slow.cov, rtol=0, atol=1e-12 * fast.cov.abs().max())
-    assert float((fast.bias - bias0).abs().max()) > 1e-3  # the updates moved the bias
 
 
 def _se3_motion(twist: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
