@@ -706,7 +706,8 @@ class PoseUKF(_PoseFilter):
         bias: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Pure predict: (B,3), (B,4), (B,n,n), twist (B,6), dt (B,) -> (t, q, cov); ``bias``
-        (B,3) m/s: the velocity bias of a filter with one (n = 9), else ``None`` (n = 6)."""
+        (B,3) m/s per m/s of speed: the velocity bias of a filter with one (n = 9), else
+        ``None`` (n = 6)."""
         if self.config.sigma_points:
             extra = t[:, :0] if bias is None else bias
             t, q, _, cov = self._propagate(t, q, extra, cov, twist, dt)
