@@ -58,7 +58,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         f"{' '.join(DEFAULT_METHODS)}")
     p.add_argument("--ablation", action="store_true",
                    help="also run the full method without the normal-flow constraint, "
-                        "without measurement weighting, with the range of every depth "
+                        "without measurement weighting, without the pose filter's velocity "
+                        "bias (the paper's pose filter), with the range of every depth "
                         "frame fused (depth_range) and with the mesh aligned with the depth "
                         "frames (depth_icp), both not in the paper (Table III)")
     p.add_argument("--out", type=Path, default=None, metavar="RESULTS_DIR",
