@@ -12,7 +12,8 @@ number of RoIs N are dynamic. Shapes and dtypes of the inputs, in order:
   ``rejected_run (B,)`` int64, ``twist (B,6)``, ``dt (B,)``, ``t_meas (B,3)``, ``q_meas (B,4)``,
   ``cov_meas (B,6,6)``, ``valid (B,)`` bool -> ``t, q, cov, initialized, rejected_run, used,
   rejected, reinitialised``. With a velocity bias (``config.velocity_bias``): ``cov (B,9,9)``
-  and a last input ``bias (B,3)`` m/s, and a last output, the new ``bias``.
+  and a last input ``bias (B,3)`` (m/s per m/s of the object's speed), and a last output,
+  the new ``bias``.
 * ``PoseTwistUKF``: as ``PoseUKF`` with ``twist (B,6)`` after ``q`` in the state and no twist
   input -> ``t, q, twist, cov, initialized, rejected_run, used, rejected, reinitialised``.
 
