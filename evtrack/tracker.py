@@ -442,6 +442,7 @@ class _Prefetched:
         self._count = count
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="evtrack-frames")
         self._ahead: tuple[int, Future] | None = None
+        self._closed = False
 
     def __call__(self, index: int):
         ahead, self._ahead = self._ahead, None
@@ -451,12 +452,14 @@ class _Prefetched:
             if ahead is not None:
                 ahead[1].cancel()
             frame = self._read(index)
-        if index + 1 < self._count:
+        if index + 1 < self._count and not self._closed:
             self._ahead = (index + 1, self._pool.submit(self._read, index + 1))
         return frame
 
     def close(self) -> None:
-        """Stop the worker (a read in flight finishes; its frame is dropped)."""
+        """Stop the worker (a read in flight finishes; its frame is dropped). Later calls
+        read in the caller's thread."""
+        self._closed = True
         if self._ahead is not None:
             self._ahead[1].cancel()
             self._ahead = None
@@ -2165,13 +2168,15 @@ class Tracker:
                 self.push_frame(t, rgb, depth)
                 if bar is not None:
                     bar.update(1)
+            # frames are read when the steps reach them: the last ones only in the final
+            # step groups, so the reader stays open until the stream is done
+            push_until(None)
+            if self._last_event_t is not None:
+                self.advance(self._last_event_t + 1)
+            self.flush()
         finally:
             if isinstance(read_depth, _Prefetched):
                 read_depth.close()
-        push_until(None)
-        if self._last_event_t is not None:
-            self.advance(self._last_event_t + 1)
-        self.flush()
         if bar is not None:
             bar.close()
         return self.trajectory()

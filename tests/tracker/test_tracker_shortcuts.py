@@ -91,3 +91,31 @@ def test_group_depth_lookup_equals_step_by_step(fast_sequence, monkeypatch):
     assert st_grouped.depth_fallbacks == st_stepped.depth_fallbacks > 0
     assert st_grouped.roi_flows == st_stepped.roi_flows
     assert torch.equal(grouped.poses.nan_to_num(7.0), stepped.poses.nan_to_num(7.0))
+
+
+def test_a_closed_reader_reads_in_the_callers_thread():
+    threads: list[str] = []
+
+    def read(i: int) -> int:
+        threads.append(threading.current_thread().name)
+        return i
+
+    reader = _Prefetched(read, 5)
+    assert reader(0) == 0
+    reader.close()
+    assert reader(1) == 1  # the frame read ahead was dropped: read again, here
+    assert reader(2) == 2
+    assert threads[-2:] == [threading.current_thread().name] * 2
+
+
+def test_track_takes_the_last_frames_with_long_step_groups(fast_sequence):
+    """With 40 ms step groups the last frames are reached only by the final advance, after
+    the frame loop: the depth reader must still give them (it used to be closed by then,
+    and ``track`` failed on the last depth frame)."""
+    counts = []
+    for steps in (10, 40):
+        tracker, _ = make_tracker(fast_sequence, method="full", flow_batch_steps=steps)
+        traj = tracker.track(fast_sequence)
+        assert bool(traj.tracked.any()) and bool(torch.isfinite(traj.poses[traj.tracked]).all())
+        counts.append((tracker.stats.frames, tracker.stats.frames_without_depth))
+    assert counts[0] == counts[1]  # every frame taken, each with its depth
