@@ -332,6 +332,24 @@ class Silhouette:
         if projected is None:
             return None
         uv, z = projected
+        return self._hull_polygon(uv, float(z.min()), float(z.max()))
+
+    def hull(self, polygons: list[SilhouettePolygon]) -> SilhouettePolygon:
+        """The convex hull of silhouettes (e.g. at the start and the end of a motion), as
+        one :class:`SilhouettePolygon`: its depth range spans theirs. For a convex silhouette
+        moved by a translation it is exactly the area swept between the two positions.
+
+        Raises:
+            ValueError: no polygon given.
+        """
+        if not polygons:
+            raise ValueError("Silhouette.hull needs at least one polygon")
+        uv = np.concatenate([p.vertices for p in polygons])
+        return self._hull_polygon(uv, min(p.z_range[0] for p in polygons),
+                                  max(p.z_range[1] for p in polygons))
+
+    def _hull_polygon(self, uv: np.ndarray, z_min: float, z_max: float) -> SilhouettePolygon:
+        """(N, 2) pixels -> their convex hull, with the share of its area in the image."""
         hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
         area = abs(cv2.contourArea(hull))
         if area > 0:
@@ -341,8 +359,7 @@ class Silhouette:
             cx, cy = hull.mean(0)
             inside = -0.5 <= cx < self.camera.width - 0.5 and -0.5 <= cy < self.camera.height - 0.5
             visible = 1.0 if inside else 0.0
-        return SilhouettePolygon(hull.astype(np.float64), (float(z.min()), float(z.max())),
-                                 visible)
+        return SilhouettePolygon(hull.astype(np.float64), (z_min, z_max), visible)
 
 
 @njit

@@ -265,20 +265,18 @@ class TrackerConfig:
             pose and a twist at the end of every step (1 kHz by default). Steps are aligned on
             absolute time (multiples of the step).
         flow_batch_steps: the event flow runs once per this many velocity steps (one call on
-            their events, masked with the silhouette predicted at the first step; the filters
-            still step once per step). The flow's per-call cost dominates at 1 ms steps; groups
-            of steps are aligned on absolute time, so results do not depend on how the events
-            are chunked. The outputs of a group are available at its end (a delay of up to
-            ``flow_batch_steps`` steps in live use; :meth:`Tracker.pose` extrapolates with
-            the current twist meanwhile). 10 by default: on the `faster` benchmark set
-            (oracle poses) 5, 10 and 20 gave the same errors to 0.1 cm and 0.1 deg, and 10
-            took the flow stage from 2.6-2.8 s to 2.0-2.1 s on the mustard bottle
-            (``benchmarks/bench_tracker_cpu.py``, variants ``mask`` and ``groups``). 20 is
-            the throughput setting for offline runs (session 38, shipped networks, both
-            benchmark sets: the same errors to 0.06 cm and 0.05 deg in all four columns; the
-            tracker 3-20 % faster on the five sequences timed, e.g. the paper-matched cracker
-            box `faster` at a real-time factor of 0.92 against 1.05 on 2 cores), at twice the
-            delay of the corrected outputs in live use.
+            their events, masked with the convex hull of the silhouette predicted at the first
+            step and the one predicted at the last step's end with the current twist; the
+            filters still step once per step). Groups of steps are aligned on absolute time,
+            so results do not depend on how the events are chunked. The outputs of a group
+            are available at its end: a delay of up to ``flow_batch_steps`` steps in live use
+            (:meth:`Tracker.pose` extrapolates with the current twist meanwhile). 40 by default
+            (session 41): each call has a fixed cost (a few ms of Python, small kernels and
+            thread wake-ups), and against 10 per call the tracker took 25-35 % less time on
+            the tomato can, the mustard bottle and the potted meat can `faster` (real-time
+            factors 1.16-1.34 -> 0.81-0.94 on 2 cores, `benchmarks/bench_tracker_options.py`)
+            with the same errors on both benchmark sets (`docs/results.md`). For live use where
+            the delay matters, 10 (or 20) costs that time back.
         mask_margin_px: events are kept when they lie within this distance (pixels) of the
             object's predicted silhouette (the convex hull of the projected mesh). It must
             cover the predicted pose's error, or the events of one side are lost and the
@@ -514,7 +512,7 @@ class TrackerConfig:
     torch_threads: int = 2
     blas_threads: int = 1
     velocity_step_us: int = 1000
-    flow_batch_steps: int = 10
+    flow_batch_steps: int = 40
     mask_margin_px: float = 32.0
     burst_rate_hz: float = 100.0
     max_events_per_step: int = 20_000

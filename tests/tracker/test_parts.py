@@ -110,6 +110,38 @@ def test_silhouette_covers_the_rendered_mask(box) -> None:
     assert outside.visible_fraction == 0.0
 
 
+def test_hull_of_two_silhouettes_is_the_swept_area(box) -> None:
+    """The hull of a convex silhouette at two positions of a translation parallel to the
+    image holds every position in between (the swept area, the event mask of a step group)
+    and nothing farther than either, with the depth range of both."""
+    sil = Silhouette(box.vertices, CAM)
+    start = _pose([0.3, -0.5, 0.2], [-0.03, 0.0, 0.5])
+    end = _pose([0.3, -0.5, 0.2], [0.03, 0.01, 0.5])
+    a, b = sil.polygon(start), sil.polygon(end)
+    swept = sil.hull([a, b])
+    for s in np.linspace(0.0, 1.0, 11):
+        mid = start.copy()
+        mid[:3, 3] = (1 - s) * start[:3, 3] + s * end[:3, 3]
+        assert swept.contains(sil.polygon(mid).vertices, 1e-3).all()
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([0, 0], [CAM.width, CAM.height], (4000, 2))
+    inside = swept.contains(pts)
+    assert (inside >= (a.contains(pts) | b.contains(pts))).all()
+    area = cv2.contourArea(swept.vertices.astype(np.float32))
+    moved = np.linalg.norm(b.vertices.mean(0) - a.vertices.mean(0))
+    assert area > cv2.contourArea(a.vertices.astype(np.float32)) + 0.5 * moved  # it grew
+    # nothing beyond both: every hull vertex is a vertex of one of them
+    both = np.concatenate([a.vertices, b.vertices])
+    assert all(np.abs(both - v).max(1).min() < 1e-3 for v in swept.vertices)
+    assert swept.z_range == (min(a.z_range[0], b.z_range[0]), max(a.z_range[1], b.z_range[1]))
+    assert swept.visible_fraction == 1.0
+    same = sil.hull([a])
+    np.testing.assert_allclose(cv2.contourArea(same.vertices.astype(np.float32)),
+                               cv2.contourArea(a.vertices.astype(np.float32)), rtol=1e-6)
+    with pytest.raises(ValueError, match="at least one polygon"):
+        sil.hull([])
+
+
 @pytest.mark.parametrize("shape", ["cube", "blob"])
 def test_visible_fraction_equals_the_polygons(shape) -> None:
     rng = np.random.default_rng(3)
