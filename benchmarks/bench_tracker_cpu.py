@@ -2,7 +2,7 @@
 
     python benchmarks/bench_tracker_cpu.py --sequence DIR [DIR ...] [--repeats 2]
                                            [--variants reference blas strips mask groups kf
-                                                       depth eq3 sample budget runs]
+                                                       depth eq3 sample budget runs long]
 
 Variants, cumulative (each adds one change to the one before):
 
@@ -28,8 +28,10 @@ Variants, cumulative (each adds one change to the one before):
 * ``runs``: the velocity steps between two events of the stream (a frame, a pose due) in
   the filters' compiled runs (``Tracker.step_runs``: ``VelocityKF.forward_run``,
   ``PoseTimeline.step_run``), a few calls for ~10 steps instead of a few dozen per step, and
-  the steps a late first pose measures again a step group per velocity run: all eleven
-  changes, the tracker as it ships.
+  the steps a late first pose measures again a step group per velocity run;
+* ``long``: one flow call per 40 velocity steps instead of 10 (``flow_batch_steps``, the
+  default since session 41): each call's fixed cost (Python, small kernels, thread wake-ups)
+  is paid a quarter as often. All twelve changes, the tracker as it ships.
 
 The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
@@ -39,10 +41,11 @@ variant, as are the later small-call savings of the flow (registration kernels w
 parallel loops, compiled group keys and counts), the NumPy gather of the event mask and the
 compiled row spans, and the pose source in ``track``'s worker thread (``pose_async``).
 
-All but ``groups``, ``eq3``, ``sample`` and ``budget`` give the same trajectory as the variant
-before up to float rounding (the strips and the runs bit for bit; the BLAS thread count and the
-mask's arithmetic can move an event on the mask's edge); ``groups`` masks 10 steps of events
-with the silhouette predicted at their first step (its errors on the benchmark sets: see
+All but ``groups``, ``eq3``, ``sample``, ``budget`` and ``long`` give the same trajectory as the
+variant before up to float rounding (the strips and the runs bit for bit; the BLAS thread count
+and the mask's arithmetic can move an event on the mask's edge); ``groups`` and ``long`` mask 10
+and 40 steps of events with the hull of the silhouettes predicted at their first step and at
+their last step's end (its errors on the benchmark sets: see
 ``TrackerConfig.flow_batch_steps``); ``eq3`` solves Eq. 3 over fewer hypotheses (its errors: see
 ``evtrack.tracking_config``), ``sample`` the data term of fewer events in the crowded windows
 (see ``evtrack.tracker``), ``budget`` the flows of fewer RoIs when the object's events exceed
@@ -70,7 +73,7 @@ from pathlib import Path
 from tracker_runs import add_run_arguments, compare, run_child, time_tracking
 
 VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3", "sample",
-            "budget", "runs")
+            "budget", "runs", "long")
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int, frames: str) -> dict:
@@ -107,8 +110,10 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
         from evtrack import depth_sources
 
         depth_sources.COMPILED = False
+    groups = (40 if level >= VARIANTS.index("long") else
+              10 if level >= VARIANTS.index("groups") else 5)
     config = {"method": method, "blas_threads": 0 if level < 1 else 1,
-              "flow_batch_steps": 10 if level >= VARIANTS.index("groups") else 5}
+              "flow_batch_steps": groups}
     if level < VARIANTS.index("eq3"):
         config["flow"] = {"max_hypotheses": 48, "max_events_per_roi": 64}
     if level < VARIANTS.index("sample"):
