@@ -217,7 +217,8 @@ def test_tracker_aligns_in_the_depth_cameras_frame(tmp_path, method) -> None:
                       T_event_rgb=T_event_rgb)
     rgb = np.zeros((CAM.height, CAM.width, 3), np.uint8)
     tracker.push_frame(10_000, rgb=rgb, depth=_box_depth(obj_rgb))
-    tracker.advance(20_000)  # a frame is taken once the step group after it closes
+    # a frame is taken once the step group holding it closes
+    tracker.advance(10_000 + config.velocity_step_us * config.flow_batch_steps)
     tracker.push_pose(PoseMeasurement(10_000, given_event))
     tracker.flush()
     assert tracker.initialized and tracker.stats.poses_depth_aligned == 1

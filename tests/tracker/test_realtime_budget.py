@@ -88,8 +88,10 @@ def test_a_single_spike_does_not_cut_the_budget() -> None:
 def test_tracking_adapts_the_budget_to_the_clock(fast_sequence, processing_s, lowered) -> None:
     """Through :meth:`Tracker.track`: a clock on which each step group takes twice its stream
     time lowers the budget to the floor; one on which it takes a tenth leaves it."""
+    # groups of STREAM_S (10 steps): the 0.6 s sequence then has the ~27 groups the budget
+    # needs to build a backlog and be cut from 2000 to 200
     tracker, _ = make_tracker(fast_sequence, realtime_load=0.9, max_searched_per_step=2000,
-                              min_searched_per_step=200)
+                              min_searched_per_step=200, flow_batch_steps=10)
     tracker.clock = _FakeClock(processing_s)
     tracker.track(fast_sequence)
     groups = tracker.stats.steps // tracker.config.flow_batch_steps

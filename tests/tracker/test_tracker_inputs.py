@@ -32,7 +32,10 @@ def _events(t, x=None, y=None) -> Events:
 
 
 def _tracker(**config) -> Tracker:
-    return Tracker(TrackerConfig.from_dict(config), camera=CAM, mesh=CUBE)
+    """A tracker of the cube; step groups of 10 ms unless given (the tests below close
+    groups with ``advance`` at multiples of 10 ms)."""
+    return Tracker(TrackerConfig.from_dict({"flow_batch_steps": 10, **config}), camera=CAM,
+                   mesh=CUBE)
 
 
 def test_unsorted_events_are_an_error() -> None:
@@ -228,7 +231,8 @@ class _FixedSource:
 @pytest.mark.parametrize("rgb", [np.zeros((96, 128), np.uint8), np.zeros((96, 128, 3)),
                                  np.zeros((48, 64, 3), np.uint8), [[0, 0, 0]]])
 def test_an_rgb_array_that_is_no_image_of_the_camera_is_refused_at_push_frame(rgb) -> None:
-    tracker = Tracker(TrackerConfig(), camera=CAM, mesh=CUBE, pose_source=_FixedSource())
+    tracker = Tracker(TrackerConfig(flow_batch_steps=10), camera=CAM, mesh=CUBE,
+                      pose_source=_FixedSource())
     with pytest.raises(ValueError, match="RGB frame at t=5000 µs"):
         tracker.push_frame(5_000, rgb=rgb)
     assert tracker.stats.frames == 0  # nothing queued
@@ -238,8 +242,8 @@ def test_an_rgb_array_that_is_no_image_of_the_camera_is_refused_at_push_frame(rg
 
 
 def test_a_lazy_rgb_frame_of_the_wrong_size_names_its_time_and_the_tracker_goes_on() -> None:
-    tracker = Tracker(TrackerConfig(pose_async=False, pose_latency_ms=0.0), camera=CAM,
-                      mesh=CUBE, pose_source=_FixedSource())
+    tracker = Tracker(TrackerConfig(pose_async=False, pose_latency_ms=0.0, flow_batch_steps=10),
+                      camera=CAM, mesh=CUBE, pose_source=_FixedSource())
     tracker.push_frame(5_000, rgb=lambda: np.zeros((48, 64, 3), np.uint8))
     with pytest.raises(ValueError, match="RGB frame at t=5000 µs is 64x48"):
         tracker.advance(20_000)
