@@ -266,17 +266,18 @@ class TrackerConfig:
             absolute time (multiples of the step).
         flow_batch_steps: the event flow runs once per this many velocity steps (one call on
             their events, masked with the convex hull of the silhouette predicted at the first
-            step and the one predicted at the last step's end with the current twist; the
-            filters still step once per step). Groups of steps are aligned on absolute time,
-            so results do not depend on how the events are chunked. The outputs of a group
-            are available at its end: a delay of up to ``flow_batch_steps`` steps in live use
-            (:meth:`Tracker.pose` extrapolates with the current twist meanwhile). 40 by default
-            (session 41): each call has a fixed cost (a few ms of Python, small kernels and
-            thread wake-ups), and against 10 per call the tracker took 25-35 % less time on
-            the tomato can, the mustard bottle and the potted meat can `faster` (real-time
-            factors 1.16-1.34 -> 0.81-0.94 on 2 cores, `benchmarks/bench_tracker_options.py`)
-            with the same errors on both benchmark sets (`docs/results.md`). For live use where
-            the delay matters, 10 (or 20) costs that time back.
+            step and the one predicted at the last step's end with the current twist). The
+            filters still step once per step and take the pose, its silhouette and the
+            velocity filter's pivot afresh every 10 steps, as groups of 10 did. Groups of steps
+            are aligned on absolute time, so results do not depend on how the events are
+            chunked. The outputs of a group are available at its end: a delay of up to
+            ``flow_batch_steps`` steps in live use (:meth:`Tracker.pose` extrapolates with the
+            current twist meanwhile). 40 by default (session 41): each flow call has a fixed
+            cost (a few ms of Python, small kernels, thread wake-ups), and 40 instead of 10
+            took 20-35 % off the tracking time of three of the four `faster` YCB sequences on 2
+            cores (`benchmarks/bench_tracker_options.py`; README, "Speed") with the same errors
+            on both benchmark sets and the demo (`docs/results.md`). For live use where the
+            delay matters, 10 costs that time back.
         mask_margin_px: events are kept when they lie within this distance (pixels) of the
             object's predicted silhouette (the convex hull of the projected mesh). It must
             cover the predicted pose's error, or the events of one side are lost and the
