@@ -198,7 +198,9 @@ def _pose_ukf_defaults() -> PoseUKFConfig:
     # behind in depth. The filter learns that bias, scaled by the object's speed (nothing
     # moves at rest), from the pose updates' innovations. evaluate --methods full, shipped
     # networks, the four columns (paper-matched regular, faster; default presets regular,
-    # faster), without -> with: 1.10 / 7.00, 2.48 / 10.68, 1.70 / 6.93, 4.07 / 11.70 -> 1.10 /
+    # faster), without -> with (session 40, step groups of 10 ms; with the 40 ms groups of
+    # session 41 the default presets' `faster` 4.15 / 11.57 -> 3.93 / 11.59): 1.10 / 7.00,
+    # 2.48 / 10.68, 1.70 / 6.93, 4.07 / 11.70 -> 1.10 /
     # 7.00, 2.48 / 10.68, 1.66 / 6.93, 3.89 / 11.67; default presets with (q, init) (0.01,
     # 0.1) 1.64, 3.95 cm, (0.03, 0.1) 1.60, 3.95. It cannot learn more than the networks' own
     # range errors allow (the known mean bias would give 3.44 cm on the default `faster`).
