@@ -496,7 +496,8 @@ class _StepFlows:
         self.support = res.support.detach().cpu().numpy()[order]
         edges = t0 + step * np.arange(n_steps + 1, dtype=np.int64)
         self.bounds = np.searchsorted(t[order], edges, side="left")
-        #: (depth map, first row, depths from that row on): see Tracker._step_depth
+        #: (depth map, first row, depths from that row on, the silhouette that gated them):
+        #: see Tracker._run_depth
         self.depth_cache: tuple[np.ndarray | None, int, np.ndarray, Any] | None = None
 
     def step(self, k: int) -> tuple[np.ndarray, Tensor, Tensor]:
@@ -1572,12 +1573,8 @@ class Tracker:
 
         def twist_of(t_start: int, t_end: int) -> Tensor:
             if at["segment"] != segment(t_start):
-                pose = self._current_pose()
-                poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
+                pose, poly = self._segment_pose()
                 at.update(segment=segment(t_start), pose=pose, poly=poly)
-                if cfg.velocity_kf.object_centred:
-                    self.vkf.set_pivot(None if poly is None else
-                                       torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
                 # the segment's steps from here on (those starting before the next segment's),
                 # all asked in turn: the filter holds a pose
                 group_end = min((t_start // group_us + 1) * group_us,

@@ -716,9 +716,10 @@ class PoseUKF(_PoseFilter):
         # δt' = R_Δ δt (+ s dt δb), δθ' = R_Δ δθ (δb' = δb). The unscented transform is exact:
         # P' = A P Aᵀ + Q dt.
         qd, pd = se3_exp(twist * dt.unsqueeze(-1))
-        db = dt if bias is None else dt * _origin_speed(twist, t)  # the bias's share: s dt
+        t_prior = t
         t = quat_rotate(qd, t) + pd
         if bias is not None:
+            db = dt * _origin_speed(twist, t_prior)  # the bias's share of the step: s dt
             t = t + bias * db.unsqueeze(-1)
         q = quat_mul(qd, q)
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
