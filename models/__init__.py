@@ -31,6 +31,7 @@ from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner, RefineR
 from evtrack.models.dope_lite import DopeLite, DopeLiteConfig
 from evtrack.models.estimator import PoseEstimator, TorchPoseEstimator, preprocess
 from evtrack.models.factory import create, load_model
+from evtrack.models.fold_batchnorm import fold_batchnorm
 from evtrack.models.keypoints import find_peaks, grid_to_pixel, pixel_to_grid
 from evtrack.models.onnx_estimator import OnnxPoseEstimator
 from evtrack.models.onnx_export import ExportError, export_onnx, read_onnx_record
@@ -75,6 +76,7 @@ __all__ = [
     "extract_instances",
     "find_default_weights",
     "find_peaks",
+    "fold_batchnorm",
     "grid_to_pixel",
     "is_model",
     "list_models",

@@ -25,6 +25,7 @@ from evtrack.errors import ConfigError
 from evtrack.models.crop_refine import crop_window, halfway_rotation, warp_crop
 from evtrack.models.cuboid import CENTROID_INDEX, Cuboid
 from evtrack.models.decode import DecodeConfig, PoseDetection, decode_poses, with_alternatives
+from evtrack.models.fold_batchnorm import fold_batchnorm as fold_bn
 from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD, WeightsRecord
 
 __all__ = ["PoseEstimator", "TorchPoseEstimator", "preprocess", "training_input_scale"]
@@ -53,12 +54,18 @@ def preprocess(
         rgb = cv2.resize(rgb, (nw, nh), interpolation=interp)
     else:
         nw, nh = w, h
-    x = rgb.astype(np.float32) * np.float32(1.0 / 255.0)
-    x = (x - np.asarray(mean, np.float32)) / np.asarray(std, np.float32)
+    # (x / 255 - mean) / std as one scale and offset per channel, written channel by channel
+    # into the padded planar array: ~10x faster than numpy's chain of temporaries at 640x480
+    scale = 1.0 / (255.0 * np.asarray(std, np.float64))
+    offset = -np.asarray(mean, np.float64) / np.asarray(std, np.float64)
     ph, pw = -nh % size_divisor, -nw % size_divisor
-    if ph or pw:
-        x = np.pad(x, ((0, ph), (0, pw), (0, 0)))
-    return np.ascontiguousarray(x.transpose(2, 0, 1)), (nw / w, nh / h)
+    x = (np.zeros if ph or pw else np.empty)((3, nh + ph, nw + pw), np.float32)
+    for c, plane in enumerate(cv2.split(np.ascontiguousarray(rgb))):
+        view = x[c, :nh, :nw]
+        view[...] = plane
+        view *= np.float32(scale[c])
+        view += np.float32(offset[c])
+    return x, (nw / w, nh / h)
 
 
 def check_rgb(rgb: object) -> np.ndarray:
@@ -304,6 +311,10 @@ class TorchPoseEstimator(PoseEstimator):
         cuboid, object_name: override (or supply, for a network without a record).
         input_scale: resize factor before the network; ``None`` (default): the network's
             training resolution (:func:`training_input_scale`).
+        fold_batchnorm: run a copy of ``net`` with its batch norms folded into the
+            convolutions (:func:`~evtrack.models.fold_batchnorm.fold_batchnorm`; the same maps
+            up to float round-off, ~35 % faster on a CPU); ``False``: run ``net`` itself.
+            ``net`` is never changed.
         **kwargs: ``decode`` as in :class:`PoseEstimator`; default: the record's
             (``WeightsRecord.decode``, else the library's defaults).
     """
@@ -317,6 +328,7 @@ class TorchPoseEstimator(PoseEstimator):
         cuboid: Cuboid | None = None,
         object_name: str | None = None,
         input_scale: float | None = None,
+        fold_batchnorm: bool = True,
         **kwargs,
     ) -> None:
         record = getattr(net, "weights_record", None)
@@ -324,7 +336,10 @@ class TorchPoseEstimator(PoseEstimator):
         super().__init__(camera, **_record_kwargs(record, cuboid, object_name, camera,
                                                   input_scale, decode), **kwargs)
         self.device = torch.device(device)
+        if fold_batchnorm:
+            net, _ = fold_bn(net)
         self.net = net.to(self.device).eval()
+        """The module that runs: ``net``, or its copy with folded batch norms."""
 
     @classmethod
     def from_weights(

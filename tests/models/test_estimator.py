@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -17,6 +18,7 @@ from evtrack.models import (
     create,
     preprocess,
 )
+from evtrack.models.fold_batchnorm import fold_batchnorm
 
 ONE_PASS = DecodeConfig(crop_refine=0.0)
 
@@ -87,6 +89,53 @@ def test_preprocess_normalises_and_pads():
     assert np.all(x[:, 20:, :] == 0) and np.all(x[:, :, 30:] == 0)
     x2, scale2 = preprocess(rgb, (0, 0, 0), (1, 1, 1), 0.5, 8)
     assert x2.shape == (3, 16, 16) and scale2 == (0.5, 0.5)
+
+
+def test_preprocess_matches_the_plain_formula_on_random_images():
+    rng = np.random.default_rng(3)
+    mean, std = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+    for h, w, scale in ((37, 53, 1.0), (48, 64, 1.0), (61, 90, 0.5)):
+        rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        x, (sx, sy) = preprocess(rgb, mean, std, scale, 8)
+        if scale != 1.0:
+            rgb = cv2.resize(rgb, (round(w * scale), round(h * scale)),
+                             interpolation=cv2.INTER_AREA)
+        ref = ((rgb / 255.0 - mean) / std).transpose(2, 0, 1)
+        nh, nw = ref.shape[1:]
+        assert x.shape == (3, -(-nh // 8) * 8, -(-nw // 8) * 8) and x.flags.c_contiguous
+        np.testing.assert_allclose(x[:, :nh, :nw], ref, atol=2e-6)
+        assert np.all(x[:, nh:] == 0) and np.all(x[:, :, nw:] == 0)
+        assert (sx, sy) == (nw / w, nh / h)
+
+
+def test_folded_batchnorm_gives_the_same_maps_and_leaves_the_network_alone():
+    torch.manual_seed(0)
+    net = create("dope_lite_small")
+    # non-trivial running statistics and affine parameters: a fresh BN is the identity
+    for m in net.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+            m.bias.data.uniform_(-0.2, 0.2)
+    net.train()
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    folded, count = fold_batchnorm(net)
+    n_bn = sum(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
+    assert count == n_bn > 0
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    assert net.training and not folded.training  # the original keeps its mode and weights
+    torch.testing.assert_close(net.state_dict(), before)
+    x = torch.randn(2, 3, 64, 96)
+    with torch.inference_mode():
+        ref = net.eval()(x)
+        out = folded(x)
+    for a, b in zip(out, ref, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+    est = TorchPoseEstimator(net, CAM, cuboid=CUBOID)
+    plain = TorchPoseEstimator(net, CAM, cuboid=CUBOID, fold_batchnorm=False)
+    assert plain.net is net and est.net is not net
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in est.net.modules())
 
 
 def test_bad_inputs_are_clear_errors():
