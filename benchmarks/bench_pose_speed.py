@@ -9,10 +9,18 @@ PnP cost on ideal maps of one object, and the same on a GPU when one is availabl
 onnxruntime CUDA when its provider is there). Weights are random: latency does not depend on
 their values.
 
+The pose search over corner identities (``DecodeConfig.search_below``; 8 pooled points):
+its batched P3P (``evtrack.models.p3p``) against the reference it replaced, one
+``cv2.solveP3P`` per problem, alternating; both must find the same best pose.
+
 Last, the whole estimator on a simulated 640x480 frame of the demo object with its shipped
 weights (``estimator(rgb)``: preprocessing, network, decoding, PnP), in one pass and with the
 second pass on a crop around the detection (``DecodeConfig.crop_refine``, the default), torch
-eager and onnxruntime alternating as above.
+eager and onnxruntime alternating as above; torch also without folding the batch norms
+(``TorchPoseEstimator(fold_batchnorm=False)``) against the default; and the crop pass alone
+around a prior pose, as the tracker runs it while it holds the track
+(``estimate_near``, ``TrackerConfig.pose_prior``; the prior: the true pose moved 1 cm and
+5 deg).
 
 Target (issue 6): onnxruntime CPU <= 40 ms per 640x480 frame.
 
@@ -30,6 +38,7 @@ from pathlib import Path
 
 # first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
+import cv2
 import numpy as np
 import torch
 
@@ -83,14 +92,16 @@ def ort_session(path: Path, provider: str, threads: int):
     return ort.InferenceSession(str(path), opts, providers=[provider])
 
 
+_IDEAL_POSE = np.eye(4)
+_IDEAL_POSE[:3, :3] = np.array([[0.36, 0.48, -0.8], [-0.8, 0.6, 0.0], [0.48, 0.64, 0.6]])
+_IDEAL_POSE[:3, 3] = (0.02, -0.01, 0.6)
+
+
 def ideal_maps(h: int, w: int) -> tuple[np.ndarray, np.ndarray, Cuboid, np.ndarray]:
     """Belief/affinity maps of one box at a known pose (what a good network outputs)."""
     cub = Cuboid((0.1, 0.16, 0.07))
     K = np.array([[520.0, 0, (w - 1) / 2], [0, 520.0, (h - 1) / 2], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = np.array([[0.36, 0.48, -0.8], [-0.8, 0.6, 0.0], [0.48, 0.64, 0.6]])
-    T[:3, 3] = (0.02, -0.01, 0.6)
-    uv = cub.project(T, K)
+    uv = cub.project(_IDEAL_POSE, K)
     gy, gx = np.mgrid[0:h // 8, 0:w // 8]
     px, py = gx * 8 + 3.5, gy * 8 + 3.5
     belief = np.stack([np.exp(-((px - u) ** 2 + (py - v) ** 2) / 128.0) for u, v in uv])
@@ -173,9 +184,70 @@ def main() -> None:
                           args.repeats)
         print(f"decode + PnP (one instance, ideal maps) at {w}x{h}: {med:.2f} ms "
               f"(min {low:.2f})")
+    print()
+    time_search(args.repeats)
     if not args.no_estimator:
         print()
         time_estimators(args.threads, args.repeats)
+
+
+def _search_with_opencv(points, centroid, belief, cuboid, K, to_grid):
+    """The search's former hypotheses: one ``cv2.solveP3P`` per ordered pair of points and
+    directed edge, scored as :func:`evtrack.models.pose_search.search_pose` scores them."""
+    from evtrack.models.cuboid import CENTROID_INDEX
+    from evtrack.models.pose_search import cuboid_edges, sample_maps
+
+    obj = cuboid.points()
+    R, t = [], []
+    for a in range(len(points)):
+        for b in range(len(points)):
+            if a == b:
+                continue
+            img = np.array([points[a, :2], points[b, :2], centroid])
+            for i, j in cuboid_edges(cuboid):
+                n, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(obj[[i, j, CENTROID_INDEX]]),
+                                               img, K, None, flags=cv2.SOLVEPNP_P3P)
+                for k in range(n):
+                    R.append(cv2.Rodrigues(rvecs[k])[0])
+                    t.append(tvecs[k].reshape(3))
+    R, t = np.array(R), np.array(t)
+    cam = np.einsum("nij,pj->npi", R, obj) + t[:, None]
+    uv = cam[..., :2] / cam[..., 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+    g = to_grid(uv)
+    s = sample_maps(belief, g[..., 0], g[..., 1])
+    corners = s[:, :CENTROID_INDEX, :CENTROID_INDEX]
+    score = (0.5 * corners.max(axis=2) + 0.5 * np.diagonal(corners, axis1=1, axis2=2)).sum(1)
+    score = np.where((cam[..., 2] > 0).all(axis=1), score + s[:, -1, -1], -np.inf)
+    best = int(np.argmax(score))
+    return R[best], t[best], len(R)
+
+
+def time_search(repeats: int) -> None:
+    """The pose search on maps of one box whose corner maps all fire on every corner."""
+    from evtrack.models.pose_search import search_pose
+
+    belief, _, cub, K = ideal_maps(480, 640)
+    uv = cub.project(_IDEAL_POSE, K)
+    confused = np.maximum(belief, 0.4 * belief[:8].max(axis=0, keepdims=True).repeat(9, 0))
+    confused[8] = belief[8]
+    points = np.c_[uv[:8], np.ones(8)]
+
+    def to_grid(p):
+        return (p - 3.5) / 8
+
+    def batched():
+        return search_pose(points, uv[8], confused, cub, K, None, to_grid)
+
+    def reference():
+        return _search_with_opencv(points, uv[8], confused, cub, K, to_grid)
+
+    (b_med, b_min), (r_med, r_min) = timeit_pair(batched, reference, max(5, repeats // 3))
+    found, (R, t, n_ref) = batched(), reference()
+    same = (np.abs(cv2.Rodrigues(found.rvec)[0] - R).max() < 1e-6
+            and np.abs(found.tvec.reshape(3) - t).max() < 1e-6)
+    print(f"pose search, 8 points (one thread of numpy): batched P3P {b_med:.1f} ms (min "
+          f"{b_min:.1f}, {found.hypotheses} poses) | cv2.solveP3P per problem {r_med:.1f} ms "
+          f"(min {r_min:.1f}, {n_ref} poses) | same best pose: {'yes' if same else 'NO'}")
 
 
 def time_estimators(threads: int, repeats: int) -> None:
@@ -211,6 +283,22 @@ def time_estimators(threads: int, repeats: int) -> None:
             found = len(est_o(image))
             print(f"{label:<34} {t_med:>11.1f} ({t_min:>6.1f}) {o_med:>11.1f} ({o_min:>6.1f})  "
                   f"{found}")
+        est_t = TorchPoseEstimator(net, cam)
+        plain = TorchPoseEstimator(net, cam, fold_batchnorm=False)
+        (f_med, f_min), (p_med, p_min) = timeit_pair(lambda: est_t(image), lambda: plain(image),
+                                                     repeats)
+        print(f"torch, two passes: batch norms folded (default) {f_med:.1f} ms (min {f_min:.1f})"
+              f" | not folded {p_med:.1f} ms (min {p_min:.1f})")
+        truth = seq.ground_truth.pose_at(int(seq.rgb_times_us[3])).numpy()
+        prior = seq.meta.T_event_rgb.inverse().numpy() @ truth  # event -> RGB camera
+        prior[:3, 3] += (0.007, -0.007, 0.0)  # 1 cm off
+        prior[:3, :3] = cv2.Rodrigues(np.radians([0.0, 0.0, 5.0]))[0] @ prior[:3, :3]
+        est_o = OnnxPoseEstimator(onnx, cam, threads=threads, providers=["CPUExecutionProvider"])
+        (t_med, t_min), (o_med, o_min) = timeit_pair(
+            lambda: est_t.estimate_near(image, prior), lambda: est_o.estimate_near(image, prior),
+            repeats)
+        print(f"{'crop pass at a prior (tracking)':<34} {t_med:>11.1f} ({t_min:>6.1f}) "
+              f"{o_med:>11.1f} ({o_min:>6.1f})  {len(est_o.estimate_near(image, prior))}")
 
 
 if __name__ == "__main__":

@@ -3,13 +3,15 @@
     python benchmarks/bench_tracker.py [--size 320x240] [--duration 1.0] [--threads 2 1]
                                        [--methods full pose] [--sequence DIR] [--weights W.pt]
                                        [--caps 0 2000 1000] [--search-per-window 0 128 64]
-                                       [--pose-async off on]
+                                       [--pose-async off on] [--pose-prior off on]
                                        [--save-sequence DIR]
 
 Simulates a ``faster`` sequence of the procedural box (or takes ``--sequence``), then tracks it
 with each method and thread count in this process, side by side. The pose source is the
 oracle (ground truth with 1 cm / 0.03 rad noise) unless ``--weights`` gives pose-network
-weights (then the network runs at 5 Hz on the RGB frames, on CPU).
+weights (then the network runs at 5 Hz on the RGB frames, on CPU; an ``.onnx`` file on
+onnxruntime with the row's threads, not spinning between calls, as ``evtrack evaluate`` and
+``evtrack track`` run it).
 
 Columns:
     rtf: processing time / sequence time (< 1: faster than real time).
@@ -18,6 +20,9 @@ Columns:
         when it runs in the caller's thread, ``async off``).
     pose src: seconds in the pose source (in the tracker's worker thread with ``async on``).
     async: ``TrackerConfig.pose_async``; ``--pose-async off on`` compares both.
+    prior: ``TrackerConfig.pose_prior`` (the network looks for the object around the track's
+        pose first: one crop pass instead of the whole image and a crop); ``--pose-prior off
+        on`` compares both.
     group p50/p95: processing time of one step group (``flow_batch_steps`` velocity steps:
         one flow call and the filter steps) — the latency of an output in live use.
     filters/step: mean time of one velocity-filter + pose-filter step (µs).
@@ -70,23 +75,27 @@ def _simulate(size: tuple[int, int], duration: float, folder: Path) -> Sequence:
     return Sequence.load(folder / "seq")
 
 
-def _pose_source(seq: Sequence, weights: str | None):
+def _pose_source(seq: Sequence, weights: str | None, threads: int):
     if weights is None:
         return OraclePoseSource.from_sequence(seq, std_translation=0.01, std_rotation=0.03), \
             "oracle"
     from evtrack.models import OnnxPoseEstimator, TorchPoseEstimator
 
     cam = seq.meta.rgb_camera or seq.meta.event_camera
-    est = (OnnxPoseEstimator(weights, cam) if Path(weights).suffix.lower() == ".onnx"
+    est = (OnnxPoseEstimator(weights, cam, threads=threads, spin=False)
+           if Path(weights).suffix.lower() == ".onnx"
            else TorchPoseEstimator.from_weights(weights, cam))
     return NetworkPoseSource(est, seq.meta.T_event_rgb), f"network {Path(weights).name}"
 
 
 def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | None,
          cap: int | None, pose_async: bool = True, sample: int | None = None,
-         search_budget: int | None = None, realtime_load: float | None = None) -> dict:
+         search_budget: int | None = None, realtime_load: float | None = None,
+         pose_prior: bool | None = None) -> dict:
     torch.set_num_threads(threads)
     changes = {**config, "method": method, "torch_threads": threads, "pose_async": pose_async}
+    if pose_prior is not None:
+        changes["pose_prior"] = pose_prior
     if cap is not None:
         changes["max_events_per_step"] = cap
     if sample is not None:
@@ -96,7 +105,7 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
     if realtime_load is not None:
         changes["realtime_load"] = realtime_load
     cfg = TrackerConfig.from_dict(changes)
-    source, source_name = _pose_source(seq, weights)
+    source, source_name = _pose_source(seq, weights, threads)
     tracker = Tracker.for_sequence(seq, cfg, source)
     groups: list[float] = []
     inner = tracker._group
@@ -117,7 +126,9 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
            "sample": cfg.search_per_roi_window, "budget": cfg.max_searched_per_step,
            "unsearched": st.events_unsearched, "rt": cfg.realtime_load,
            "budget_min": st.search_budget_min,
-           "async": "on" if pose_async else "off", "pose_src": st.time_s.get("pose_source", 0.0),
+           "async": "on" if pose_async else "off",
+           "prior": "on" if cfg.pose_prior else "off",
+           "pose_src": st.time_s.get("pose_source", 0.0),
            "thinned": st.events_thinned, "source": source_name, "events": st.events,
            "seq_s": span, "proc_s": wall, "rtf": wall / span, "ev_per_s": st.events / wall,
            "flow": st.time_s.get("flow", 0.0), "velocity": st.time_s.get("velocity", 0.0),
@@ -167,6 +178,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pose-async", nargs="+", choices=["on", "off"], default=["on"],
                     help="TrackerConfig.pose_async values to compare (on: the pose source in "
                          "the tracker's worker thread; default: on)")
+    ap.add_argument("--pose-prior", nargs="+", choices=["on", "off"], default=[None],
+                    help="TrackerConfig.pose_prior values to compare (on: the network looks "
+                         "around the track's pose first; default: the config's)")
     ap.add_argument("--save-sequence", type=Path, metavar="DIR",
                     help="keep the simulated sequence in DIR (reuse it with --sequence DIR/seq)")
     args = ap.parse_args(argv)
@@ -185,17 +199,19 @@ def main(argv: list[str] | None = None) -> int:
         margin = args.mask_margin if args.mask_margin is not None else pixels.mask_margin_px
         config = {"flow": {"roi_size": roi}, "mask_margin_px": margin,
                   "flow_batch_steps": args.batch_steps}
-        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample, budget, rt)
+        rows = [_run(seq, m, th, config, args.weights, cap, mode == "on", sample, budget, rt,
+                     None if prior is None else prior == "on")
                 for th in args.threads for cap in args.caps for sample in args.search_per_window
                 for budget in args.search_budget for rt in args.realtime_load
-                for mode in args.pose_async for m in args.methods]
+                for mode in args.pose_async for prior in args.pose_prior for m in args.methods]
     cam = seq.meta.event_camera
     print(f"\nevtrack.Tracker speed: {cam.width}x{cam.height}, RoI {roi} px, mask margin "
           f"{margin:g} px, "
           f"{rows[0]['events']} events over {rows[0]['seq_s']:.2f} s, pose source "
           f"{rows[0]['source']} at 5 Hz, 1 ms velocity steps, flow every {args.batch_steps} steps, "
           f"OMP_WAIT_POLICY {wait_policy()}")
-    head = (f"{'method':<10} {'thr':>3} {'async':>5} {'cap':>6} {'sample':>6} {'budget':>6} "
+    head = (f"{'method':<10} {'thr':>3} {'async':>5} {'prior':>5} {'cap':>6} {'sample':>6} "
+            f"{'budget':>6} "
             f"{'rt':>4} {'min bgt':>7} "
             f"{'unsearched':>10} {'thinned':>8} "
             f"{'proc s':>7} "
@@ -206,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     print(head)
     print("-" * len(head))
     for r in rows:
-        print(f"{r['method']:<10} {r['threads']:>3} {r['async']:>5} {r['cap']:>6} "
+        print(f"{r['method']:<10} {r['threads']:>3} {r['async']:>5} {r['prior']:>5} {r['cap']:>6} "
               f"{r['sample']:>6} {r['budget']:>6} {r['rt']:>4g} {r['budget_min']:>7} "
               f"{r['unsearched']:>10} "
               f"{r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "

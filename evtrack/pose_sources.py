@@ -189,9 +189,30 @@ class NetworkPoseSource:
         self.refine_refused += int(not res.refined)
         return res.pose
 
-    def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None = None
-                 ) -> PoseMeasurement | None:
-        detections = [d for d in self.estimator(rgb) if d.confidence >= self.min_confidence]
+    accepts_prior = True
+    """:meth:`__call__` takes ``prior=`` (the tracker passes its pose when
+    ``TrackerConfig.pose_prior`` is on)."""
+
+    def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None = None,
+                 prior: np.ndarray | Tensor | None = None) -> PoseMeasurement | None:
+        """The most confident detection in ``rgb`` as a measurement at ``t_us``, or ``None``.
+
+        Args:
+            t_us: the frame's time (µs). rgb: uint8 (H, W, 3). depth: the registered depth
+                map for the refiner, or ``None``.
+            prior: (4, 4) object-to-event-camera pose expected in the frame, or ``None``: with
+                one, an estimator that has ``estimate_near``
+                (:meth:`~evtrack.models.PoseEstimator.estimate_near`) looks there first; a
+                plain callable estimator ignores it.
+        """
+        near = getattr(self.estimator, "estimate_near", None)
+        if prior is not None and near is not None:
+            prior_rgb = torch.linalg.inv(self.T_event_rgb) @ torch.as_tensor(
+                np.asarray(prior, np.float64))
+            found = near(rgb, prior_rgb.numpy())
+        else:
+            found = self.estimator(rgb)
+        detections = [d for d in found if d.confidence >= self.min_confidence]
         if not detections:
             return None
         best = max(detections, key=lambda d: d.confidence)

@@ -962,15 +962,16 @@ class Tracker:
             if depth_map is None and depth is not None and uses_depth:
                 depth_map = depth() if callable(depth) else depth
             depth_in = depth_map if uses_depth else None
+            prior = self._pose_prior(t_us)
             if self._async_poses and available > self._t:
                 # computed in the worker (the RGB frame read there too), taken at
                 # `available`: the same result at the same moment for the filter
                 self._schedule(available, _PoseCall(t_us, self._pose_worker().submit(
                     self._call_pose_source, t_us, image if image is not None else get_rgb,
-                    depth_in)))
+                    depth_in, prior)))
                 return
             m = self._call_pose_source(t_us, image if image is not None else get_rgb(),
-                                       depth_in)
+                                       depth_in, prior)
             if m is not None and m.confidence >= self.config.pose_min_confidence:
                 self.push_pose(m, available_us=available)
             else:
@@ -1043,11 +1044,25 @@ class Tracker:
         share, count = silhouette_depth_share(depth, poly, self.config.pose_depth_tolerance_m)
         return None if count >= _POSE_DEPTH_MIN_PIXELS and share < share_min else m
 
+    def _pose_prior(self, t_us: int) -> np.ndarray | None:
+        """(4, 4) the pose (event camera frame) handed to the pose source for the frame at
+        ``t_us`` (``TrackerConfig.pose_prior``), or ``None``: no prior wanted, a source that
+        takes none, or no track (before the first pose, after a loss)."""
+        if not (self.config.pose_prior and self.initialized
+                and getattr(self.pose_source, "accepts_prior", False)):
+            return None
+        return np.array(self.pose(t_us), dtype=np.float64)
+
     def _call_pose_source(self, t_us: int, image: np.ndarray | Callable[[], np.ndarray],
-                          depth: np.ndarray | None) -> PoseMeasurement | None:
-        """The pose source on one frame (``image`` may be a reader, called here), timed."""
+                          depth: np.ndarray | None, prior: np.ndarray | None = None
+                          ) -> PoseMeasurement | None:
+        """The pose source on one frame (``image`` may be a reader, called here), timed;
+        ``prior`` (from :meth:`_pose_prior`) is passed only when there is one."""
         with _Timer(self.stats.time_s, "pose_source"):
-            return self.pose_source(t_us, image() if callable(image) else image, depth)
+            rgb = image() if callable(image) else image
+            if prior is None:
+                return self.pose_source(t_us, rgb, depth)
+            return self.pose_source(t_us, rgb, depth, prior=prior)
 
     def _take_pose_call(self, call: _PoseCall, available: int, t_now: int) -> None:
         """A worker's pose-source result, due at ``available`` (<= ``t_now``): handled as the

@@ -393,6 +393,14 @@ class TrackerConfig:
             (``pose_latency_ms`` 0) is computed at once. The streaming calls always run the
             pose source in the caller's thread: a live application runs its network where it
             likes and hands the poses to :meth:`~evtrack.tracker.Tracker.push_pose`.
+        pose_prior: while the track holds, hand the pose source the tracker's pose at the
+            frame's time (``prior=``, to sources whose ``accepts_prior`` is true:
+            :class:`~evtrack.pose_sources.NetworkPoseSource`), which looks for the object
+            there first: the network then runs once, on a crop around that pose, instead of
+            on the whole image and then on a crop
+            (:meth:`~evtrack.models.PoseEstimator.estimate_near`; the whole image again when
+            the crop does not find the object near its centre). Before the first pose and
+            after a loss, no prior: the whole image.
         reinit_on_agreement: when a pose is rejected by the pose filter's gate right after
             another rejected pose and the two agree with each other (the second within
             ``reinit_agree_m + reinit_agree_m_per_s * dt`` metres and ``reinit_agree_deg +
@@ -544,6 +552,7 @@ class TrackerConfig:
     pose_latency_ms: float = 200.0
     pose_min_confidence: float = 0.0
     pose_async: bool = True
+    pose_prior: bool = False
     reinit_on_agreement: bool = True
     reinit_agree_m: float = 0.05
     reinit_agree_m_per_s: float = 1.0

@@ -106,7 +106,9 @@ class DecodeConfig:
             tomato can's fits of confidence 0.17-0.21, which were better than its answers
             (4.6 -> 15.9 deg), so its confidence is not comparable with the strongest peaks'
             above ~0.1. The search
-            costs ~35-45 ms per instance on 2 CPU threads, paid only where it runs.
+            costs ~10-15 ms per instance (eight points, its P3P batched; it was ~35-45 ms
+            with one ``cv2.solveP3P`` per problem: ``bench_pose_speed.py``), paid only where
+            it runs.
         search_identity_weight: weight of a corner's own map against the best of all corner
             maps in the search's score, in [0, 1].
         search_max_points: the search hypothesises from at most this many pooled corner points.

@@ -32,6 +32,11 @@ class OnnxPoseEstimator(PoseEstimator):
         camera: see :class:`PoseEstimator`.
         providers: onnxruntime execution providers (default: :func:`default_providers`).
         threads: intra-op threads for the CPU provider (default: onnxruntime's choice).
+        spin: whether onnxruntime's intra-op threads spin-wait for work after a call
+            (``session.intra_op.allow_spinning``). ``None`` (default): onnxruntime's default
+            (they spin), the fastest for back-to-back calls; ``False`` for a network that
+            shares the CPU with other work, such as the tracker's, at 5 Hz: spinning threads
+            take the cores from it between the calls.
         cuboid, object_name: override (or supply, for a model without a record).
         input_scale: resize factor before the network; ``None`` (default): the network's
             training resolution (:func:`~evtrack.models.estimator.training_input_scale`).
@@ -46,6 +51,7 @@ class OnnxPoseEstimator(PoseEstimator):
         *,
         providers: Sequence[str] | None = None,
         threads: int | None = None,
+        spin: bool | None = None,
         cuboid: Cuboid | None = None,
         object_name: str | None = None,
         input_scale: float | None = None,
@@ -63,6 +69,9 @@ class OnnxPoseEstimator(PoseEstimator):
         if threads is not None:
             options.intra_op_num_threads = int(threads)
             options.inter_op_num_threads = 1
+        if spin is not None:
+            options.add_session_config_entry("session.intra_op.allow_spinning",
+                                             "1" if spin else "0")
         try:
             self.session = ort.InferenceSession(
                 str(self.path), options, providers=list(providers or default_providers())

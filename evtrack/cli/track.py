@@ -76,7 +76,7 @@ def _pose_source(args: argparse.Namespace, seq):
     if args.weights.suffix.lower() == ".onnx":
         from evtrack.models import OnnxPoseEstimator
 
-        est = OnnxPoseEstimator(args.weights, cam)
+        est = OnnxPoseEstimator(args.weights, cam, spin=False)  # it shares the cores
     else:
         from evtrack.models import TorchPoseEstimator
 

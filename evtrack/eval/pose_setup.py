@@ -261,8 +261,9 @@ def make_pose_source(spec: PoseSourceSpec, sequence, weights: Path | None = None
     record, _ = read_record(weights)
     scale = record.input_size[1] / cam.width if record is not None else None
     if Path(weights).suffix.lower() == ".onnx":
+        # no spinning threads: the network shares the cores with the tracking between calls
         est = OnnxPoseEstimator(weights, cam, object_name=name, input_scale=scale,
-                                threads=threads)
+                                threads=threads, spin=False)
     else:
         est = TorchPoseEstimator.from_weights(weights, cam, object_name=name,
                                               input_scale=scale)

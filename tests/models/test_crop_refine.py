@@ -271,3 +271,66 @@ def test_crop_settings_are_checked():
             DecodeConfig(crop_blend_max_deg=bad)
     est = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.01))
     assert est.crop_size(320) == 2 * STRIDE  # at least two output cells
+
+
+def _nudged(pose: np.ndarray, shift_m, turn_deg: float) -> np.ndarray:
+    out = pose.copy()
+    out[:3, 3] += shift_m
+    out[:3, :3] = Rotation.from_euler("z", turn_deg, degrees=True).as_matrix() @ out[:3, :3]
+    return out
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+def test_estimate_near_runs_the_crop_pass_alone_around_the_prior(camera):
+    truth = pose_at((0.03, -0.02, 0.9))
+    image = paint(camera, [truth])
+    est = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_blend_max_deg=0.0))
+    (two_pass,) = est(image)
+    est.calls = []
+    prior = _nudged(truth, (0.01, -0.005, 0.02), 8.0)  # a tracker's prediction, a bit off
+    (near,) = est.estimate_near(image, prior)
+    size = est.crop_size(camera.width)
+    assert est.calls == [(1, 3, size, size)]  # one call: the crop, no whole-image pass
+    t_near, r_near = errors(near, truth)
+    (one_pass,) = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_refine=0.0))(image)
+    t_one, r_one = errors(one_pass, truth)
+    # the zoom's gain without the whole-image pass: the keypoint errors shrink as in the
+    # two-pass estimate's crop (the crops differ a little, and so do their errors)
+    assert t_near < 0.75 * t_one and r_near < r_one
+    dist = None if camera.dist is None else camera.dist.numpy()
+    projected = CUBOID.project(truth, camera.K().numpy(), dist)
+    assert np.linalg.norm(near.keypoints.numpy() - projected, axis=1).max() < 3.0
+    # the crop's pose does not follow the prior: a prior off the other way gives the same
+    est.calls = []
+    (other,) = est.estimate_near(image, _nudged(truth, (-0.01, 0.005, -0.02), -8.0))
+    assert errors(other, truth)[0] < 0.75 * t_one
+    assert errors(two_pass, truth)[0] < 0.75 * t_one
+
+
+def test_estimate_near_falls_back_to_the_whole_image_when_the_object_is_not_there():
+    truth = pose_at((0.03, -0.02, 0.9))
+    image = paint(CAM, [truth])
+    est = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_blend_max_deg=0.0))
+    (two_pass,) = est(image)
+    size = est.crop_size(CAM.width)
+    # a prior 15 cm away (~65 px): its crop holds at most part of the object, off-centre
+    for prior in (_nudged(truth, (-0.15, 0.0, 0.0), 0.0), _nudged(truth, (0.0, 0.12, 0.0), 0.0)):
+        est.calls = []
+        (found,) = est.estimate_near(image, prior)
+        assert est.calls[0] == (1, 3, size, size) and len(est.calls) == 3  # crop, image, crop
+        np.testing.assert_array_equal(found.pose.numpy(), two_pass.pose.numpy())
+    # a prior with no usable crop (behind the camera, not finite): the whole image at once
+    behind = _nudged(truth, (0.0, 0.0, -2.0), 0.0)
+    nan = np.full((4, 4), np.nan)
+    for prior in (behind, nan):
+        est.calls = []
+        (found,) = est.estimate_near(image, prior)
+        assert len(est.calls) == 2
+        np.testing.assert_array_equal(found.pose.numpy(), two_pass.pose.numpy())
+    # one pass configured: the prior is not used
+    one = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0))
+    (plain,) = one(image)
+    one.calls = []
+    (found,) = one.estimate_near(image, truth)
+    assert len(one.calls) == 1
+    np.testing.assert_array_equal(found.pose.numpy(), plain.pose.numpy())

@@ -142,6 +142,34 @@ def test_onnx_estimator_gives_the_same_poses_as_torch(exported, source):
     assert total >= len(source)  # the comparison is not vacuous: the fitted net detects
 
 
+def test_spinning_threads_are_a_session_option(exported):
+    """``spin``: onnxruntime's intra-op threads spin-wait or not (its session config entry);
+    the maps do not change. Without it, onnxruntime's default is left alone."""
+    _, path = exported
+    cam = PinholeCamera(100.0, 100.0, 79.5, 59.5, 160, 120)
+    x = np.random.default_rng(0).normal(size=(1, 3, 120, 160)).astype(np.float32)
+    maps = {}
+    for spin in (None, True, False):
+        est = OnnxPoseEstimator(path, cam, threads=2, spin=spin)
+        entries = est.session.get_session_options()
+        key = "session.intra_op.allow_spinning"
+        if spin is None:
+            assert not _has_entry(entries, key)
+        else:
+            assert entries.get_session_config_entry(key) == ("1" if spin else "0")
+        maps[spin] = est.run_network(x)
+    for spin in (True, False):
+        np.testing.assert_array_equal(maps[spin][0], maps[None][0])
+
+
+def _has_entry(options, key: str) -> bool:
+    try:
+        options.get_session_config_entry(key)
+    except Exception:  # onnxruntime raises when the entry was never set
+        return False
+    return True
+
+
 def test_fp16_export(tmp_path, exported):
     net, _ = exported
     path = export_onnx(net, tmp_path / "fp16.onnx", fp16=True)

@@ -380,6 +380,41 @@ def test_network_source_hands_on_the_detections_alternatives() -> None:
     assert alt.t_us == 10 and alt.confidence == 0.6 and src.invalid == 1
 
 
+def test_network_source_hands_the_prior_to_the_estimator_in_the_rgb_camera() -> None:
+    """With a prior (event camera frame), an estimator with ``estimate_near`` gets it in its
+    own (RGB) camera frame; without one, or for a plain callable, the whole-image call."""
+    class Det:
+        def __init__(self, pose, c):
+            self.pose, self.confidence, self.alternatives = pose, c, ()
+
+    class Estimator:
+        def __init__(self):
+            self.calls = []
+
+        def __call__(self, rgb):
+            self.calls.append(("image", None))
+            return [Det(_pose([0, 0, 0], [0, 0, 1.0]), 0.9)]
+
+        def estimate_near(self, rgb, prior):
+            self.calls.append(("near", prior))
+            return [Det(prior, 0.8)]
+
+    T_er = _pose([0, 0.1, 0], [0.05, 0, 0])
+    est = Estimator()
+    src = NetworkPoseSource(est, T_event_rgb=torch.from_numpy(T_er))
+    assert src.accepts_prior
+    prior_event = _pose([0.2, -0.1, 0.3], [0.02, 0.01, 0.7])
+    m = src(10, np.zeros((8, 8, 3), np.uint8), None, prior=prior_event)
+    (kind, got), = est.calls
+    assert kind == "near"
+    np.testing.assert_allclose(got, np.linalg.inv(T_er) @ prior_event, atol=1e-12)
+    np.testing.assert_allclose(m.pose.numpy(), prior_event, atol=1e-12)  # back in the event frame
+    src(20, np.zeros((8, 8, 3), np.uint8))
+    assert est.calls[-1] == ("image", None)
+    plain = NetworkPoseSource(lambda rgb: [Det(_pose([0, 0, 0], [0, 0, 1.0]), 0.9)])
+    assert plain(0, None, prior=prior_event).pose[2, 3] == 1.0
+
+
 def test_twist_adjoint_against_moving_points() -> None:
     """A twist mapped by the adjoint moves points of the other frame identically."""
     T_ab = torch.from_numpy(_pose([0.3, -0.2, 0.5], [0.1, 0.2, -0.3]))

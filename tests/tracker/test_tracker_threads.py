@@ -190,3 +190,77 @@ def test_depth_maps_prepared_in_the_reader_thread_equal_set_frame(fast_sequence,
         differs_from_raw += not np.array_equal(event_map, raw, equal_nan=True)
     assert differs_from_raw == len(taken)  # missing depth (0) became NaN: a map, not the raw
     assert any(name.startswith("evtrack-frames") for name in prepared_in)
+
+
+class _PriorRecorder:
+    """An oracle pose source that takes a prior (``accepts_prior``) and records what it got;
+    no detections between 250 and 400 ms (the object is lost there)."""
+
+    accepts_prior = True
+
+    def __init__(self, inner, tracker=None) -> None:
+        self.inner = inner
+        self.tracker = tracker  # in the caller's thread: its pose is read at the call
+        self.priors: dict[int, np.ndarray | None] = {}
+        self.track_poses: dict[int, np.ndarray] = {}
+
+    def __call__(self, t_us, rgb, depth=None, prior=None):
+        self.priors[t_us] = None if prior is None else np.array(prior)
+        if self.tracker is not None and self.tracker.initialized:
+            self.track_poses[t_us] = np.array(self.tracker.pose(t_us))
+        if 250_000 <= t_us < 400_000:
+            return None
+        return self.inner(t_us, rgb, depth)
+
+
+@pytest.mark.parametrize("pose_async", [False, True])
+def test_the_pose_source_gets_the_tracks_pose_as_its_prior(fast_sequence, pose_async) -> None:
+    """``pose_prior``: the tracker hands a source that accepts one its pose at the frame's
+    time while the track holds, nothing before the first pose and after a loss; the same
+    priors whether the source runs in the worker or in the caller's thread."""
+    priors = {}
+    for run_async in (False, pose_async):
+        tracker, source = make_tracker(fast_sequence, method="full", pose_prior=True,
+                                       pose_async=run_async, pose_rate_hz=30.0,
+                                       pose_min_confidence=0.5)
+        recorder = _PriorRecorder(source, None if run_async else tracker)
+        tracker.pose_source = recorder
+        tracker.track(fast_sequence)
+        assert tracker.stats.lost >= 1
+        priors[run_async] = recorder.priors
+        if not run_async:  # exactly the track's pose at the frame's time
+            assert recorder.track_poses.keys() == {
+                t for t, p in recorder.priors.items() if p is not None}
+            for t, pose in recorder.track_poses.items():
+                np.testing.assert_array_equal(recorder.priors[t], pose)
+    got = priors[pose_async]
+    times = sorted(got)
+    assert got[times[0]] is None  # no track yet
+    with_prior = [t for t in times if got[t] is not None]
+    assert len(with_prior) >= len(times) // 2
+    # the misses lose the object (once they are due, a latency later): no prior until a
+    # pose has started the track again
+    after_loss = [t for t in times if t >= 400_000]
+    assert any(got[t] is None for t in after_loss) and got[after_loss[-1]] is not None
+    gt = fast_sequence.ground_truth
+    for t in with_prior:
+        truth = gt.pose_at(t).numpy()
+        assert got[t].shape == (4, 4)
+        assert np.linalg.norm(got[t][:3, 3] - truth[:3, 3]) < 0.1  # a pose near the truth
+    assert priors[False].keys() == got.keys()
+    for t in times:
+        a, b = priors[False][t], got[t]
+        assert (a is None) == (b is None) and (a is None or np.array_equal(a, b))
+
+
+def test_a_source_without_accepts_prior_is_called_as_before(fast_sequence) -> None:
+    tracker, source = make_tracker(fast_sequence, method="full", pose_prior=True)
+    calls = []
+
+    def plain(t_us, rgb, depth=None):  # takes no prior: passing one would raise
+        calls.append(t_us)
+        return source(t_us, rgb, depth)
+
+    tracker.pose_source = plain
+    tracker.track(fast_sequence)
+    assert len(calls) >= 2 and tracker.stats.poses >= 2
