@@ -262,16 +262,19 @@ class PoseEstimator(abc.ABC):
     ) -> list[PoseDetection]:
         """The object's pose in one image, looked for where a tracker expects it first.
 
-        The second pass's crop (``decode.crop_refine``) is placed on ``prior``'s projected
-        cuboid instead of on a first pass's detection, and the first pass over the whole
-        image is skipped: one network call on a crop of a quarter to a third of a 640x480
-        image's pixels instead of two. The crop's detection is kept when its projected
-        centroid lies within a quarter of the crop's side from the crop's centre (the object
-        is about where the prior put it); otherwise, or when the crop finds nothing, the
-        prior does not project to a usable crop, or the estimator runs one pass
-        (``crop_refine = 0``), the whole two-pass estimate (:meth:`__call__`) runs. Unlike
-        that estimate, the crop's rotation is not blended with a first pass's
-        (``decode.crop_blend_max_deg``): there is none.
+        Instead of the first pass over the whole image, the crop pass
+        (``decode.crop_refine``) runs on a crop placed on ``prior``'s projected cuboid. Its
+        detection (the instance nearest the crop's centre) then stands for the first pass's:
+
+        * within ``decode.prior_recrop`` of where the prior put the object (crop centre and
+          zoom), it is the answer: one network call on a quarter to a third of a 640x480
+          image's pixels instead of the whole image and a crop;
+        * otherwise, up to a quarter of the crop's side off its centre, the crop pass runs
+          again on a crop placed on that detection, as after a first pass (its alternatives,
+          ``decode.crop_blend_max_deg``): two crop calls;
+        * farther off, or with nothing found, a prior that projects to no usable crop, or an
+          estimator of one pass (``crop_refine = 0``): the whole two-pass estimate
+          (:meth:`__call__`).
 
         Args:
             rgb: uint8 (H, W, 3) image.
@@ -280,8 +283,8 @@ class PoseEstimator(abc.ABC):
             camera: as in :meth:`__call__`.
 
         Returns:
-            At most one detection (with the crop's other readings as its alternatives), or
-            what :meth:`__call__` returns.
+            At most one detection, with its other readings as its alternatives, or what
+            :meth:`__call__` returns.
         """
         rgb = check_rgb(rgb)
         prior = np.asarray(prior, np.float64)
@@ -291,16 +294,27 @@ class PoseEstimator(abc.ABC):
         width = rgb.shape[1]
         scale = max(1, round(width * self.input_scale)) / width  # as preprocess rounds it
         size = self.crop_size(width, scale)
-        window = crop_window(prior, self.cuboid, K, dist, size, self.decode.crop_margin)
-        if window is not None:
-            (found,) = self._detect_in_crops([(rgb, window)], K, dist)
-            if found is not None:
-                best = found[0]
-                centre = (np.asarray(window.size, np.float64) - 1) / 2
-                uv = self.cuboid.project(best.pose.numpy(), window.intrinsics(K), dist)
-                if np.linalg.norm(uv[CENTROID_INDEX] - centre) <= size / 4:
-                    return [with_alternatives(best, found[1:])]
-        return self(rgb, camera)
+        margin = self.decode.crop_margin
+        window = crop_window(prior, self.cuboid, K, dist, size, margin)
+        if window is None:
+            return self(rgb, camera)
+        (found,) = self._detect_in_crops([(rgb, window)], K, dist)
+        if found is None:
+            return self(rgb, camera)
+        first = with_alternatives(found[0], found[1:])
+        placed = crop_window(first.pose.numpy(), self.cuboid, K, dist, size, margin)
+        if placed is None:
+            return self(rgb, camera)
+        # where the detection's own crop lies in the prior's crop: its centre and its zoom
+        centre = (np.asarray(window.size, np.float64) - 1) / 2
+        offset = np.linalg.norm(window.to_crop(placed.to_image(centre)) - centre) / size
+        zoom = placed.scale / window.scale
+        tol = self.decode.prior_recrop
+        if offset <= tol and abs(zoom - 1.0) <= 2 * tol:
+            return [first]
+        if offset > 0.25:
+            return self(rgb, camera)
+        return self._refine_in_crops([rgb], [[first]], K, dist, scale)[0]
 
     @staticmethod
     def _crop_to_image(det: PoseDetection, window) -> PoseDetection:

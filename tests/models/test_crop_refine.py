@@ -266,6 +266,9 @@ def test_crop_settings_are_checked():
         DecodeConfig(crop_refine=float("nan"))
     with pytest.raises(ConfigError, match="crop_margin"):
         DecodeConfig(crop_margin=0.9)
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="prior_recrop"):
+            DecodeConfig(prior_recrop=bad)
     for bad in (-1.0, 181.0, float("nan")):
         with pytest.raises(ConfigError, match="crop_blend_max_deg"):
             DecodeConfig(crop_blend_max_deg=bad)
@@ -281,30 +284,49 @@ def _nudged(pose: np.ndarray, shift_m, turn_deg: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
-def test_estimate_near_runs_the_crop_pass_alone_around_the_prior(camera):
+def test_estimate_near_runs_the_crop_pass_alone_around_a_good_prior(camera):
     truth = pose_at((0.03, -0.02, 0.9))
     image = paint(camera, [truth])
     est = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_blend_max_deg=0.0))
-    (two_pass,) = est(image)
     est.calls = []
-    prior = _nudged(truth, (0.01, -0.005, 0.02), 8.0)  # a tracker's prediction, a bit off
-    (near,) = est.estimate_near(image, prior)
+    (near,) = est.estimate_near(image, _nudged(truth, (0.001, -0.001, 0.002), 0.5))
     size = est.crop_size(camera.width)
     assert est.calls == [(1, 3, size, size)]  # one call: the crop, no whole-image pass
     t_near, r_near = errors(near, truth)
     (one_pass,) = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_refine=0.0))(image)
     t_one, r_one = errors(one_pass, truth)
     # the zoom's gain without the whole-image pass: the keypoint errors shrink as in the
-    # two-pass estimate's crop (the crops differ a little, and so do their errors)
+    # two-pass estimate's crop
     assert t_near < 0.75 * t_one and r_near < r_one
     dist = None if camera.dist is None else camera.dist.numpy()
     projected = CUBOID.project(truth, camera.K().numpy(), dist)
     assert np.linalg.norm(near.keypoints.numpy() - projected, axis=1).max() < 3.0
-    # the crop's pose does not follow the prior: a prior off the other way gives the same
-    est.calls = []
-    (other,) = est.estimate_near(image, _nudged(truth, (-0.01, 0.005, -0.02), -8.0))
-    assert errors(other, truth)[0] < 0.75 * t_one
-    assert errors(two_pass, truth)[0] < 0.75 * t_one
+
+
+@pytest.mark.parametrize("camera", [CAM, CAM_DIST], ids=["pinhole", "distorted"])
+def test_estimate_near_places_the_crop_again_on_its_detection_when_the_prior_is_off(camera):
+    truth = pose_at((0.03, -0.02, 0.9))
+    image = paint(camera, [truth])
+    est = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_blend_max_deg=0.0))
+    size = est.crop_size(camera.width)
+    (one_pass,) = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_refine=0.0))(image)
+    t_one, r_one = errors(one_pass, truth)
+    for shift, turn in (((0.01, -0.005, 0.02), 8.0), ((-0.01, 0.005, -0.02), -8.0)):
+        est.calls = []
+        (near,) = est.estimate_near(image, _nudged(truth, shift, turn))
+        assert est.calls == [(1, 3, size, size)] * 2  # the prior's crop, then the detection's
+        # the second crop sits about where the two-pass estimate's does: the zoom's gain,
+        # not the prior's error (2 cm and 8 deg)
+        t_near, r_near = errors(near, truth)
+        assert t_near < 0.75 * t_one and r_near < r_one
+        (first,) = near.alternatives  # the prior crop's detection, as the first pass's is
+        assert not np.array_equal(first.pose.numpy(), near.pose.numpy())
+    # prior_recrop 1: the prior's crop is always kept (one call), however far off it is
+    loose = DotNetwork(camera, CUBOID, decode=DecodeConfig(crop_blend_max_deg=0.0,
+                                                           prior_recrop=1.0))
+    loose.calls = []
+    loose.estimate_near(image, _nudged(truth, (0.01, -0.005, 0.02), 8.0))
+    assert len(loose.calls) == 1
 
 
 def test_estimate_near_falls_back_to_the_whole_image_when_the_object_is_not_there():
