@@ -125,7 +125,9 @@ class PoseSource(Protocol):
 
     The tracker passes the frame's depth map (metres, registered to ``rgb``) only to sources
     whose ``uses_depth`` attribute is true (it then loads the depth frames for them), and
-    ``None`` otherwise.
+    ``None`` otherwise. With ``TrackerConfig.pose_prior`` on, a source whose
+    ``accepts_prior`` attribute is true is also given ``prior=``, the track's (4, 4) pose
+    (event camera frame) at ``t_us``, while the track holds.
     """
 
     def __call__(self, t_us: int, rgb: np.ndarray, depth: np.ndarray | None
