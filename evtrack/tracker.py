@@ -434,41 +434,47 @@ def _load_mesh(mesh: Any):
 
 
 class _Prefetched:
-    """``read(i)`` for frames read in increasing order: each call also starts reading frame
-    ``i + 1`` in a worker thread (OpenCV's decoders release the GIL), so that the next call
-    usually finds it ready. A read's exception is raised by the call that asks for that frame.
+    """``read(i)`` for frames read in increasing order: each call also starts reading the
+    next ``ahead`` frames in a worker thread (OpenCV's decoders release the GIL), so that
+    later calls usually find them ready. A read's exception is raised by the call that asks
+    for that frame.
+
+    Reading one frame ahead left the tracker waiting ~0.25 s per 2 s sequence for its depth
+    frames on 2 busy cores (the worker starts a frame only when the one before is taken);
+    three ahead, ~0.02 s (``docs/measurement-log.md``, session 42).
 
     Args:
         read: ``read(i) -> frame``, safe to call from another thread.
         count: frames there are (``0 .. count - 1``).
+        ahead: frames read ahead (>= 1).
     """
 
-    def __init__(self, read, count: int) -> None:
+    def __init__(self, read, count: int, ahead: int = 3) -> None:
         self._read = read
         self._count = count
+        self._depth = max(1, int(ahead))
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="evtrack-frames")
-        self._ahead: tuple[int, Future] | None = None
+        self._ahead: dict[int, Future] = {}
         self._closed = False
 
     def __call__(self, index: int):
-        ahead, self._ahead = self._ahead, None
-        if ahead is not None and ahead[0] == index:
-            frame = ahead[1].result()
-        else:
-            if ahead is not None:
-                ahead[1].cancel()
-            frame = self._read(index)
-        if index + 1 < self._count and not self._closed:
-            self._ahead = (index + 1, self._pool.submit(self._read, index + 1))
+        pending = self._ahead.pop(index, None)
+        for other in [k for k in self._ahead if k < index]:  # skipped: not wanted any more
+            self._ahead.pop(other).cancel()
+        frame = pending.result() if pending is not None else self._read(index)
+        if not self._closed:
+            for later in range(index + 1, min(self._count, index + 1 + self._depth)):
+                if later not in self._ahead:
+                    self._ahead[later] = self._pool.submit(self._read, later)
         return frame
 
     def close(self) -> None:
         """Stop the worker (a read in flight finishes; its frame is dropped). Later calls
         read in the caller's thread."""
         self._closed = True
-        if self._ahead is not None:
-            self._ahead[1].cancel()
-            self._ahead = None
+        for pending in self._ahead.values():
+            pending.cancel()
+        self._ahead.clear()
         self._pool.shutdown(wait=True)
 
 

@@ -1,4 +1,4 @@
-"""Tracker shortcuts that must not change results: the one-frame-ahead reader of offline
+"""Tracker shortcuts that must not change results: the read-ahead reader of offline
 depth frames and the grouped depth lookup of a step group's RoIs."""
 
 from __future__ import annotations
@@ -30,22 +30,48 @@ def test_gives_every_frame_and_reads_the_next_one_in_a_worker():
     assert len(threads) == 4  # nothing read twice, nothing past the end
 
 
-def test_a_skipped_or_repeated_frame_is_read_directly():
-    calls: list[int] = []
+@pytest.mark.parametrize("ahead", [1, 3])
+def test_a_skipped_or_repeated_frame_is_read_directly(ahead):
+    calls: list[tuple[int, str]] = []
+    here = threading.current_thread().name
 
     def read(i: int) -> int:
-        calls.append(i)
+        calls.append((i, threading.current_thread().name))
         return i
 
-    reader = _Prefetched(read, 10)
+    reader = _Prefetched(read, 10, ahead=ahead)
     try:
         assert reader(0) == 0
-        assert reader(5) == 5  # frame 1 was read ahead in vain
-        assert reader(5) == 5  # frame 6 likewise
+        assert reader(5) == 5  # frames 1.. were read ahead in vain
+        assert reader(5) == 5  # frame 6.. likewise
         assert reader(6) == 6
     finally:
         reader.close()
-    assert sorted(calls)[:3] == [0, 1, 5]
+    direct = [i for i, name in calls if name == here]
+    assert direct == [0, 5, 5]  # frame 6 came from the worker, read once
+    assert [i for i, _ in calls].count(6) == 1
+    assert max(i for i, _ in calls) <= 6 + ahead  # nothing read farther ahead
+
+
+def test_reads_the_next_frames_ahead_in_the_worker():
+    started = threading.Event()
+    reads: list[int] = []
+
+    def read(i: int) -> int:
+        reads.append(i)
+        if i == 3:
+            started.set()
+        return i
+
+    reader = _Prefetched(read, 10, ahead=3)
+    try:
+        assert reader(0) == 0
+        assert started.wait(5.0)  # frames 1, 2 and 3 read without being asked for
+        assert reads == [0, 1, 2, 3]
+        assert [reader(i) for i in range(1, 10)] == list(range(1, 10))
+    finally:
+        reader.close()
+    assert sorted(reads) == list(range(10))  # each once, none past the end
 
 
 def test_an_error_reaches_the_call_that_asks_for_that_frame():
