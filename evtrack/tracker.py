@@ -145,10 +145,10 @@ from evtrack.eval.metrics import position_errors, rotation_errors
 from evtrack.events import Events, concatenate
 from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
 from evtrack.filters.lie import pivot_map
-from evtrack.filters.scalar_lie import normalized, rotation_matrix
+from evtrack.filters.scalar_lie import normalized, rotation_matrix, se3_exp
 from evtrack.flow import FlowResult, TripletFlow, sampled_search
 from evtrack.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
-from evtrack.geometry import integrate_twist, matrix_to_tq
+from evtrack.geometry import matrix_to_tq
 from evtrack.jit import warm_up
 
 # evtrack.models is imported here, not where depth_icp is set up: it imports torch's
@@ -431,6 +431,19 @@ def _load_mesh(mesh: Any):
         raise ConfigError(f"mesh must be an ObjectMesh, a mesh file or (V, 3) vertices, got "
                           f"an array of shape {vertices.shape}")
     return None, vertices
+
+
+def moved_pose(T: np.ndarray, twist: np.ndarray, dt: float) -> np.ndarray:
+    """:func:`evtrack.geometry.integrate_twist` for one (4, 4) float64 pose and (6,) twist
+    ``[v_o, ω]`` (camera frame) over ``dt`` seconds, on Python floats
+    (:func:`evtrack.filters.scalar_lie.se3_exp`): microseconds instead of a millisecond of
+    tensor dispatch, for the tracker's per-group and per-query poses."""
+    xi = [float(v) * dt for v in twist]
+    q, p = se3_exp((xi[0], xi[1], xi[2]), (xi[3], xi[4], xi[5]))
+    step = np.eye(4)
+    step[:3, :3] = rotation_matrix(q)
+    step[:3, 3] = p
+    return step @ np.asarray(T, np.float64)
 
 
 class _Prefetched:
@@ -1307,8 +1320,7 @@ class Tracker:
         twist = self._current_twist()
         if not (np.isfinite(twist).all() and np.any(twist)):
             return poly
-        end = integrate_twist(torch.from_numpy(pose), torch.from_numpy(twist),
-                              span_us * 1e-6).numpy()
+        end = moved_pose(pose, twist, span_us * 1e-6)
         end_poly = self.silhouette.polygon(end) if np.isfinite(end).all() else None
         return poly if end_poly is None else self.silhouette.hull([poly, end_poly])
 
@@ -2141,7 +2153,7 @@ class Tracker:
         dt = (t_us - t_ref) * 1e-6 if t_us is not None else 0.0
         if dt == 0:
             return T
-        return integrate_twist(torch.from_numpy(T), torch.from_numpy(twist), dt).numpy()
+        return moved_pose(T, twist, dt)
 
     def twist(self, t_us: int | None = None) -> np.ndarray:
         """The twist (6,) ``[v_o, ω]`` at ``t_us`` (default: now); see :meth:`pose`."""

@@ -512,3 +512,18 @@ def test_ge_measures_a_translating_texture(velocity) -> None:
     cos = flow @ true / np.linalg.norm(flow) / np.linalg.norm(true)
     ratio = np.linalg.norm(flow) / np.linalg.norm(true)
     assert cos > np.cos(np.radians(15)) and 0.8 < ratio < 1.7
+
+
+def test_moved_pose_equals_integrate_twist() -> None:
+    """The tracker's float path for one pose moved by a twist (``moved_pose``) against the
+    tensor one (kornia's SE(3) exponential), large and tiny rotations, either sign of dt."""
+    from evtrack.geometry import integrate_twist
+    from evtrack.tracker import moved_pose
+
+    rng = np.random.default_rng(4)
+    for scale in (5.0, 1e-5, 0.0):
+        for dt in (0.04, -0.013, 0.0):
+            T = _pose(rng.normal(size=3), rng.normal(size=3))
+            twist = rng.normal(size=6) * np.array([1, 1, 1, scale, scale, scale])
+            ref = integrate_twist(torch.from_numpy(T), torch.from_numpy(twist), dt).numpy()
+            np.testing.assert_allclose(moved_pose(T, twist, dt), ref, rtol=0, atol=1e-12)
