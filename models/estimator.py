@@ -285,10 +285,16 @@ class PoseEstimator(abc.ABC):
         Returns:
             At most one detection, with its other readings as its alternatives, or what
             :meth:`__call__` returns.
+
+        Raises:
+            ValueError: ``prior`` is not (4, 4) (a non-finite one falls back as above).
         """
         rgb = check_rgb(rgb)
         prior = np.asarray(prior, np.float64)
-        if self.decode.crop_refine <= 0 or prior.shape != (4, 4) or not np.isfinite(prior).all():
+        if prior.shape != (4, 4):
+            raise ValueError(f"estimate_near: prior must be a (4, 4) pose, got shape "
+                             f"{prior.shape}")
+        if self.decode.crop_refine <= 0 or not np.isfinite(prior).all():
             return self(rgb, camera)
         K, dist = self._intrinsics(camera, rgb.shape)
         width = rgb.shape[1]

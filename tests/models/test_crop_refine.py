@@ -349,6 +349,8 @@ def test_estimate_near_falls_back_to_the_whole_image_when_the_object_is_not_ther
         (found,) = est.estimate_near(image, prior)
         assert len(est.calls) == 2
         np.testing.assert_array_equal(found.pose.numpy(), two_pass.pose.numpy())
+    with pytest.raises(ValueError, match=r"prior must be a \(4, 4\) pose"):
+        est.estimate_near(image, np.eye(3))
     # one pass configured: the prior is not used
     one = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0))
     (plain,) = one(image)
