@@ -155,3 +155,18 @@ def test_the_search_finds_the_pose_opencv_p3p_finds(seed):
     np.testing.assert_allclose(found.tvec.reshape(3), t_ref, atol=1e-7)
     assert np.linalg.norm(found.tvec.reshape(3) - T[:3, 3]) < 0.01
     assert found.hypotheses > 9 * 8 // 2 * 24  # about two solutions per problem
+
+
+def test_the_searchs_projection_with_a_lens_equals_opencv_pose_by_pose():
+    from evtrack.models.pose_search import _project
+
+    rng = np.random.default_rng(5)
+    obj = rng.uniform(-0.1, 0.1, (9, 3))
+    R = Rotation.random(6, random_state=5).as_matrix()
+    t = np.c_[rng.uniform(-0.1, 0.1, (6, 2)), rng.uniform(0.4, 1.0, 6)]
+    dist = np.array([-0.2, 0.05, 0.001, -0.002, 0.0])
+    uv, z = _project(obj, R, t, K, dist)
+    for n in range(6):
+        ref = cv2.projectPoints(obj, cv2.Rodrigues(R[n])[0], t[n], K, dist)[0].reshape(-1, 2)
+        np.testing.assert_allclose(uv[n], ref, atol=1e-9)
+        np.testing.assert_allclose(z[n], (obj @ R[n].T + t[n])[:, 2])
