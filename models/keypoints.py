@@ -51,13 +51,17 @@ def _refine(
     if method == "none" or len(xs) == 0:
         return fx, fy, vals
     if method == "log_quadratic":
-        logm = np.log(np.maximum(m.astype(np.float64), _LOG_FLOOR))
+
+        def logm(yy: np.ndarray, xx: np.ndarray) -> np.ndarray:  # only the cells needed
+            return np.log(np.maximum(m[yy, xx].astype(np.float64), _LOG_FLOOR))
+
         inner_x = (xs > 0) & (xs < w - 1)
         inner_y = (ys > 0) & (ys < h - 1)
         xm, xp = np.clip(xs - 1, 0, w - 1), np.clip(xs + 1, 0, w - 1)
         ym, yp = np.clip(ys - 1, 0, h - 1), np.clip(ys + 1, 0, h - 1)
-        ox = _log_quadratic_offset(logm[ys, xm], logm[ys, xs], logm[ys, xp])
-        oy = _log_quadratic_offset(logm[ym, xs], logm[ys, xs], logm[yp, xs])
+        centre = logm(ys, xs)
+        ox = _log_quadratic_offset(logm(ys, xm), centre, logm(ys, xp))
+        oy = _log_quadratic_offset(logm(ym, xs), centre, logm(yp, xs))
         # the value stays the cell's: the fitted height extrapolates wildly on flat-topped or
         # one-sided peaks (a neighbour near zero makes its logarithm huge), and a ranking by
         # it let spurious border peaks outrank the real keypoint
@@ -145,7 +149,10 @@ def sample_bilinear(field: np.ndarray, x: float, y: float) -> np.ndarray:
     x0, y0 = int(np.floor(x)), int(np.floor(y))
     x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
     ax, ay = x - x0, y - y0
-    f = field.astype(np.float64)
-    top = f[:, y0, x0] * (1 - ax) + f[:, y0, x1] * ax
-    bottom = f[:, y1, x0] * (1 - ax) + f[:, y1, x1] * ax
+
+    def at(yy: int, xx: int) -> np.ndarray:  # the four corners only, not the whole field
+        return field[:, yy, xx].astype(np.float64)
+
+    top = at(y0, x0) * (1 - ax) + at(y0, x1) * ax
+    bottom = at(y1, x0) * (1 - ax) + at(y1, x1) * ax
     return top * (1 - ay) + bottom * ay
