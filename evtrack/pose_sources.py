@@ -28,6 +28,7 @@ from torch import Tensor
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
+from evtrack.geometry import inverse
 
 __all__ = [
     "ROTATION_TOLERANCE",
@@ -209,7 +210,7 @@ class NetworkPoseSource:
         """
         near = getattr(self.estimator, "estimate_near", None)
         if prior is not None and near is not None:
-            prior_rgb = torch.linalg.inv(self.T_event_rgb) @ torch.as_tensor(
+            prior_rgb = inverse(self.T_event_rgb) @ torch.as_tensor(
                 np.asarray(prior, np.float64))
             found = near(rgb, prior_rgb.numpy())
         else:

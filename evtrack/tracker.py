@@ -465,7 +465,7 @@ class _Prefetched:
     def __init__(self, read, count: int, ahead: int = 3) -> None:
         self._read = read
         self._count = count
-        self._depth = max(1, int(ahead))
+        self._lookahead = max(1, int(ahead))
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="evtrack-frames")
         self._ahead: dict[int, Future] = {}
         self._closed = False
@@ -476,7 +476,7 @@ class _Prefetched:
             self._ahead.pop(other).cancel()
         frame = pending.result() if pending is not None else self._read(index)
         if not self._closed:
-            for later in range(index + 1, min(self._count, index + 1 + self._depth)):
+            for later in range(index + 1, min(self._count, index + 1 + self._lookahead)):
                 if later not in self._ahead:
                     self._ahead[later] = self._pool.submit(self._read, later)
         return frame

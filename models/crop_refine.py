@@ -45,6 +45,11 @@ class CropWindow:
     size: tuple[int, int]
 
     @property
+    def centre(self) -> np.ndarray:
+        """(2,) float64 the crop's centre, crop pixels (pixel centres at integers)."""
+        return (np.asarray(self.size, np.float64) - 1) / 2
+
+    @property
     def affine(self) -> np.ndarray:
         """(2, 3) float64: image pixel -> crop pixel (``cv2.warpAffine``'s matrix)."""
         s = self.scale

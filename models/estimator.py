@@ -256,9 +256,9 @@ class PoseEstimator(abc.ABC):
             if not found:
                 out.append(None)
                 continue
-            centre = (np.asarray(window.size, np.float64) - 1) / 2
             best = min(found, key=lambda d: float(np.linalg.norm(
-                self.cuboid.project(d.pose.numpy(), K_crop, dist)[CENTROID_INDEX] - centre)))
+                self.cuboid.project(d.pose.numpy(), K_crop, dist)[CENTROID_INDEX]
+                - window.centre)))
             out.append([self._crop_to_image(d, window) for d in (best, *best.alternatives)])
         return out
 
@@ -318,8 +318,8 @@ class PoseEstimator(abc.ABC):
         if placed is None:
             return self(rgb, camera)
         # where the detection's own crop lies in the prior's crop: its centre and its zoom
-        centre = (np.asarray(window.size, np.float64) - 1) / 2
-        offset = np.linalg.norm(window.to_crop(placed.to_image(centre)) - centre) / size
+        centre = window.centre
+        offset = np.linalg.norm(window.to_crop(placed.to_image(placed.centre)) - centre) / size
         zoom = placed.scale / window.scale
         tol = self.decode.prior_recrop
         if offset <= tol and abs(zoom - 1.0) <= 2 * tol:
