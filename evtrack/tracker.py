@@ -1251,7 +1251,7 @@ class Tracker:
                                             sensor_width=self.camera.width,
                                             per_window=cfg.search_per_roi_window,
                                             budget=budget)
-                    st.events_unsearched += int(len(search) - int(search.sum()))
+                    st.events_unsearched += int(len(search) - np.count_nonzero(search.numpy()))
                 res = _StepFlows(self._flow_update(ev, t_end, search), t0, step,
                                  (t_end - t0) // step, self.vkf.twist.dtype, self.device)
         n_steps = (t_end - t0) // step

@@ -99,6 +99,23 @@ def test_masks_and_index_tensors_select_as_torch_indexing():
         ev[torch.tensor([0, 300])]
 
 
+@pytest.mark.parametrize("coord_dtype", [torch.int16, torch.int32])
+def test_mask_compaction_matches_numpy_at_the_edges(coord_dtype):
+    """The compiled one-pass compaction of CPU masks gives NumPy's boolean indexing of each
+    field, also for all-true, all-false, first-only and last-only masks."""
+    g = np.random.default_rng(11)
+    n = 1000
+    ev = Events(torch.from_numpy(g.integers(0, 640, n)).to(coord_dtype),
+                torch.from_numpy(g.integers(0, 480, n)).to(coord_dtype),
+                np.sort(g.integers(0, 10**6, n)), g.choice([-1, 1], n), sensor_size=(640, 480))
+    first, last = np.zeros(n, bool), np.zeros(n, bool)
+    first[0], last[-1] = True, True
+    for mask in (g.random(n) < 0.5, np.ones(n, bool), np.zeros(n, bool), first, last):
+        got = ev[torch.from_numpy(mask)]
+        for k in ("x", "y", "t", "p"):
+            want = getattr(ev, k).numpy()[mask]
+            assert np.array_equal(getattr(got, k).numpy(), want)
+            assert getattr(got, k).dtype == getattr(ev, k).dtype
 def test_between_matches_brute_force():
     ev = make_events(500, seed=1)
     for t0, t1 in [(0, 10), (100_000, 300_000), (999_999, 2_000_000), (5, 5)]:
