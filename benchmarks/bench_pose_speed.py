@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -191,40 +192,12 @@ def main() -> None:
         time_estimators(args.threads, args.repeats)
 
 
-def _search_with_opencv(points, centroid, belief, cuboid, K, to_grid):
-    """The search's former hypotheses: one ``cv2.solveP3P`` per ordered pair of points and
-    directed edge, scored as :func:`evtrack.models.pose_search.search_pose` scores them."""
-    from evtrack.models.cuboid import CENTROID_INDEX
-    from evtrack.models.pose_search import cuboid_edges, sample_maps
-
-    obj = cuboid.points()
-    R, t = [], []
-    for a in range(len(points)):
-        for b in range(len(points)):
-            if a == b:
-                continue
-            img = np.array([points[a, :2], points[b, :2], centroid])
-            for i, j in cuboid_edges(cuboid):
-                n, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(obj[[i, j, CENTROID_INDEX]]),
-                                               img, K, None, flags=cv2.SOLVEPNP_P3P)
-                for k in range(n):
-                    R.append(cv2.Rodrigues(rvecs[k])[0])
-                    t.append(tvecs[k].reshape(3))
-    R, t = np.array(R), np.array(t)
-    cam = np.einsum("nij,pj->npi", R, obj) + t[:, None]
-    uv = cam[..., :2] / cam[..., 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
-    g = to_grid(uv)
-    s = sample_maps(belief, g[..., 0], g[..., 1])
-    corners = s[:, :CENTROID_INDEX, :CENTROID_INDEX]
-    score = (0.5 * corners.max(axis=2) + 0.5 * np.diagonal(corners, axis1=1, axis2=2)).sum(1)
-    score = np.where((cam[..., 2] > 0).all(axis=1), score + s[:, -1, -1], -np.inf)
-    best = int(np.argmax(score))
-    return R[best], t[best], len(R)
-
-
 def time_search(repeats: int) -> None:
     """The pose search on maps of one box whose corner maps all fire on every corner."""
     from evtrack.models.pose_search import search_pose
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "models"))
+    from pose_search_reference import opencv_search
 
     belief, _, cub, K = ideal_maps(480, 640)
     uv = cub.project(_IDEAL_POSE, K)
@@ -239,10 +212,10 @@ def time_search(repeats: int) -> None:
         return search_pose(points, uv[8], confused, cub, K, None, to_grid)
 
     def reference():
-        return _search_with_opencv(points, uv[8], confused, cub, K, to_grid)
+        return opencv_search(points, uv[8], confused, cub, K, to_grid)
 
     (b_med, b_min), (r_med, r_min) = timeit_pair(batched, reference, max(5, repeats // 3))
-    found, (R, t, n_ref) = batched(), reference()
+    found, (R, t, _, n_ref) = batched(), reference()
     same = (np.abs(cv2.Rodrigues(found.rvec)[0] - R).max() < 1e-6
             and np.abs(found.tvec.reshape(3) - t).max() < 1e-6)
     print(f"pose search, 8 points (one thread of numpy): batched P3P {b_med:.1f} ms (min "

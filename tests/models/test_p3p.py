@@ -6,11 +6,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from pose_search_reference import opencv_search
 from scipy.spatial.transform import Rotation
 
 from evtrack.models.cuboid import CENTROID_INDEX, Cuboid
 from evtrack.models.p3p import bearings, solve_p3p
-from evtrack.models.pose_search import cuboid_edges, sample_maps, search_pose
+from evtrack.models.pose_search import search_pose
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 610.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -87,38 +88,6 @@ def test_degenerate_problems_give_no_solution_and_do_not_disturb_the_others():
     assert [len(x) for x in empty] == [0, 0, 0]
 
 
-def _opencv_search(points, centroid, belief, cuboid, to_grid, identity_weight=0.5):
-    """The search's brute-force reference: one ``cv2.solveP3P`` per ordered pair of points
-    and directed edge, every solution scored as :func:`search_pose` describes."""
-    obj = cuboid.points()
-    rotations, translations = [], []
-    for a in range(len(points)):
-        for b in range(len(points)):
-            if a == b:
-                continue
-            img = np.array([points[a, :2], points[b, :2], centroid])
-            for i, j in cuboid_edges(cuboid):
-                o = np.ascontiguousarray(obj[[i, j, CENTROID_INDEX]])
-                n, rvecs, tvecs = cv2.solveP3P(o, img, K, None, flags=cv2.SOLVEPNP_P3P)
-                for k in range(n):
-                    rotations.append(cv2.Rodrigues(rvecs[k])[0])
-                    translations.append(tvecs[k].reshape(3))
-    best, best_score = None, -np.inf
-    for R, t in zip(rotations, translations, strict=True):
-        cam = obj @ R.T + t
-        if np.any(cam[:, 2] <= 0):
-            continue
-        uv = cam[:, :2] / cam[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
-        g = to_grid(uv)
-        s = sample_maps(belief, g[:, 0], g[:, 1])
-        corners = s[:CENTROID_INDEX, :CENTROID_INDEX]
-        score = ((1 - identity_weight) * corners.max(axis=1)
-                 + identity_weight * np.diagonal(corners)).sum() + s[CENTROID_INDEX, CENTROID_INDEX]
-        if score > best_score:
-            best, best_score = (R, t), score
-    return best, best_score
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_the_search_finds_the_pose_opencv_p3p_finds(seed):
     # maps where every corner map fires on every corner, more weakly on the wrong ones, plus
@@ -148,7 +117,7 @@ def test_the_search_finds_the_pose_opencv_p3p_finds(seed):
                              [[*spurious, 0.5]]])
     found = search_pose(points, uv[CENTROID_INDEX], belief, cuboid, K, None, to_grid,
                         max_points=9)
-    (R_ref, t_ref), score_ref = _opencv_search(points, uv[CENTROID_INDEX], belief, cuboid,
+    R_ref, t_ref, score_ref, _ = opencv_search(points, uv[CENTROID_INDEX], belief, cuboid, K,
                                                to_grid)
     assert found.score == pytest.approx(score_ref, abs=1e-9)
     np.testing.assert_allclose(cv2.Rodrigues(found.rvec)[0], R_ref, atol=1e-7)
