@@ -426,6 +426,24 @@ def test_insertion_selection_keeps_the_smallest_keys_sorted(order, cap):
         assert np.array_equal(buf[:filled], np.sort(keys)[:cap])
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 15, 16, 17, 48])
+def test_small_median_equals_numpy_median(n):
+    """The registration's allocation-free median of the hypotheses (which one it evaluates
+    first) is NumPy's, float64 of the float32 values, even counts the mean of the middle
+    two; ties and repeated values included."""
+    from evtrack.flow import registration_compiled as rc
+
+    rng = np.random.default_rng(n)
+    scratch = np.full(n, np.float32(1e30), np.float32)
+    for values in (rng.normal(0, 300, n), rng.integers(-3, 3, n), np.full(n, 7.25)):
+        values = np.asarray(values, np.float32)
+        before = values.copy()
+        got = rc._median_small(values, n, scratch)
+        want = np.median(values.astype(np.float64)) if n % 2 else np.float64(
+            np.float32(np.sort(values)[n // 2 - 1] + np.sort(values)[n // 2])) / 2
+        assert got == want and np.array_equal(values, before)
+
+
 def _first_nearest(cx, cy, fx, fy, allowed):
     """Brute force: the first allowed candidate with the smallest rounded distance."""
     best, arg = None, -1
