@@ -1,9 +1,10 @@
 """How the tracker's processing time grows with the event rate, and the rate it keeps up with.
 
-    python benchmarks/bench_event_rate.py --sequence DIR [DIR ...] [--repeats 2]
+    python benchmarks/bench_event_rate.py --sequence SET [DIR ...] [--repeats 2]
         [--frames files|memory] [--method full] [--threads 2]
 
-Tracks each sequence (``evtrack simulate-benchmark --out SET``: ``SET/*``) with the tracker's
+Tracks each sequence (``--sequence SET`` takes every sequence folder of a set, e.g. the
+output of ``evtrack simulate-benchmark --out SET``; or name the folders) with the tracker's
 defaults and oracle poses (1 cm / 0.03 rad noise, 5 Hz, no network: the tracking's own cost),
 ``--repeats`` rounds of one fresh process per sequence, the sequences interleaved so that the
 machine's load drifts over all of them alike. Each child tracks its sequence twice and times
@@ -38,6 +39,27 @@ from pathlib import Path
 from tracker_runs import run_child, time_tracking
 
 
+def sequence_folders(paths: list[Path]) -> list[Path]:
+    """The sequence folders (holding ``meta.yaml``) among ``paths``: each path itself, or,
+    for a folder of sequences (a benchmark set), its sequence subfolders in name order.
+
+    Raises:
+        ValueError: a path that is neither.
+    """
+    found = []
+    for path in paths:
+        if (path / "meta.yaml").is_file():
+            found.append(path)
+            continue
+        inner = (sorted(p for p in path.iterdir() if (p / "meta.yaml").is_file())
+                 if path.is_dir() else [])
+        if not inner:
+            raise ValueError(f"{path}: not a sequence folder (no meta.yaml) nor a folder of "
+                             "sequence folders")
+        found += inner
+    return list(dict.fromkeys(found))  # each once, in the order given
+
+
 def event_count(sequence: Path) -> tuple[int, float]:
     """``(events, seconds from the first to the last event)`` of a sequence folder."""
     from evtrack.io import open_events
@@ -69,8 +91,8 @@ def _spawn(sequence: Path, args: argparse.Namespace) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sequence", type=Path, nargs="+", required=True,
-                    help="sequence folders (e.g. SET/* from evtrack simulate-benchmark); at "
-                         "least two event rates for the line")
+                    help="sequence folders, or a folder of them (a set from evtrack "
+                         "simulate-benchmark); at least two event rates for the line")
     ap.add_argument("--repeats", type=int, default=2, help="runs per sequence")
     ap.add_argument("--frames", choices=("files", "memory"), default="files",
                     help="RGB-D frames read while tracking (files, the default, as evaluate "
@@ -87,9 +109,17 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--repeats must be >= 1, got {args.repeats}")
     if args.threads < 1:
         ap.error(f"--threads must be >= 1, got {args.threads}")
-    missing = [str(s) for s in args.sequence if not (s / "meta.yaml").is_file()]
-    if missing:
-        ap.error(f"not sequence folders (no meta.yaml): {', '.join(missing)}")
+    from evtrack.errors import ConfigError
+    from evtrack.tracking_config import TrackerConfig
+
+    try:
+        TrackerConfig.from_dict({"method": args.method})
+    except ConfigError as exc:
+        ap.error(f"--method: {exc}")
+    try:
+        args.sequence = sequence_folders(args.sequence)
+    except ValueError as exc:
+        ap.error(str(exc))
     counts = {}
     for seq in args.sequence:
         try:
