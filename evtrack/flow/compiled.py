@@ -476,7 +476,12 @@ class CompiledSearch:
         if not len(t):
             return
         t = np.asarray(t, np.int64)
-        self._ensure_range(int(t[0]) - 1, int(t[-1]))
+        first = int(t[0]) - 1
+        if self.t_base is not None:
+            # an event at the base's own µs (the stream's first): its previous event lies
+            # 1 µs before the base, relative time -1, which the int32 state holds
+            first = max(first, self.t_base)
+        self._ensure_range(first, int(t[-1]))
         pix = np.asarray(y, np.int64) * self.width + np.asarray(x, np.int64)
         positive = (np.asarray(p) > 0).astype(np.int64)
         self.last[pix] = (2 * (t - 1 - self.t_base) + positive).astype(np.int32)
