@@ -36,7 +36,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from tracker_runs import run_child, time_tracking
+from tracker_runs import check_run_arguments, run_child, time_tracking
 
 
 def sequence_folders(paths: list[Path]) -> list[Path]:
@@ -105,17 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(time_tracking(args.sequence[0], {"method": args.method},
                                        args.threads, args.frames)))
         return 0
-    if args.repeats < 1:
-        ap.error(f"--repeats must be >= 1, got {args.repeats}")
-    if args.threads < 1:
-        ap.error(f"--threads must be >= 1, got {args.threads}")
-    from evtrack.errors import ConfigError
-    from evtrack.tracking_config import TrackerConfig
-
-    try:
-        TrackerConfig.from_dict({"method": args.method})
-    except ConfigError as exc:
-        ap.error(f"--method: {exc}")
+    check_run_arguments(ap, args)
     try:
         args.sequence = sequence_folders(args.sequence)
     except ValueError as exc:

@@ -33,7 +33,7 @@ import sys
 from pathlib import Path
 
 import yaml
-from tracker_runs import add_run_arguments, compare, run_child, time_tracking
+from tracker_runs import add_run_arguments, check_run_arguments, compare, run_child, time_tracking
 
 REFERENCE = "defaults"
 FIXED = {"method": "--method", "torch_threads": "--threads"}
@@ -100,17 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.option:
         ap.error("give at least one --option NAME=YAML to compare with the defaults")
-    if args.repeats < 1:
-        ap.error(f"--repeats must be >= 1, got {args.repeats}")
-    if args.threads < 1:
-        ap.error(f"--threads must be >= 1, got {args.threads}")
-    from evtrack.errors import ConfigError
-    from evtrack.tracking_config import TrackerConfig
-
-    try:
-        TrackerConfig.from_dict({"method": args.method})
-    except ConfigError as exc:
-        ap.error(f"--method: {exc}")
+    check_run_arguments(ap, args)
     missing = [str(s) for s in args.sequence if not (s / "meta.yaml").is_file()]
     if missing:
         ap.error(f"not sequence folders (no meta.yaml): {', '.join(missing)}")

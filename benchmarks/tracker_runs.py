@@ -91,6 +91,22 @@ def add_run_arguments(ap: argparse.ArgumentParser, what: str) -> None:
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
 
 
+def check_run_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``ap.error`` (exits) on ``--repeats`` or ``--threads`` below 1 or a ``--method`` the
+    tracker does not have."""
+    if args.repeats < 1:
+        ap.error(f"--repeats must be >= 1, got {args.repeats}")
+    if args.threads < 1:
+        ap.error(f"--threads must be >= 1, got {args.threads}")
+    from evtrack.errors import ConfigError
+    from evtrack.tracking_config import TrackerConfig
+
+    try:
+        TrackerConfig.from_dict({"method": args.method})
+    except ConfigError as exc:
+        ap.error(f"--method: {exc}")
+
+
 def compare(sequences: list[Path], settings: list[str], label: str, repeats: int,
             spawn: Callable[[Path, str], dict]) -> None:
     """Per sequence, ``repeats`` rounds of one fresh run per setting (interleaved, so that the
