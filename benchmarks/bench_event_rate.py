@@ -63,8 +63,9 @@ def sequence_folders(paths: list[Path]) -> list[Path]:
 def event_count(sequence: Path) -> tuple[int, float]:
     """``(events, seconds from the first to the last event)`` of a sequence folder."""
     from evtrack.io import open_events
+    from evtrack.sequence import EVENTS_FILE
 
-    with open_events(sequence / "events.h5") as reader:
+    with open_events(sequence / EVENTS_FILE) as reader:
         n = reader.num_events
         t0, t1 = reader.t_start, reader.t_end
     if not n or t0 is None or t1 is None or t1 <= t0:
