@@ -116,6 +116,8 @@ def test_mask_compaction_matches_numpy_at_the_edges(coord_dtype):
             want = getattr(ev, k).numpy()[mask]
             assert np.array_equal(getattr(got, k).numpy(), want)
             assert getattr(got, k).dtype == getattr(ev, k).dtype
+
+
 def test_between_matches_brute_force():
     ev = make_events(500, seed=1)
     for t0, t1 in [(0, 10), (100_000, 300_000), (999_999, 2_000_000), (5, 5)]:
