@@ -30,8 +30,9 @@ Columns:
         ``--caps`` compares the speed and the error of several budgets.
     sample: ``search_per_roi_window`` (events of a RoI window searched for candidates, a hash
         sample; 0: all): ``--search-per-window`` compares several.
-    rt, min bgt: ``realtime_load`` (0: off) and the lowest search budget per step it set
-        (0: none); ``--realtime-load 0 0.9`` compares the deterministic default with live use.
+    rt, min bgt, min ev: ``realtime_load`` (0: off), the lowest search budget and the lowest
+        event budget per step it set (0: none); ``--realtime-load 0 0.9`` compares the
+        deterministic default with live use.
 
 Timings on a shared machine are noisy; rerun when it is quiet.
 """
@@ -125,7 +126,7 @@ def _run(seq: Sequence, method: str, threads: int, config: dict, weights: str | 
     row = {"method": method, "threads": threads, "cap": cfg.max_events_per_step,
            "sample": cfg.search_per_roi_window, "budget": cfg.max_searched_per_step,
            "unsearched": st.events_unsearched, "rt": cfg.realtime_load,
-           "budget_min": st.search_budget_min,
+           "budget_min": st.search_budget_min, "events_min": st.event_budget_min,
            "async": "on" if pose_async else "off",
            "prior": "on" if cfg.pose_prior else "off",
            "pose_src": st.time_s.get("pose_source", 0.0),
@@ -173,8 +174,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="max_searched_per_step values to compare (events searched per "
                          "velocity step, by cells of RoIs; 0: no budget; default: the config's)")
     ap.add_argument("--realtime-load", type=float, nargs="+", default=[None], metavar="L",
-                    help="TrackerConfig.realtime_load values to compare (the search budget "
-                         "follows the processing load, live use; 0: off, the default)")
+                    help="TrackerConfig.realtime_load values to compare (the search and event "
+                         "budgets follow the processing load, live use; 0: off, the default)")
     ap.add_argument("--pose-async", nargs="+", choices=["on", "off"], default=["on"],
                     help="TrackerConfig.pose_async values to compare (on: the pose source in "
                          "the tracker's worker thread; default: on)")
@@ -212,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
           f"OMP_WAIT_POLICY {wait_policy()}")
     head = (f"{'method':<10} {'thr':>3} {'async':>5} {'prior':>5} {'cap':>6} {'sample':>6} "
             f"{'budget':>6} "
-            f"{'rt':>4} {'min bgt':>7} "
+            f"{'rt':>4} {'min bgt':>7} {'min ev':>6} "
             f"{'unsearched':>10} {'thinned':>8} "
             f"{'proc s':>7} "
             f"{'rtf':>6} {'pose src':>8} "
@@ -224,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         print(f"{r['method']:<10} {r['threads']:>3} {r['async']:>5} {r['prior']:>5} {r['cap']:>6} "
               f"{r['sample']:>6} {r['budget']:>6} {r['rt']:>4g} {r['budget_min']:>7} "
+              f"{r['events_min']:>6} "
               f"{r['unsearched']:>10} "
               f"{r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
               f"{r['pose_src']:>8.2f} "

@@ -179,11 +179,17 @@ _LOAD_CLIP = 2.0
 the first pose's catch-up, is not a trend)."""
 _BACKLOG_GROUPS = 5
 """``realtime_load``: the backlog (processing time beyond the target) that starts cutting the
-search budget, in step groups' stream time (50 ms at the default 10 x 1 ms)."""
+budgets, in step groups' stream time (200 ms at the default 40 x 1 ms)."""
+_RAISE_SHARE = 0.8
+"""``realtime_load``: below this share of the target the smoothed load raises the budgets
+while a backlog still drains (at the floors a small machine's load can sit there: without
+it the budgets stayed at their floors until the backlog had drained)."""
 _BUDGET_CUT = 0.9
+_BUDGET_CUT_MAX = 0.7
 _BUDGET_RAISE = 1.05
-"""Factors of ``realtime_load``'s budget per step group: a cut while the backlog is over
-``_BACKLOG_GROUPS``, a raise while there is none."""
+"""Factors of ``realtime_load``'s budgets per step group: a cut while the backlog is over
+``_BACKLOG_GROUPS`` of ``target / smoothed load``, within ``[_BUDGET_CUT_MAX, _BUDGET_CUT]``
+(at twice the target, the smoothed load's clip, 0.7), a raise while there is none."""
 
 _POSE_DEPTH_MIN_PIXELS = 16
 """Fewest valid depth pixels in a pose's silhouette to judge it (``pose_depth_min_share``)."""
@@ -300,7 +306,8 @@ class TrackerStats:
             (``TrackerConfig.pose_depth_align``); pose_alignments_skipped: poses that were not,
             by reason (:class:`~evtrack.pose_alignment.RayAlignment`).
         search_budget_min: with ``TrackerConfig.realtime_load``, the lowest search budget per
-            step it set (0: it never lowered it); groups_over_load: step groups whose
+            step it set (0: it never lowered it); event_budget_min: the lowest event budget
+            per step it set (0: it never shed events); groups_over_load: step groups whose
             processing took longer than ``realtime_load`` of their stream time.
         twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
             measured on kept frame pairs when a late pose started the track.
@@ -342,6 +349,7 @@ class TrackerStats:
     poses_depth_aligned: int = 0
     pose_alignments_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     search_budget_min: int = 0
+    event_budget_min: int = 0
     groups_over_load: int = 0
     reinitialisations: int = 0
     lost: int = 0
@@ -741,6 +749,9 @@ class Tracker:
         self._resync: tuple[int, int] | None = None  # µs: a flow re-sync going on (_flow_update)
         self._resync_seen = np.zeros(0, bool)  # pixels with an event in that re-sync so far
         self._search_budget = self.config.max_searched_per_step  # per step (realtime_load)
+        self._event_budget = self.config.max_events_per_step  # per step, 0: none (the same)
+        # events per step entering the thinning, smoothed over ~10 step groups
+        self._group_rate: float | None = None
         self._backlog_s = 0.0  # processing beyond realtime_load of the stream time, s
         self._load: float | None = None  # smoothed processing / stream time (realtime_load)
         self._last_event_t: int | None = None
@@ -1178,19 +1189,34 @@ class Tracker:
         started = self.clock() if self.config.realtime_load else 0.0
         self._group_steps(t0, t_end, ev)
         if self.config.realtime_load:
-            self._adapt_search_budget(self.clock() - started, (t_end - t0) * 1e-6)
+            self._adapt_budgets(self.clock() - started, (t_end - t0) * 1e-6)
 
-    def _adapt_search_budget(self, wall_s: float, stream_s: float) -> None:
+    def _adapt_budgets(self, wall_s: float, stream_s: float) -> None:
         """``realtime_load``: from a step group's processing time ``wall_s`` and its stream
-        time ``stream_s``, the search budget per step of the next groups. The processing time
-        beyond ``realtime_load`` of the stream time accumulates as a backlog (a live stream's
-        events waiting), which drains when the groups take less. While the backlog exceeds
-        ``_BACKLOG_GROUPS`` groups' stream time and the load, smoothed over ~10 groups, is
-        above the target, the budget is cut by ``_BUDGET_CUT`` per group; while there is no
-        backlog and the smoothed load is below the target it grows by ``_BUDGET_RAISE`` per
-        group (within ``min_searched_per_step`` and ``max_searched_per_step``); otherwise it
-        holds. The average load so stays near ``realtime_load`` with a bounded delay; a burst
-        the budget cannot absorb (e.g. the first pose's catch-up) only drains."""
+        time ``stream_s``, the search and event budgets per step of the next groups.
+
+        The processing time beyond ``realtime_load`` of the stream time accumulates as a
+        backlog (a live stream's events waiting), which drains when the groups take less.
+        While the backlog exceeds ``_BACKLOG_GROUPS`` groups' stream time and the load,
+        smoothed over ~10 groups and the group's own, is above the target (the group's own
+        keeps the smoothed one's lag from cutting on), both budgets are cut per group by
+        ``target / load`` (within ``_BUDGET_CUT_MAX`` and ``_BUDGET_CUT``):
+
+        - the search budget down to ``min_searched_per_step``;
+        - the event budget (events thinned by cells, as by ``max_events_per_step``) down to
+          ``min_events_per_step``, from the events per step (smoothed over ~10 groups) where
+          those are fewer than the budget or there is no cap; not where they are fewer than
+          ``min_events_per_step`` already.
+
+        While the smoothed load is below the target and there is no backlog, or it is below
+        ``_RAISE_SHARE`` of the target, both grow by ``_BUDGET_RAISE`` per group, towards
+        ``max_searched_per_step`` and ``max_events_per_step`` (or no cap, once the budget is
+        twice the events per step); otherwise they hold. The average load so stays near
+        ``realtime_load`` with a bounded delay where the floors allow it; a burst the budgets
+        cannot absorb (e.g. the first pose's catch-up) only drains. Cutting both together
+        costs less accuracy than cutting the search alone to a low floor (cracker box
+        `faster`: 2500 events and 1000 searched per step, 3.6 cm / 8.7 deg, ran about as fast
+        as 2000 and 250, 9.5 cm / 16.6 deg; ``docs/measurement-log.md``, session 45)."""
         cfg = self.config
         target = cfg.realtime_load
         load = wall_s / stream_s
@@ -1200,16 +1226,30 @@ class Tracker:
         self._load = counted if self._load is None else (
             _LOAD_SMOOTHING * counted + (1 - _LOAD_SMOOTHING) * self._load)
         self._backlog_s = max(0.0, self._backlog_s + wall_s - target * stream_s)
-        budget = self._search_budget
-        if self._backlog_s > _BACKLOG_GROUPS * stream_s and self._load > target:
-            budget = int(budget * _BUDGET_CUT)
-        elif self._backlog_s == 0.0 and self._load < target:
-            budget = int(budget * _BUDGET_RAISE) + 1
-        budget = min(max(budget, cfg.min_searched_per_step), cfg.max_searched_per_step)
-        if budget < cfg.max_searched_per_step and (not self.stats.search_budget_min
-                                                   or budget < self.stats.search_budget_min):
-            self.stats.search_budget_min = budget
-        self._search_budget = budget
+        search, events = self._search_budget, self._event_budget
+        if self._backlog_s > _BACKLOG_GROUPS * stream_s and self._load > target < load:
+            cut = min(max(target / self._load, _BUDGET_CUT_MAX), _BUDGET_CUT)
+            search = max(int(search * cut), cfg.min_searched_per_step)
+            if (self._group_rate or 0.0) > cfg.min_events_per_step > 0:  # thinning can help
+                rate = math.ceil(self._group_rate)
+                base = min(events, rate) if events else rate
+                events = max(int(base * cut), cfg.min_events_per_step)
+        elif self._load < target and (self._backlog_s == 0.0
+                                      or self._load < _RAISE_SHARE * target):
+            search = min(int(search * _BUDGET_RAISE) + 1, cfg.max_searched_per_step)
+            if events and events != cfg.max_events_per_step:
+                events = int(events * _BUDGET_RAISE) + 1
+                if cfg.max_events_per_step:
+                    events = min(events, cfg.max_events_per_step)
+                elif events > 2 * (self._group_rate or 0.0):
+                    events = 0  # far above the events: back to no cap
+        if search < cfg.max_searched_per_step and (not self.stats.search_budget_min
+                                                   or search < self.stats.search_budget_min):
+            self.stats.search_budget_min = search
+        if events != cfg.max_events_per_step and (not self.stats.event_budget_min
+                                                  or events < self.stats.event_budget_min):
+            self.stats.event_budget_min = events
+        self._search_budget, self._event_budget = search, events
 
     def _group_steps(self, t0: int, t_end: int, ev: Events) -> None:
         """Process the steps of ``[t0, t_end)``: one flow call for all of them (the mask is the
@@ -1233,9 +1273,14 @@ class Tracker:
                 ev = ev[torch.from_numpy(keep)]
             elif not (pose is None and self._velocity_before_pose and self.method != "ge"):
                 ev = ev[:0]
-            budget = cfg.max_events_per_step * ((t_end - t0) // step)
+            rate = len(ev) / ((t_end - t0) // step)
+            self._group_rate = rate if self._group_rate is None else (
+                _LOAD_SMOOTHING * rate + (1 - _LOAD_SMOOTHING) * self._group_rate)
+            budget = self._event_budget * ((t_end - t0) // step)
             if budget and (len(ev) > budget or self._thin_level):
                 ev = self._thin(ev, budget)
+            elif not budget:
+                self._thin_level = 0  # no cap (any more): nothing thinned
         res: _StepFlows | None = None
         if self.method in ("full", "velocity"):
             self._set_pivot(pose)  # the segment's pose: one pivot for its steps

@@ -322,15 +322,20 @@ class TrackerConfig:
         realtime_load: keep up with a live stream: the processing of the step groups (the
             flow, the filters and the frames taken meanwhile) beyond this share of their stream
             time accumulates as a backlog; while the backlog exceeds 5 groups and the load
-            (smoothed over ~10 groups) stays above this share, the search budget per step is
-            cut for the next groups, down to ``min_searched_per_step``, and while there is no
-            backlog it is raised again towards ``max_searched_per_step``
-            (:meth:`~evtrack.tracker.Tracker._adapt_search_budget`). The budget then
-            follows the machine's speed and load, and so do the results: 0 (the default) keeps
-            them deterministic. Needs ``max_searched_per_step > 0``. The work the budget does
-            not bound (reading, masking and storing every event, ~0.5 ms per 1 ms step on the
-            cracker box `faster` on 2 cores) stays.
+            (smoothed over ~10 groups) stays above this share, the search budget per step and
+            the events per step (thinned by cells, as by ``max_events_per_step``) are cut
+            together for the next groups, down to ``min_searched_per_step`` and
+            ``min_events_per_step``; while there is no backlog both are raised again towards
+            ``max_searched_per_step`` and ``max_events_per_step``
+            (:meth:`~evtrack.tracker.Tracker._adapt_budgets`). The budgets then follow the
+            machine's speed and load, and so do the results: 0 (the default) keeps them
+            deterministic. Needs ``max_searched_per_step > 0``. The work no budget bounds
+            (reading and masking every event, the filters and the pose fusions: ~0.7-0.8 of
+            real time on 2 cores of a slow VM with few events) stays. Shedding events costs
+            accuracy: see ``docs/results.md``, Speed.
         min_searched_per_step: the lowest search budget ``realtime_load`` goes to.
+        min_events_per_step: the lowest event budget ``realtime_load`` goes to; 0: it never
+            sheds events (only the search budget adapts, as before session 45).
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed
             outside the image (less than ``min_visible_fraction`` of its hull area inside) for
             this long; the pose filter then waits for the next pose to re-initialise.
@@ -530,7 +535,8 @@ class TrackerConfig:
     search_per_roi_window: int = 64
     max_searched_per_step: int = 2500
     realtime_load: float = 0.0
-    min_searched_per_step: int = 250
+    min_searched_per_step: int = 1000
+    min_events_per_step: int = 2000
     lost_after_ms: float = 100.0
     min_visible_fraction: float = 0.05
     lost_after_misses: int = 3
@@ -592,11 +598,12 @@ class TrackerConfig:
         for name in ("torch_threads", "blas_threads", "velocity_step_us", "flow_batch_steps",
                      "depth_patch_px", "depth_stride_px", "model_depth_interval_us",
                      "lost_after_misses", "max_events_per_step", "search_per_roi_window",
-                     "max_searched_per_step", "min_searched_per_step",
+                     "max_searched_per_step", "min_searched_per_step", "min_events_per_step",
                      "pose_half_turn_reinit_after"):
             _need_int(self, name, 0 if name in ("depth_patch_px", "torch_threads", "blas_threads",
                                                 "lost_after_misses", "max_events_per_step",
                                                 "search_per_roi_window", "max_searched_per_step",
+                                                "min_events_per_step",
                                                 "pose_half_turn_reinit_after")
                       else 1)
         for name in ("mask_margin_px", "lost_after_ms", "max_depth_age_ms", "pose_latency_ms",
@@ -630,6 +637,12 @@ class TrackerConfig:
             raise ConfigError(f"tracker config field 'min_searched_per_step' "
                               f"({self.min_searched_per_step}) must not exceed "
                               f"'max_searched_per_step' ({self.max_searched_per_step})")
+        if self.realtime_load and self.max_events_per_step \
+                and self.min_events_per_step > self.max_events_per_step:
+            raise ConfigError(f"tracker config field 'min_events_per_step' "
+                              f"({self.min_events_per_step}) must not exceed "
+                              f"'max_events_per_step' ({self.max_events_per_step}); 0 keeps "
+                              "realtime_load from shedding events")
         if not isinstance(self.pose_half_turn_axes, str):
             raise ConfigError(f"tracker config field 'pose_half_turn_axes' must be a string of "
                               f"'xyz' letters, got {self.pose_half_turn_axes!r}")

@@ -1,4 +1,4 @@
-"""``TrackerConfig.realtime_load``: the search budget follows the processing load.
+"""``TrackerConfig.realtime_load``: the search and event budgets follow the processing load.
 
 The controller is driven through :attr:`Tracker.clock`, replaced here by fake clocks, so the
 tests do not depend on the machine's speed (there are no timed tests).
@@ -16,6 +16,7 @@ from evtrack.tracker import Tracker
 from evtrack.tracking_config import TrackerConfig
 
 STREAM_S = 0.01  # one step group: 10 x 1 ms
+MIN_EVENTS = 20  # events per step; the fast test sequence has ~100-200 on the object
 
 
 class _FakeClock:
@@ -49,24 +50,93 @@ def test_config_checks() -> None:
                                  "min_searched_per_step": 200})
     with pytest.raises(ConfigError, match="realtime_load"):
         TrackerConfig.from_dict({"realtime_load": -1.0})
+    with pytest.raises(ConfigError, match="min_events_per_step"):
+        TrackerConfig.from_dict({"realtime_load": 0.9, "max_events_per_step": 400,
+                                 "min_events_per_step": 500})
+    with pytest.raises(ConfigError, match="min_events_per_step"):
+        TrackerConfig.from_dict({"min_events_per_step": -1})
+    # no cap, or no shedding: any floor
+    TrackerConfig.from_dict({"realtime_load": 0.9, "max_events_per_step": 0,
+                             "min_events_per_step": 500})
+    TrackerConfig.from_dict({"realtime_load": 0.9, "max_events_per_step": 400,
+                             "min_events_per_step": 0})
     assert TrackerConfig().realtime_load == 0.0  # off: deterministic results
+
+
+def _overload_then_underload(tracker: Tracker, rate: float, thinned: bool = True
+                             ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+    """60 groups taking twice their stream time, then 600 taking a tenth, each of ``rate``
+    events per step (thinned while the event budget is below it, when ``thinned``): the
+    (search, event) budgets after each group."""
+    over, under = [], []
+    for load, out in ((2.0, over), (0.1, under)):
+        for _ in range(60 if load > 1 else 600):
+            tracker._group_rate = rate
+            budget = tracker._event_budget
+            tracker._thin_level = int(thinned and 0 < budget < rate)
+            tracker._adapt_budgets(load * STREAM_S, STREAM_S)
+            out.append((tracker._search_budget, tracker._event_budget))
+    return over, under
 
 
 def test_sustained_overload_cuts_to_the_floor_and_underload_raises_back() -> None:
     tracker = _bare_tracker(realtime_load=0.9, max_searched_per_step=2000,
-                            min_searched_per_step=300)
-    budgets = []
-    for _ in range(60):  # every group takes twice its stream time
-        tracker._adapt_search_budget(2 * STREAM_S, STREAM_S)
-        budgets.append(tracker._search_budget)
+                            min_searched_per_step=300, min_events_per_step=0)
+    over, under = _overload_then_underload(tracker, 5000.0)
+    budgets = [b for b, _ in over]
     assert budgets[0] == 2000  # the backlog first builds up (5 groups' worth) ...
     assert all(b <= a for a, b in pairwise(budgets))  # ... then only cuts
     assert budgets[-1] == 300 and tracker.stats.search_budget_min == 300
     assert tracker.stats.groups_over_load == 60
-    for _ in range(400):  # then every group takes a tenth: the backlog drains, it raises
-        tracker._adapt_search_budget(0.1 * STREAM_S, STREAM_S)
-    assert tracker._backlog_s == 0.0 and tracker._search_budget == 2000
+    # min_events_per_step 0: no events shed, however long the overload
+    assert {e for _, e in over} == {TrackerConfig().max_events_per_step}
+    assert tracker.stats.event_budget_min == 0
+    assert tracker._backlog_s == 0.0 and under[-1][0] == 2000  # drained, raised back
     assert tracker.stats.groups_over_load == 60
+
+
+@pytest.mark.parametrize("cap", [20_000, 3000, 0])
+def test_overload_cuts_the_events_with_the_search_budget(cap) -> None:
+    """A lasting overload cuts the events per step together with the search budget, from the
+    group's own rate where that is below the cap (or there is none), down to
+    ``min_events_per_step``; without a backlog both are raised back, the events to the cap
+    (or to no cap)."""
+    tracker = _bare_tracker(realtime_load=0.9, max_searched_per_step=2000,
+                            min_searched_per_step=300, max_events_per_step=cap,
+                            min_events_per_step=400)
+    rate = 5000.0
+    over, under = _overload_then_underload(tracker, rate)
+    searched, events = zip(*over, strict=True)
+    first = next(i for i, s in enumerate(searched) if s < 2000)
+    assert set(events[:first]) == {cap}  # nothing cut while the backlog builds up
+    # the first cut: both by the same factor, the events from the rate when below the cap
+    factor = searched[first] / 2000
+    assert events[first] == int(min(cap or rate, rate) * factor)
+    shed = events[first:]
+    assert all(b <= a for a, b in pairwise(shed)) and shed[-1] == 400
+    assert searched[-1] == 300
+    assert tracker.stats.event_budget_min == 400 and tracker.stats.search_budget_min == 300
+    searched, events = zip(*under, strict=True)
+    assert events[-1] == cap and searched[-1] == 2000
+    assert all(b >= a for a, b in pairwise(events[:events.index(cap)]))
+    assert all(b >= a for a, b in pairwise(searched))
+
+
+def test_no_events_are_shed_where_there_are_few() -> None:
+    """A group with fewer events per step than ``min_events_per_step`` leaves the event budget:
+    thinning could not lower its work."""
+    tracker = _bare_tracker(realtime_load=0.9, min_events_per_step=400)
+    over, _ = _overload_then_underload(tracker, 300.0)
+    assert over[-1][1] == TrackerConfig().max_events_per_step
+    assert tracker.stats.event_budget_min == 0 and tracker.stats.search_budget_min > 0
+
+
+def test_events_are_not_shed_without_events() -> None:
+    """A method without events (``pose``) has nothing to thin: only the search budget adapts."""
+    tracker = _bare_tracker(realtime_load=0.9, min_searched_per_step=300)
+    over, _ = _overload_then_underload(tracker, 0.0)
+    assert over[-1] == (300, TrackerConfig().max_events_per_step)
+    assert tracker.stats.event_budget_min == 0
 
 
 def test_a_single_spike_does_not_cut_the_budget() -> None:
@@ -75,11 +145,11 @@ def test_a_single_spike_does_not_cut_the_budget() -> None:
     most twice the target."""
     tracker = _bare_tracker(realtime_load=0.9)
     for _ in range(20):
-        tracker._adapt_search_budget(0.7 * STREAM_S, STREAM_S)
-    tracker._adapt_search_budget(7.3 * STREAM_S, STREAM_S)
+        tracker._adapt_budgets(0.7 * STREAM_S, STREAM_S)
+    tracker._adapt_budgets(7.3 * STREAM_S, STREAM_S)
     assert tracker._backlog_s > 5 * STREAM_S
     for _ in range(40):
-        tracker._adapt_search_budget(0.7 * STREAM_S, STREAM_S)
+        tracker._adapt_budgets(0.7 * STREAM_S, STREAM_S)
     assert tracker.stats.search_budget_min == 0
     assert tracker._search_budget == TrackerConfig().max_searched_per_step
 
@@ -91,17 +161,22 @@ def test_tracking_adapts_the_budget_to_the_clock(fast_sequence, processing_s, lo
     # groups of STREAM_S (10 steps): the 0.6 s sequence then has the ~27 groups the budget
     # needs to build a backlog and be cut from 2000 to 200
     tracker, _ = make_tracker(fast_sequence, realtime_load=0.9, max_searched_per_step=2000,
-                              min_searched_per_step=200, flow_batch_steps=10)
+                              min_searched_per_step=200, flow_batch_steps=10,
+                              min_events_per_step=MIN_EVENTS)
     tracker.clock = _FakeClock(processing_s)
     tracker.track(fast_sequence)
-    groups = tracker.stats.steps // tracker.config.flow_batch_steps
+    st = tracker.stats
+    groups = st.steps // tracker.config.flow_batch_steps
     assert tracker.clock.calls >= 2 * groups
-    if lowered:
-        assert tracker.stats.search_budget_min == 200 and tracker._search_budget == 200
-        assert tracker.stats.groups_over_load >= groups
+    if lowered:  # the search budget to its floor, then events shed down to theirs
+        assert st.search_budget_min == 200 and tracker._search_budget == 200
+        assert st.groups_over_load >= groups
+        assert st.event_budget_min == MIN_EVENTS == tracker._event_budget
+        assert st.events_thinned > 0
     else:
-        assert tracker.stats.search_budget_min == 0 and tracker._search_budget == 2000
-        assert tracker.stats.groups_over_load == 0
+        assert st.search_budget_min == 0 and tracker._search_budget == 2000
+        assert st.groups_over_load == 0
+        assert st.event_budget_min == 0 and st.events_thinned == 0
 
 
 def test_off_by_default_the_clock_is_not_read(fast_sequence) -> None:
@@ -113,3 +188,4 @@ def test_off_by_default_the_clock_is_not_read(fast_sequence) -> None:
     tracker.clock = no_clock
     tracker.track(fast_sequence)
     assert tracker.stats.search_budget_min == 0 and tracker.stats.groups_over_load == 0
+    assert tracker.stats.event_budget_min == 0
