@@ -335,7 +335,12 @@ class TrackerConfig:
             accuracy: see ``docs/results.md``, Speed.
         min_searched_per_step: the lowest search budget ``realtime_load`` goes to.
         min_events_per_step: the lowest event budget ``realtime_load`` goes to; 0: it never
-            sheds events (only the search budget adapts, as before session 45).
+            sheds events (only the search budget adapts, as before session 45). The floors
+            bound the accuracy lost: on the cracker box `faster` (its network at 5 Hz, 2 cores
+            of a slow VM) 1000 and 2000 gave 3.9-4.2 cm / 9.4-10.5 deg at 1.25-1.34 of real
+            time (2.74 / 5.69 at 1.75-2.4 without ``realtime_load``; the search budget alone
+            down to 250, the behaviour before: 5.4-5.7 / 10-12.3 at 1.34-1.64; 250 and 500:
+            10.6 / 17-19 at 1.07-1.12).
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed
             outside the image (less than ``min_visible_fraction`` of its hull area inside) for
             this long; the pose filter then waits for the next pose to re-initialise.
