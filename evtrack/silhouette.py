@@ -310,6 +310,25 @@ class Silhouette:
                                   float(cam.cx), float(cam.cy), float(cam.width),
                                   float(cam.height), MIN_DEPTH_M))
 
+    def boxes_in_image(self, t: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """:meth:`box_in_image` at ``n`` poses in one compiled call: ``t`` (n, 3) m, ``q``
+        (n, 4) unit wxyz -> (n,) bool. For the tracker's runs of velocity steps.
+
+        Raises:
+            ValueError: ``t`` and ``q`` not (n, 3) and (n, 4).
+        """
+        t = np.ascontiguousarray(t, np.float64)
+        q = np.ascontiguousarray(q, np.float64)
+        if t.ndim != 2 or t.shape[1] != 3 or q.shape != (len(t), 4):
+            raise ValueError(f"Silhouette.boxes_in_image: t must be (n, 3) and q (n, 4), got "
+                             f"{t.shape} and {q.shape}")
+        cam = self.camera
+        if cam.dist is not None:
+            return np.zeros(len(t), bool)
+        return _boxes_in_image(t, q, self._box, float(cam.fx), float(cam.fy), float(cam.cx),
+                               float(cam.cy), float(cam.width), float(cam.height),
+                               MIN_DEPTH_M)
+
     def visible_fraction(self, pose: np.ndarray | torch.Tensor) -> float:
         """``polygon(pose).visible_fraction`` (0 without a polygon), in [0, 1]: 1 at once when
         the corners of the hull's bounding box lie in front of the camera and project inside
@@ -378,3 +397,14 @@ def _box_in_image(t, q, box, fx, fy, cx, cy, w, h, min_depth):
         if not (u >= -0.5 and u < w - 0.5 and v >= -0.5 and v < h - 0.5):
             return False
     return True
+
+
+@njit
+def _boxes_in_image(t, q, box, fx, fy, cx, cy, w, h, min_depth):
+    """:func:`_box_in_image` at each row of ``t`` (n, 3) and ``q`` (n, 4) -> (n,) bool."""
+    out = np.zeros(t.shape[0], np.bool_)
+    for k in range(t.shape[0]):
+        out[k] = _box_in_image((t[k, 0], t[k, 1], t[k, 2]),
+                               (q[k, 0], q[k, 1], q[k, 2], q[k, 3]),
+                               box, fx, fy, cx, cy, w, h, min_depth)
+    return out

@@ -1437,33 +1437,50 @@ class Tracker:
             ends = [t0 + (j + 1) * step for j in range(k, done)]
             states = self.timeline.step_run(ends, twists)
             if states is not None:
-                t_all, q_all = states[0][:, 0].tolist(), states[1][:, 0].tolist()
+                tq = torch.cat([states[0][:, 0], states[1][:, 0]], 1).numpy()  # a new array
             else:  # the pose filter's compiled run does not apply (sigma points...): per step
-                t_all, q_all = [], []
+                rows_tq = []
                 for b, twist in zip(ends, twists, strict=True):
                     self.timeline.step(b, twist)
-                    t_all.append(self.ukf.t.tolist()[0])
-                    q_all.append(self.ukf.q.tolist()[0])
-            twist_rows = twists[:, 0].numpy()
+                    rows_tq.append(self.ukf.t.tolist()[0] + self.ukf.q.tolist()[0])
+                tq = np.array(rows_tq, np.float64).reshape(len(ends), 7)
+            # the steps whose silhouette is whole in view (_check_view's common case), at once
+            in_view = self.silhouette.boxes_in_image(tq[:, :3], tq[:, 3:])
+            if cfg.min_visible_fraction > 1.0:
+                in_view[:] = False  # 1.0 visible still counts out of view: ask per step
+            twist_rows = twists[:, 0].numpy().copy()  # its rows go to the output as views
+            per_step = np.diff(bounds[:len(ends) + 1])  # RoI flows of each step
             for n, b in enumerate(ends):
-                rows = int(bounds[n + 1] - bounds[n])
-                if rows:
-                    st.roi_flows += rows
-                    st.velocity_updates += 1
                 self._t = b
-                st.steps += 1
-                lost = self._check_view(b, t_all[n], q_all[n])
-                if lost:
+                if in_view[n]:
+                    self._out_of_view_us = 0
+                elif self._check_view(b, tq[n, :3].tolist(), tq[n, 3:].tolist()):  # lost
+                    self._output_run(ends[:n], tq[:n], twist_rows[:n])  # _lose set _held
+                    st.steps += 1
+                    st.roi_flows += int(per_step[:n + 1].sum())
+                    st.velocity_updates += int(np.count_nonzero(per_step[:n + 1]))
                     st.depth_fallbacks += int(missing[:int(bounds[n + 1]) - lo].sum())
                     self._record(b)
                     return k + n + 1
-                self._held = None
-                self._out_t.append(b)
-                self._out_tq.append(np.array(t_all[n] + q_all[n], np.float64))
-                self._out_twist.append(twist_rows[n].copy())
-                self._out_status.append(STATUS_TRACKING)
+            self._output_run(ends, tq, twist_rows)
+            self._held = None  # tracking: no held pose
+            st.roi_flows += int(per_step.sum())
+            st.velocity_updates += int(np.count_nonzero(per_step))
             st.depth_fallbacks += int(missing[:int(bounds[len(ends)]) - lo].sum())
         return done
+
+    def _output_run(self, ends: list[int], tq: np.ndarray, twists: np.ndarray) -> None:
+        """The outputs of tracked steps of a compiled run, and their count: step ends
+        ``ends`` (n,) µs, ``tq`` (n, 7) poses, ``twists`` (n, 6); rows kept as views (the
+        caller's arrays are new and not written again)."""
+        if not ends:
+            return
+        st = self.stats
+        self._out_t.extend(ends)
+        self._out_tq.extend(tq)
+        self._out_twist.extend(twists)
+        self._out_status.extend([STATUS_TRACKING] * len(ends))
+        st.steps += len(ends)
 
     def _flow_update(self, ev: Events, t_end: int, search: Tensor | None) -> FlowResult:
         """The flow of a step group's events (its windows all end by ``t_end``).

@@ -167,9 +167,10 @@ def test_visible_fraction_equals_the_polygons(shape) -> None:
 
 @pytest.mark.parametrize("shape", ["cube", "blob"])
 def test_box_in_image_against_the_projected_corners(shape) -> None:
-    """``box_in_image(t, q)`` (compiled, the tracker's per-step test) says True exactly when
-    the 8 corners of the hull's bounding box, projected with NumPy, are in front of the camera
-    and inside the image; then the silhouette is whole in view (visible fraction 1)."""
+    """``box_in_image(t, q)`` (compiled, the tracker's per-step test) and its batched form
+    ``boxes_in_image`` say True exactly when the 8 corners of the hull's bounding box,
+    projected with NumPy, are in front of the camera and inside the image; then the
+    silhouette is whole in view (visible fraction 1)."""
     rng = np.random.default_rng(4)
     if shape == "cube":
         points = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05)
@@ -181,6 +182,7 @@ def test_box_in_image_against_the_projected_corners(shape) -> None:
     corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
                         for z in (lo[2], hi[2])])
     inside = outside = 0
+    ts, qs, gots = [], [], []
     for k in range(400):
         rot = Rotation.from_rotvec(rng.normal(0, 1, 3))
         t = [rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), rng.uniform(-0.05, 0.8)]
@@ -195,13 +197,24 @@ def test_box_in_image_against_the_projected_corners(shape) -> None:
                             and (v >= -0.5).all() and (v < 119.5).all())
         got = sil.box_in_image(tuple(t), (w, x, y, z))
         assert got == expected, (k, t)
+        ts.append(t)
+        qs.append((w, x, y, z))
+        gots.append(got)
         inside += got
         outside += not got
         if got:
             assert sil.visible_fraction(_pose(rot.as_rotvec(), t)) == 1.0
     assert inside > 20 and outside > 20
+    # the batched form (the tracker's compiled step runs) says the same at every pose
+    batched = sil.boxes_in_image(np.array(ts), np.array(qs))
+    assert batched.dtype == bool and batched.tolist() == gots
+    assert sil.boxes_in_image(np.zeros((0, 3)), np.zeros((0, 4))).shape == (0,)
+    with pytest.raises(ValueError, match=r"\(n, 3\)"):
+        sil.boxes_in_image(np.zeros((2, 3)), np.zeros((3, 4)))
     distorted = PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120, dist=[0.01, 0, 0, 0, 0])
     assert not Silhouette(points, distorted).box_in_image((0.0, 0.0, 0.5), (1.0, 0.0, 0.0, 0.0))
+    assert not Silhouette(points, distorted).boxes_in_image(
+        np.array([[0.0, 0.0, 0.5]]), np.array([[1.0, 0.0, 0.0, 0.0]])).any()
 
 
 @pytest.fixture(params=["compiled", "numpy"])

@@ -1064,18 +1064,22 @@ def test_step_runs_equal_steps_when_a_late_first_pose_measures_again(fast_sequen
     assert tracker.stats.steps_remeasured > 50
 
 
-def test_step_runs_equal_steps_when_the_object_leaves_the_view(exit_sequence, box) -> None:
+@pytest.mark.parametrize("lost_after_ms", [5.0, 12.0, 23.0])
+def test_step_runs_equal_steps_when_the_object_leaves_the_view(exit_sequence, box,
+                                                               lost_after_ms) -> None:
     """The object leaves the image and is lost by its predicted silhouette (no misses
-    counted; lost once 5% of it has been out of the image for 5 ms): the loss falls inside a
-    run, whose later steps are then done step by step, with the same trajectory as step by
-    step throughout."""
+    counted; lost once 5% of it has been out of the image for ``lost_after_ms``): the loss
+    falls inside a run (at its first step or a later one, by the delay), whose later steps
+    are then done step by step, with the same trajectory (the held pose included) as step
+    by step throughout."""
     seq = exit_sequence
 
     def make() -> Tracker:
         oracle = OraclePoseSource.from_sequence(seq, seed=0, **ORACLE_NOISE)
         source = VisibleOnlySource(oracle, np.asarray(box.vertices), seq.meta.event_camera, 0.3)
         cfg = TrackerConfig.from_dict({**TEST_TRACKER, "lost_after_misses": 0,
-                                       "min_visible_fraction": 0.95, "lost_after_ms": 5.0})
+                                       "min_visible_fraction": 0.95,
+                                       "lost_after_ms": lost_after_ms})
         return Tracker.for_sequence(seq, cfg, source)
 
     tracker, inside = _same_runs(make, lambda tr: tr.track(seq))
