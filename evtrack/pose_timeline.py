@@ -20,7 +20,6 @@ import bisect
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from itertools import repeat
 
 import torch
 from torch import Tensor
@@ -31,6 +30,29 @@ __all__ = ["PoseTimeline", "Measurement"]
 
 _STATE_NAMES = ("t", "q", "cov", "twist", "bias", "initialized", "rejected_run", "rejected",
                 "reinitialised")
+
+
+class _RunStepSnapshot(Sequence[Tensor]):
+    """The snapshot of one step of a :meth:`PoseUKF.predict_run
+    <evtrack.filters.PoseUKF.predict_run>`, built on access: the state tensors ``t``, ``q``,
+    ``cov`` are views of the run's stacked states at the step, the others (counters, which a
+    predict leaves unchanged) those of the run's final snapshot. It reads like the tuple of
+    tensors :meth:`PoseTimeline._snapshot` returns; a run of n steps so costs n small
+    objects instead of 3n tensor views, most of which are never read (only the steps a late
+    measurement rolls back to are)."""
+
+    __slots__ = ("_states", "_index", "_last", "_slots")
+
+    def __init__(self, states: tuple[Tensor, Tensor, Tensor], index: int,
+                 last: tuple[Tensor, ...], slots: tuple[int | None, ...]) -> None:
+        self._states, self._index, self._last, self._slots = states, index, last, slots
+
+    def __len__(self) -> int:
+        return len(self._last)
+
+    def __getitem__(self, m: int) -> Tensor:  # type: ignore[override]
+        slot = self._slots[m]
+        return self._last[m] if slot is None else self._states[slot][self._index]
 
 
 @dataclass
@@ -79,6 +101,8 @@ class PoseTimeline:
         self.twist_driven = isinstance(filt, PoseUKF)
         buffers = dict(filt.named_buffers(recurse=False))
         self.names = tuple(n for n in _STATE_NAMES if n in buffers)
+        # per state tensor: its index in predict_run's (t, q, cov), None for the others
+        self._run_slots = tuple({"t": 0, "q": 1, "cov": 2}.get(n) for n in self.names)
         self.horizon_us = int(horizon_us)
         self.late = 0
         self._seq = 0
@@ -104,7 +128,7 @@ class PoseTimeline:
         self._copies: list[tuple[Tensor, int | None, Tensor] | None] = [None] * len(self.names)
         self._base = self._snapshot()  # the state at the start, before any measurement
         self._base_open = True  # measurements at exactly the start time may still come
-        self._snaps: deque[tuple[Tensor, ...]] = deque([self._base])
+        self._snaps: deque[Sequence[Tensor]] = deque([self._base])
         self._twists: deque[Tensor | None] = deque([None])
         self._records: list[Measurement] = []
 
@@ -128,7 +152,7 @@ class PoseTimeline:
                 out.append(copy)
         return tuple(out)
 
-    def _restore(self, snap: tuple[Tensor, ...]) -> None:
+    def _restore(self, snap: Sequence[Tensor]) -> None:
         for name, value in zip(self.names, snap, strict=True):
             setattr(self.filter, name, value.clone())
 
@@ -255,10 +279,9 @@ class PoseTimeline:
         ``q``, ``cov``, one per step; the last is the filter's now): the other state tensors
         (counters) are unchanged by a predict and shared with the final snapshot."""
         last = self._snapshot()  # the final state, and the unchanged counters' copies
-        slots = {"t": 0, "q": 1, "cov": 2}
-        columns = [states[slots[name]].unbind(0)[:-1] if name in slots else repeat(last[m])
-                   for m, name in enumerate(self.names)]
-        return [*zip(*columns, strict=False), last]  # stops at the shortest: n - 1 steps' views
+        slots = self._run_slots
+        return [*(_RunStepSnapshot(states, i, last, slots) for i in range(len(states[0]) - 1)),
+                last]
 
     def step_run(self, times: Sequence[int], twists: Tensor
                  ) -> tuple[Tensor, Tensor, Tensor] | None:

@@ -1309,11 +1309,13 @@ class Tracker:
             b = t0 + (k + 1) * step
             if k:
                 self._frames_due(b)
-            if k and k % _SEGMENT_STEPS == 0 and self.initialized:
+            initialized = self.initialized  # asked once a step (a tensor read): _frames_due
+            # may change it; nothing below does before the step's filters
+            if k and k % _SEGMENT_STEPS == 0 and initialized:
                 # a new segment: the filter's pose now (also when the group started without
                 # one: a pose that started the track inside the group)
                 pose, poly = self._segment_pose()
-            if runs and self.initialized and pose is not None and poly is not None:
+            if runs and initialized and pose is not None and poly is not None:
                 end = min(self._quiet_end(t0, k, n_steps),
                           (k // _SEGMENT_STEPS + 1) * _SEGMENT_STEPS)
                 if end - k >= _MIN_RUN_STEPS:
@@ -1323,7 +1325,7 @@ class Tracker:
                     elif done > k:
                         k = done
                         continue
-            usable = pose is None or self.initialized  # lost inside the group: predict only
+            usable = pose is None or initialized  # lost inside the group: predict only
             dt = step * 1e-6
             twist: Tensor | None = None
             if res is not None:
