@@ -1446,10 +1446,9 @@ class Tracker:
                     self.timeline.step(b, twist)
                     rows_tq.append(self.ukf.t.tolist()[0] + self.ukf.q.tolist()[0])
                 tq = np.array(rows_tq, np.float64).reshape(len(ends), 7)
-            # the steps whose silhouette is whole in view (_check_view's common case), at once
+            # the steps whose silhouette is whole in view (_check_view's common case: visible
+            # 1.0, never below min_visible_fraction, which the config keeps in [0, 1]), at once
             in_view = self.silhouette.boxes_in_image(tq[:, :3], tq[:, 3:])
-            if cfg.min_visible_fraction > 1.0:
-                in_view[:] = False  # 1.0 visible still counts out of view: ask per step
             twist_rows = twists[:, 0].numpy().copy()  # its rows go to the output as views
             per_step = np.diff(bounds[:len(ends) + 1])  # RoI flows of each step
             for n, b in enumerate(ends):
