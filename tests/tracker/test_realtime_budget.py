@@ -189,3 +189,53 @@ def test_off_by_default_the_clock_is_not_read(fast_sequence) -> None:
     tracker.track(fast_sequence)
     assert tracker.stats.search_budget_min == 0 and tracker.stats.groups_over_load == 0
     assert tracker.stats.event_budget_min == 0
+
+
+def _cut_to_the_floors(tracker: Tracker, rate: float = 5000.0) -> None:
+    """Groups at twice their stream time until both budgets are at their floors."""
+    cfg = tracker.config
+    for _ in range(200):
+        tracker._group_rate = rate
+        tracker._adapt_budgets(2 * STREAM_S, STREAM_S)
+        if (tracker._search_budget, tracker._event_budget) == (cfg.min_searched_per_step,
+                                                               cfg.min_events_per_step):
+            return
+    raise AssertionError("the budgets did not reach their floors")
+
+
+def test_a_group_under_the_target_is_not_cut_for_the_smoothed_loads_lag() -> None:
+    """After a long overload the smoothed load stays over the target for several groups once
+    the groups themselves are under it: those groups cut nothing (the smoothed load's lag
+    used to cut on down to the floors)."""
+    tracker = _bare_tracker(realtime_load=0.9)
+    for _ in range(5):  # a backlog over 5 groups and a smoothed load over the target: a cut
+        tracker._group_rate = 5000.0
+        tracker._adapt_budgets(2 * STREAM_S, STREAM_S)
+    before = (tracker._search_budget, tracker._event_budget)
+    cfg = tracker.config
+    assert cfg.min_searched_per_step < before[0] < cfg.max_searched_per_step
+    assert cfg.min_events_per_step < before[1] < 5000  # both can still be cut
+    for _ in range(3):  # each at 0.85: under the target, the smoothed load still above it
+        tracker._adapt_budgets(0.85 * STREAM_S, STREAM_S)
+        assert tracker._load > 0.9 and tracker._backlog_s > 5 * STREAM_S
+        assert (tracker._search_budget, tracker._event_budget) == before
+
+
+def test_budgets_rise_while_a_backlog_drains_well_under_the_target() -> None:
+    """At the floors a machine that then runs at half the target raises both budgets while
+    the backlog is still draining; at just under the target (above 0.8 of it) they hold
+    until it has drained."""
+    for load, rises in ((0.45, True), (0.85, False)):
+        tracker = _bare_tracker(realtime_load=0.9)
+        _cut_to_the_floors(tracker)
+        floors = (tracker._search_budget, tracker._event_budget)
+        seen = []
+        for _ in range(40):
+            tracker._adapt_budgets(load * STREAM_S, STREAM_S)
+            if tracker._backlog_s > 0:
+                seen.append((tracker._search_budget, tracker._event_budget))
+        assert seen, "the backlog drained at once"
+        if rises:
+            assert seen[-1][0] > floors[0] and seen[-1][1] > floors[1]
+        else:
+            assert set(seen) == {floors}
