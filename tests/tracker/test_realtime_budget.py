@@ -63,17 +63,17 @@ def test_config_checks() -> None:
     assert TrackerConfig().realtime_load == 0.0  # off: deterministic results
 
 
-def _overload_then_underload(tracker: Tracker, rate: float, thinned: bool = True
+def _overload_then_underload(tracker: Tracker, rate: float
                              ) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
     """60 groups taking twice their stream time, then 600 taking a tenth, each of ``rate``
-    events per step (thinned while the event budget is below it, when ``thinned``): the
-    (search, event) budgets after each group."""
+    events per step (thinned while the event budget is below it): the (search, event)
+    budgets after each group."""
     over, under = [], []
     for load, out in ((2.0, over), (0.1, under)):
         for _ in range(60 if load > 1 else 600):
             tracker._group_rate = rate
             budget = tracker._event_budget
-            tracker._thin_level = int(thinned and 0 < budget < rate)
+            tracker._thin_level = int(0 < budget < rate)
             tracker._adapt_budgets(load * STREAM_S, STREAM_S)
             out.append((tracker._search_budget, tracker._event_budget))
     return over, under
@@ -168,7 +168,7 @@ def test_tracking_adapts_the_budget_to_the_clock(fast_sequence, processing_s, lo
     st = tracker.stats
     groups = st.steps // tracker.config.flow_batch_steps
     assert tracker.clock.calls >= 2 * groups
-    if lowered:  # the search budget to its floor, then events shed down to theirs
+    if lowered:  # both budgets down to their floors
         assert st.search_budget_min == 200 and tracker._search_budget == 200
         assert st.groups_over_load >= groups
         assert st.event_budget_min == MIN_EVENTS == tracker._event_budget
