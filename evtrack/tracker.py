@@ -187,9 +187,9 @@ it the budgets stayed at their floors until the backlog had drained)."""
 _BUDGET_CUT = 0.9
 _BUDGET_CUT_MAX = 0.7
 _BUDGET_RAISE = 1.05
-"""Factors of ``realtime_load``'s budgets per step group: a cut while the backlog is over
-``_BACKLOG_GROUPS`` of ``target / smoothed load``, within ``[_BUDGET_CUT_MAX, _BUDGET_CUT]``
-(at twice the target, the smoothed load's clip, 0.7), a raise while there is none."""
+"""Factors of ``realtime_load``'s budgets per step group: a cut (while the backlog is over
+``_BACKLOG_GROUPS``) by ``target / smoothed load`` within ``[_BUDGET_CUT_MAX, _BUDGET_CUT]``
+(0.7 at twice the target, the smoothed load's clip), and a raise."""
 
 _POSE_DEPTH_MIN_PIXELS = 16
 """Fewest valid depth pixels in a pose's silhouette to judge it (``pose_depth_min_share``)."""
@@ -439,6 +439,12 @@ def _load_mesh(mesh: Any):
         raise ConfigError(f"mesh must be an ObjectMesh, a mesh file or (V, 3) vertices, got "
                           f"an array of shape {vertices.shape}")
     return None, vertices
+
+
+def _lowest(seen: int, budget: int, ceiling: int) -> int:
+    """``realtime_load``'s record of the lowest budget set: ``seen`` (0: none yet) or
+    ``budget`` where that is lower and not the configured ``ceiling``."""
+    return budget if budget != ceiling and (not seen or budget < seen) else seen
 
 
 def moved_pose(T: np.ndarray, twist: np.ndarray, dt: float) -> np.ndarray:
@@ -751,7 +757,7 @@ class Tracker:
         self._search_budget = self.config.max_searched_per_step  # per step (realtime_load)
         self._event_budget = self.config.max_events_per_step  # per step, 0: none (the same)
         # events per step entering the thinning, smoothed over ~10 step groups
-        self._group_rate: float | None = None
+        self._events_per_step: float | None = None
         self._backlog_s = 0.0  # processing beyond realtime_load of the stream time, s
         self._load: float | None = None  # smoothed processing / stream time (realtime_load)
         self._last_event_t: int | None = None
@@ -1230,8 +1236,8 @@ class Tracker:
         if self._backlog_s > _BACKLOG_GROUPS * stream_s and self._load > target < load:
             cut = min(max(target / self._load, _BUDGET_CUT_MAX), _BUDGET_CUT)
             search = max(int(search * cut), cfg.min_searched_per_step)
-            if (self._group_rate or 0.0) > cfg.min_events_per_step > 0:  # thinning can help
-                rate = math.ceil(self._group_rate)
+            if (self._events_per_step or 0.0) > cfg.min_events_per_step > 0:  # thinning can help
+                rate = math.ceil(self._events_per_step)
                 base = min(events, rate) if events else rate
                 events = max(int(base * cut), cfg.min_events_per_step)
         elif self._load < target and (self._backlog_s == 0.0
@@ -1241,14 +1247,11 @@ class Tracker:
                 events = int(events * _BUDGET_RAISE) + 1
                 if cfg.max_events_per_step:
                     events = min(events, cfg.max_events_per_step)
-                elif events > 2 * (self._group_rate or 0.0):
+                elif events > 2 * (self._events_per_step or 0.0):
                     events = 0  # far above the events: back to no cap
-        if search < cfg.max_searched_per_step and (not self.stats.search_budget_min
-                                                   or search < self.stats.search_budget_min):
-            self.stats.search_budget_min = search
-        if events != cfg.max_events_per_step and (not self.stats.event_budget_min
-                                                  or events < self.stats.event_budget_min):
-            self.stats.event_budget_min = events
+        st = self.stats
+        st.search_budget_min = _lowest(st.search_budget_min, search, cfg.max_searched_per_step)
+        st.event_budget_min = _lowest(st.event_budget_min, events, cfg.max_events_per_step)
         self._search_budget, self._event_budget = search, events
 
     def _group_steps(self, t0: int, t_end: int, ev: Events) -> None:
@@ -1274,8 +1277,8 @@ class Tracker:
             elif not (pose is None and self._velocity_before_pose and self.method != "ge"):
                 ev = ev[:0]
             rate = len(ev) / ((t_end - t0) // step)
-            self._group_rate = rate if self._group_rate is None else (
-                _LOAD_SMOOTHING * rate + (1 - _LOAD_SMOOTHING) * self._group_rate)
+            self._events_per_step = rate if self._events_per_step is None else (
+                _LOAD_SMOOTHING * rate + (1 - _LOAD_SMOOTHING) * self._events_per_step)
             budget = self._event_budget * ((t_end - t0) // step)
             if budget and (len(ev) > budget or self._thin_level):
                 ev = self._thin(ev, budget)
@@ -1449,39 +1452,32 @@ class Tracker:
             # the steps whose silhouette is whole in view (_check_view's common case: visible
             # 1.0, never below min_visible_fraction, which the config keeps in [0, 1]), at once
             in_view = self.silhouette.boxes_in_image(tq[:, :3], tq[:, 3:])
-            twist_rows = twists[:, 0].numpy().copy()  # its rows go to the output as views
-            per_step = np.diff(bounds[:len(ends) + 1])  # RoI flows of each step
+            lost = False
             for n, b in enumerate(ends):
-                self._t = b
                 if in_view[n]:
                     self._out_of_view_us = 0
-                elif self._check_view(b, tq[n, :3].tolist(), tq[n, 3:].tolist()):  # lost
-                    self._output_run(ends[:n], tq[:n], twist_rows[:n])  # _lose set _held
-                    st.steps += 1
-                    st.roi_flows += int(per_step[:n + 1].sum())
-                    st.velocity_updates += int(np.count_nonzero(per_step[:n + 1]))
-                    st.depth_fallbacks += int(missing[:int(bounds[n + 1]) - lo].sum())
-                    self._record(b)
-                    return k + n + 1
-            self._output_run(ends, tq, twist_rows)
-            self._held = None  # tracking: no held pose
+                else:
+                    self._t = b
+                    if self._check_view(b, tq[n, :3].tolist(), tq[n, 3:].tolist()):
+                        lost = True  # _lose set the held pose; the later steps: the step loop
+                        break
+            m = n + 1  # the steps counted here; the last one lost when ``lost``
+            tracked = m - 1 if lost else m
+            self._out_t.extend(ends[:tracked])
+            self._out_tq.extend(tq[:tracked])  # rows as views: tq is new, not written again
+            self._out_twist.extend(twists[:tracked, 0].numpy().copy())
+            self._out_status.extend([STATUS_TRACKING] * tracked)
+            per_step = np.diff(bounds[:m + 1])  # RoI flows of each step
+            st.steps += m
             st.roi_flows += int(per_step.sum())
             st.velocity_updates += int(np.count_nonzero(per_step))
-            st.depth_fallbacks += int(missing[:int(bounds[len(ends)]) - lo].sum())
+            st.depth_fallbacks += int(missing[:int(bounds[m]) - lo].sum())
+            self._t = ends[m - 1]
+            if lost:
+                self._record(ends[m - 1])
+                return k + m
+            self._held = None  # tracking: no held pose
         return done
-
-    def _output_run(self, ends: list[int], tq: np.ndarray, twists: np.ndarray) -> None:
-        """The outputs of tracked steps of a compiled run, and their count: step ends
-        ``ends`` (n,) µs, ``tq`` (n, 7) poses, ``twists`` (n, 6); rows kept as views (the
-        caller's arrays are new and not written again)."""
-        if not ends:
-            return
-        st = self.stats
-        self._out_t.extend(ends)
-        self._out_tq.extend(tq)
-        self._out_twist.extend(twists)
-        self._out_status.extend([STATUS_TRACKING] * len(ends))
-        st.steps += len(ends)
 
     def _flow_update(self, ev: Events, t_end: int, search: Tensor | None) -> FlowResult:
         """The flow of a step group's events (its windows all end by ``t_end``).

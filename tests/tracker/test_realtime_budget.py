@@ -71,7 +71,7 @@ def _overload_then_underload(tracker: Tracker, rate: float
     over, under = [], []
     for load, out in ((2.0, over), (0.1, under)):
         for _ in range(60 if load > 1 else 600):
-            tracker._group_rate = rate
+            tracker._events_per_step = rate
             budget = tracker._event_budget
             tracker._thin_level = int(0 < budget < rate)
             tracker._adapt_budgets(load * STREAM_S, STREAM_S)
@@ -195,7 +195,7 @@ def _cut_to_the_floors(tracker: Tracker, rate: float = 5000.0) -> None:
     """Groups at twice their stream time until both budgets are at their floors."""
     cfg = tracker.config
     for _ in range(200):
-        tracker._group_rate = rate
+        tracker._events_per_step = rate
         tracker._adapt_budgets(2 * STREAM_S, STREAM_S)
         if (tracker._search_budget, tracker._event_budget) == (cfg.min_searched_per_step,
                                                                cfg.min_events_per_step):
@@ -209,7 +209,7 @@ def test_a_group_under_the_target_is_not_cut_for_the_smoothed_loads_lag() -> Non
     used to cut on down to the floors)."""
     tracker = _bare_tracker(realtime_load=0.9)
     for _ in range(5):  # a backlog over 5 groups and a smoothed load over the target: a cut
-        tracker._group_rate = 5000.0
+        tracker._events_per_step = 5000.0
         tracker._adapt_budgets(2 * STREAM_S, STREAM_S)
     before = (tracker._search_budget, tracker._event_budget)
     cfg = tracker.config
