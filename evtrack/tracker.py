@@ -240,7 +240,7 @@ _MIN_RUN_STEPS = 2
 #: many velocity steps of a step group (its segments), whatever ``flow_batch_steps`` is: a group
 #: of 40 steps makes one flow call but four segments. With the group's first pose for all of
 #: its 40 steps, the coded box of ``evtrack demo`` (320x240, seeds 0-5) erred 6 % more in
-#: position than with groups of 10 (session 41).
+#: position than with groups of 10 (2026-12-02).
 _SEGMENT_STEPS = 10
 
 FrameInput = np.ndarray | Callable[[], np.ndarray] | None
@@ -468,7 +468,8 @@ class _Prefetched:
 
     Reading one frame ahead left the tracker waiting ~0.25 s per 2 s sequence for its depth
     frames on 2 busy cores (the worker starts a frame only when the one before is taken);
-    three ahead, ~0.02 s (``docs/measurement-log.md``, session 42).
+    three ahead, ~0.02 s (the mustard bottle `faster`, 2 cores of an AMD EPYC with up to 50 %
+    steal time, 2026-12-02).
 
     Args:
         read: ``read(i) -> frame``, safe to call from another thread.
@@ -1222,7 +1223,7 @@ class Tracker:
         cannot absorb (e.g. the first pose's catch-up) only drains. Cutting both together
         costs less accuracy than cutting the search alone to a low floor (cracker box
         `faster`: 2500 events and 1000 searched per step, 3.6 cm / 8.7 deg, ran about as fast
-        as 2000 and 250, 9.5 cm / 16.6 deg; ``docs/measurement-log.md``, session 45)."""
+        as 2000 and 250, 9.5 cm / 16.6 deg, on 2 cores of an AMD EPYC, 2026-12-02)."""
         cfg = self.config
         target = cfg.realtime_load
         load = wall_s / stream_s

@@ -192,18 +192,17 @@ def _pose_ukf_defaults() -> PoseUKFConfig:
     # (with RANSAC decoding, full method: 15.6 / 25.7 -> 13.9 / 23.1; seed 3 32.6 -> 25.7 cm,
     # seed 2 26.2 -> 22.4 cm, the others unchanged).
     # The velocity bias (not in the paper): on fast motion the event twist reads the object
-    # approaching faster than it does (-0.05 to -0.09 m/s along the optical axis on the
-    # default presets' `faster` sequences, ~0 on `regular`; docs/measurement-log.md, sessions
-    # 38-40), so between two poses, and over the network's 200 ms latency, the track falls
-    # behind in depth. The filter learns that bias, scaled by the object's speed (nothing
-    # moves at rest), from the pose updates' innovations. evaluate --methods full, shipped
-    # networks, the four columns (paper-matched regular, faster; default presets regular,
-    # faster), without -> with (session 40, step groups of 10 ms; with the 40 ms groups of
-    # session 41 the default presets' `faster` 4.15 / 11.57 -> 3.93 / 11.59): 1.10 / 7.00,
-    # 2.48 / 10.68, 1.70 / 6.93, 4.07 / 11.70 -> 1.10 /
-    # 7.00, 2.48 / 10.68, 1.66 / 6.93, 3.89 / 11.67; default presets with (q, init) (0.01,
-    # 0.1) 1.64, 3.95 cm, (0.03, 0.1) 1.60, 3.95. It cannot learn more than the networks' own
-    # range errors allow (the known mean bias would give 3.44 cm on the default `faster`).
+    # approaching faster than it does (-0.05 to -0.09 m/s along the optical axis on the default
+    # presets' `faster` sequences, ~0 on `regular`), so between two poses, and over the network's
+    # 200 ms latency, the track falls behind in depth. The filter learns that bias, scaled by the
+    # object's speed (nothing moves at rest), from the pose updates' innovations. evaluate --methods
+    # full, shipped networks, the four columns (paper-matched regular, faster; default presets
+    # regular, faster), without -> with (2026-12-01, step groups of 10 ms; with groups of 40 ms,
+    # 2026-12-02, the default presets' `faster` 4.15 / 11.57 -> 3.93 / 11.59): 1.10 / 7.00, 2.48 /
+    # 10.68, 1.70 / 6.93, 4.07 / 11.70 -> 1.10 / 7.00, 2.48 / 10.68, 1.66 / 6.93, 3.89 / 11.67;
+    # default presets with (q, init) (0.01, 0.1) 1.64, 3.95 cm, (0.03, 0.1) 1.60, 3.95. It cannot
+    # learn more than the networks' own range errors allow (the known mean bias would give 3.44 cm
+    # on the default `faster`).
     return PoseUKFConfig(q_translation=0.01, q_rotation=0.3, reinit_after=3,
                          velocity_bias=True, q_velocity_bias=0.01, init_std_velocity_bias=0.05)
 
@@ -274,12 +273,12 @@ class TrackerConfig:
             are aligned on absolute time, so results do not depend on how the events are
             chunked. The outputs of a group are available at its end: a delay of up to
             ``flow_batch_steps`` steps in live use (:meth:`Tracker.pose` extrapolates with the
-            current twist meanwhile). 40 by default (session 41): each flow call has a fixed
-            cost (a few ms of Python, small kernels, thread wake-ups), and 40 instead of 10
-            took 20-35 % off the tracking time of three of the four `faster` YCB sequences on 2
-            cores (`benchmarks/bench_tracker_options.py`; README, "Speed") with the same errors
-            on both benchmark sets and the demo (`docs/results.md`). For live use where the
-            delay matters, 10 costs that time back.
+            current twist meanwhile). 40 by default: each flow call has a fixed cost (a few ms
+            of Python, small kernels, thread wake-ups), and 40 instead of 10 took 20-35 % off
+            the tracking time of three of the four `faster` YCB sequences on 2 cores of an AMD
+            EPYC, 2026-12-02 (`benchmarks/bench_tracker_options.py`; README, "Speed") with the
+            same errors on both benchmark sets and the demo (`docs/results.md`). For live use
+            where the delay matters, 10 costs that time back.
         mask_margin_px: events are kept when they lie within this distance (pixels) of the
             object's predicted silhouette (the convex hull of the projected mesh). It must
             cover the predicted pose's error, or the events of one side are lost and the
@@ -331,16 +330,15 @@ class TrackerConfig:
             machine's speed and load, and so do the results: 0 (the default) keeps them
             deterministic. Needs ``max_searched_per_step > 0``. The work no budget bounds
             (reading and masking every event, the filters and the pose fusions: ~0.7-0.8 of
-            real time on 2 cores of a slow VM with few events) stays. Shedding events costs
-            accuracy: see ``docs/results.md``, Speed.
+            real time on 2 cores of a slow AMD EPYC with few events, 2026-12-02) stays.
+            Shedding events costs accuracy: see ``docs/results.md``, Speed.
         min_searched_per_step: the lowest search budget ``realtime_load`` goes to.
         min_events_per_step: the lowest event budget ``realtime_load`` goes to; 0: it never
-            sheds events (only the search budget adapts, as before session 45). The floors
-            bound the accuracy lost: on the cracker box `faster` (its network at 5 Hz, 2 cores
-            of a slow VM) 1000 and 2000 gave 3.9-4.2 cm / 9.4-10.5 deg at 1.25-1.34 of real
-            time (2.74 / 5.69 at 1.75-2.4 without ``realtime_load``; the search budget alone
-            down to 250, the behaviour before: 5.4-5.7 / 10-12.3 at 1.34-1.64; 250 and 500:
-            10.6 / 17-19 at 1.07-1.12).
+            sheds events (only the search budget adapts). The floors bound the accuracy lost:
+            on the cracker box `faster` (its network at 5 Hz, 2 cores of a slow AMD EPYC,
+            2026-12-02) 1000 and 2000 gave 3.9-4.2 cm / 9.4-10.5 deg at 1.25-1.34 of real time
+            (2.74 / 5.69 at 1.75-2.4 without ``realtime_load``; the search budget alone down to
+            250: 5.4-5.7 / 10-12.3 at 1.34-1.64; 250 and 500: 10.6 / 17-19 at 1.07-1.12).
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed
             outside the image (less than ``min_visible_fraction`` of its hull area inside) for
             this long; the pose filter then waits for the next pose to re-initialise.

@@ -52,12 +52,13 @@ class VelocityKFConfig:
         normal_flow_std: px/s, the standard deviation of the one row of a RoI flagged
             normal-only (under ``normal_flow``), or ``None``: ``flow_std`` (the paper: one
             noise for every row). The tracker's normal-only flows are much more precise than
-            its full flows (``docs/measurement-log.md``, session 31: residual RMS ~19 px/s
-            along their direction against ~140 for full flows), so a smaller value weighs
-            them by what they know. With 15-25 px/s the tracker's rotation error fell by 3-9 %
-            on all four benchmark columns (oracle poses) while its position error rose by up
-            to 9 % on three of them; with the shipped pose networks only the paper-matched
-            `faster` column gained (``docs/results.md``, "Tracking accuracy"): off by default.
+            its full flows (residual RMS ~19 px/s along their direction against ~140 for full
+            flows on the paper-matched mustard bottle `faster`, 2026-11-28), so a smaller value
+            weighs them by what they know. With 15-25 px/s the tracker's rotation error fell
+            by 3-9 % on all four benchmark columns (oracle poses) while its position error rose
+            by up to 9 % on three of them; with the shipped pose networks only the
+            paper-matched `faster` column gained (``docs/results.md``, "Tracking accuracy"):
+            off by default.
         init_std_linear: m/s, initial standard deviation of ``v_o`` (initial mean zero).
         init_std_angular: rad/s, initial standard deviation of ``ω``.
         normal_flow: apply the normal-flow constraint (paper III-B.4) to RoIs flagged normal-only;

@@ -3,9 +3,9 @@
 The weights of runs that share their start (a continuation and the run it went on from, or
 runs from one checkpoint on other renders) usually lie in one basin of the loss; their mean
 often generalises better than either, as a stochastic weight average does within one run
-(Izmailov et al., 2018; Wortsman et al., 2022). For the mustard bottle's two CPU continuations
-of session 28 the mean of the two final weights had a lower median rotation error on held-out
-renders than both (``models/weights/README.md``).
+(Izmailov et al., 2018; Wortsman et al., 2022). For two CPU continuations of the mustard
+bottle's network the mean of the two final weights had a lower median rotation error on
+held-out renders than both (``models/weights/README.md``).
 
 Floating-point tensors (weights and the batch-norm running statistics) are averaged in float64
 and cast back; integer tensors (``num_batches_tracked``) take their largest value. Averaging

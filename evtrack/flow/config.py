@@ -88,7 +88,7 @@ class FlowConfig:
             ``regular`` (4 kHz renders); the tracker's flow (``TrackerConfig.flow``) uses
             both by default. It is not the flow's default because edges slower than
             ``2 |d| / max_span_us`` (50 px/s for the nearest neighbours at 40 ms) give no
-            candidates: on the slow DVXplorer sample of ``../shared/data/formats`` it leaves
+            candidates: on tonic's slow DVXplorer sample recording (AEDAT4) it leaves
             4 RoI flows of 1,418. A bound much shorter than 40 ms leaves a slow RoI only
             near-tangent triplets, whose consensus can be wrong (20 ms: 3.3x the true flow on
             one slow sequence).
