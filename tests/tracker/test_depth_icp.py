@@ -130,7 +130,7 @@ def test_every_pose_filter_method_aligns_depth_frames(fast_sequence, method) -> 
     frame); every frame tried is fused or refused with a reason, and the track stays finite.
     Measured on an AMD EPYC (2026-11-27): pose 12 fused of 15 tried, frame-flow 15 of 15,
     ge 4 of 15 (its track errs more: 5 refused as "few fit", 5 as "correction too large");
-    ge fused 5 on the machines of earlier sessions. Bounds: 3 fused of at least 10 tried."""
+    ge fused 5 on other machines. Bounds: 3 fused of at least 10 tried."""
     seq = fast_sequence
     tracker, _ = make_tracker(seq, method=method, depth_icp=True)
     traj = tracker.track(seq)

@@ -234,9 +234,8 @@ def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
     print(f"after 0.3 s: model {err.position_rmse_cm:.2f} cm / {err.rotation_rmse_deg:.2f} deg, "
           f"sensor {ref.position_rmse_cm:.2f} / {ref.rotation_rmse_deg:.2f}")
     # measured after 0.3 s: model 4.44 cm / 8.73 deg, sensor 4.17 / 8.21 (2026-11-27; 6.7 /
-    # 10.9 and 5.9 / 8.4 in an earlier session, before the model's steps before the first pose
-    # were measured again). Model depth is taken at the predicted pose, so a pose error also
-    # scales the velocity.
+    # 10.9 and 5.9 / 8.4 without measuring the model's steps before the first pose again).
+    # Model depth is taken at the predicted pose, so a pose error also scales the velocity.
     assert tracker.depth.renders > 50 and tracker.stats.depth_fallbacks == 0
     assert err.position_rmse_cm < 1.4 * ref.position_rmse_cm
     assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 3.5
