@@ -30,8 +30,8 @@ Variants, cumulative (each adds one change to the one before):
   ``PoseTimeline.step_run``), a few calls for ~10 steps instead of a few dozen per step, and
   the steps a late first pose measures again a step group per velocity run;
 * ``long``: one flow call per 40 velocity steps instead of 10 (``flow_batch_steps``, the
-  default since session 41): each call's fixed cost (Python, small kernels, thread wake-ups)
-  is paid a quarter as often. All twelve changes, the tracker as it ships.
+  default): each call's fixed cost (Python, small kernels, thread wake-ups) is paid a quarter
+  as often. All twelve changes, the tracker as it ships.
 
 The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per

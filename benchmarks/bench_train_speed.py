@@ -13,15 +13,15 @@ batches are made and laid out:
 * ``worker+nhwc``: one loader process and channels-last.
 
 On 2 cores a worker process competes with the network's two threads for the cores. Measured
-on the 2-core machine of runs 1 and 2 of the CPU recipe (two runs, ms per step): worker+nchw
-372 / 330, main+nchw 395 / 411, main+nhwc 355 / 323: NHWC pays for keeping the data in the
-training process, no more. On the faster 2-core machine of run 3 (AMD EPYC, 2026-11-27, 40
-steps): stage 1's 160x160 crops, main+nhwc 149.5 / 152.2 and worker+nhwc 118.7 / 125.9 ms with
-1 / 2 torch threads (the worker 1.21-1.26x as fast: a step's network alone takes ~65 ms on 2
-threads, the data ~70 ms on one); stage 2's 256x256 crops from 640x480 renders (30 steps),
-main+nhwc 293.7 and worker+nhwc 294.9 with 2 threads, 349.8 and 287.0 with 1: the network is
-the bound there. So ``--set data.num_workers=1`` speeds up stage 1 on such a machine; the
-configs keep 0, with which their model cards were measured.
+on 2 CPU cores (2026-11-25, two runs, ms per step): worker+nchw 372 / 330, main+nchw 395 /
+411, main+nhwc 355 / 323: NHWC pays for keeping the data in the training process, no more. On
+2 cores of an AMD EPYC that trains ~1.9x as fast (2026-11-27, 40 steps): stage 1's 160x160
+crops, main+nhwc 149.5 / 152.2 and worker+nhwc 118.7 / 125.9 ms with 1 / 2 torch threads (the
+worker 1.21-1.26x as fast: a step's network alone takes ~65 ms on 2 threads, the data ~70 ms
+on one); stage 2's 256x256 crops from 640x480 renders (30 steps), main+nhwc 293.7 and
+worker+nhwc 294.9 with 2 threads, 349.8 and 287.0 with 1: the network is the bound there. So
+``--set data.num_workers=1`` speeds up stage 1 on such a machine; the configs keep 0, with
+which their model cards were measured.
 The samples are rendered once into a small cache (``--cache``); validation and checkpoints
 are off, so the numbers are the training step alone. Issue 6's target is the whole recipe
 under 60 minutes on 2 CPU cores: the recipe's own wall time is in its model card
