@@ -464,10 +464,15 @@ class VelocityKF(CompilableSteps, nn.Module):
         """Pure update in ideal pinhole pixels; no Python branches on tensor values.
 
         Args:
-            twist (B,6), cov (B,6,6): the prior. reference (B,6): the twist the first weighting
-            pass compares flows with (used when ``weighting_reference == "previous"``).
-            uv (B,N,2) px, depth (B,N) m, flow (B,N,2) px/s, normal_only (B,N) bool,
-            mask (B,N) bool.
+            twist: (B, 6) the prior twist.
+            cov: (B, 6, 6) the prior covariance.
+            reference: (B, 6) the twist the first weighting pass compares flows with (used
+                when ``weighting_reference == "previous"``).
+            uv: (B, N, 2) RoI pixel coordinates (ideal pinhole), px.
+            depth: (B, N) depths at the RoIs, m.
+            flow: (B, N, 2) RoI flows, px/s.
+            normal_only: (B, N) bool, True where a RoI's flow is normal-only.
+            mask: (B, N) bool, False on padding.
 
         Returns:
             ``(twist, cov, skipped (B,2))``, ``skipped`` counting this update's RoIs skipped
