@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["add_distance", "adds_distance", "object_diameter", "PoseAccuracy", "pose_accuracy",
-           "pooled_rate_interval"]
+__all__ = ["add_distance", "adds_distance", "object_diameter", "GROSS_MISS_M", "PoseAccuracy",
+           "pose_accuracy", "pooled_rate_interval"]
 
 
 def _apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -42,6 +42,10 @@ def object_diameter(points: np.ndarray) -> float:
     return float(d.max())
 
 
+GROSS_MISS_M = 0.10
+"""Position error (m) above which a detection counts as a gross miss."""
+
+
 @dataclass
 class PoseAccuracy:
     """Accuracy of single-frame pose estimates against ground truth.
@@ -53,6 +57,10 @@ class PoseAccuracy:
         add_pass, adds_pass: fraction of *all* frames whose ADD / ADD-S is below the
             threshold (a missed detection fails).
         threshold_m: ``fraction`` x diameter.
+        gross_miss_rate: fraction of *detected* frames whose position is more than
+            ``gross_miss_m`` off: the network found something else (a distractor), or the
+            object at a badly wrong range. The medians hide these; a tracker must reject them.
+        gross_miss_m: that threshold, metres (0.10 by default).
     """
 
     frames: int
@@ -63,6 +71,8 @@ class PoseAccuracy:
     add_pass: float
     adds_pass: float
     threshold_m: float
+    gross_miss_rate: float = float("nan")
+    gross_miss_m: float = GROSS_MISS_M
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -73,8 +83,17 @@ def pose_accuracy(
     truths: list[np.ndarray],
     points: np.ndarray,
     fraction: float = 0.1,
+    gross_miss_m: float = GROSS_MISS_M,
 ) -> PoseAccuracy:
-    """Summarise estimates (4x4 or ``None`` for no detection) against true poses (4x4)."""
+    """Summarise estimates (4x4 or ``None`` for no detection) against true poses (4x4).
+
+    Args:
+        estimates: one (4, 4) pose (metres) or ``None`` (no detection) per frame.
+        truths: the true (4, 4) poses, one per frame.
+        points: (N, 3) points of the object's model (metres), for ADD / ADD-S.
+        fraction: ADD / ADD-S threshold as a fraction of the object's diameter.
+        gross_miss_m: position error (metres) above which a detection is a gross miss.
+    """
     if len(estimates) != len(truths):
         raise ValueError(f"{len(estimates)} estimates for {len(truths)} ground-truth poses")
     threshold = fraction * object_diameter(points)
@@ -98,6 +117,9 @@ def pose_accuracy(
         add_pass=add_ok / n if n else float("nan"),
         adds_pass=adds_ok / n if n else float("nan"),
         threshold_m=threshold,
+        gross_miss_rate=(float(np.mean(np.asarray(t_err) > gross_miss_m)) if t_err
+                         else float("nan")),
+        gross_miss_m=gross_miss_m,
     )
 
 

@@ -66,6 +66,15 @@ def test_pose_accuracy_counts_missed_detections_as_failures():
     assert acc.frames == 4 and acc.detected == 3 and acc.detection_rate == 0.75
     assert acc.median_translation_cm == pytest.approx(0.5)
     assert acc.add_pass == 0.5 and acc.adds_pass == 0.5
+    # 10 cm off is not a gross miss (> 10 cm): none of the three detections is
+    assert acc.gross_miss_rate == 0.0 and acc.gross_miss_m == 0.10
+    farther = truths[2].copy()
+    farther[:3, 3] += [0.0, 0.0, 0.1001]
+    acc = pose_accuracy([truths[0], near, farther, None], truths, pts)
+    assert acc.gross_miss_rate == pytest.approx(1 / 3)  # of the detected frames
+    assert pose_accuracy([near, None, None, None], truths[:1] * 4, pts,
+                         gross_miss_m=0.004).gross_miss_rate == 1.0
+    assert np.isnan(pose_accuracy([None], truths[:1], pts).gross_miss_rate)
     with pytest.raises(ValueError):
         pose_accuracy([None], truths, pts)
 
