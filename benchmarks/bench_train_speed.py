@@ -24,8 +24,8 @@ worker+nhwc 294.9 with 2 threads, 349.8 and 287.0 with 1: the network is the bou
 which their model cards were measured.
 The samples are rendered once into a small cache (``--cache``); validation and checkpoints
 are off, so the numbers are the training step alone. Issue 6's target is the whole recipe
-under 60 minutes on 2 CPU cores: the recipe's own wall time is in its model card
-(``models/weights/README.md``).
+under 60 minutes on 2 CPU cores: the CPU recipe took 55.2 min end to end, rendering included
+(2026-11-27, 2 cores of an AMD EPYC; ``docs/training.md``, "How long it takes").
 
     python benchmarks/bench_train_speed.py [--config configs/pose_demo_coded_box_cpu.yaml]
         [--samples 512] [--steps 40] [--warmup 8] [--threads 2]

@@ -7,8 +7,7 @@ pose turned half a turn about that axis *at the right position and range*. Where
 looks at the object along that axis the two poses also show nearly the same silhouette, so
 neither the image cues nor a depth check can tell them apart: the mustard bottle seen from
 below, along its long axis, is the benchmark's case (networks trained on more of those views
-answered some of them with such half turns, and a track that took one was 180° off;
-``models/weights/README.md``, the mustard bottle).
+answered some of them with such half turns, and a track that took one was 180° off).
 
 The tracker has a third source: its own pose. :class:`HalfTurnResolver` offers, for a pose
 seen within ``max_view_deg`` of the line of sight along one of the chosen axes, the pose

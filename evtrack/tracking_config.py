@@ -274,11 +274,13 @@ class TrackerConfig:
             chunked. The outputs of a group are available at its end: a delay of up to
             ``flow_batch_steps`` steps in live use (:meth:`Tracker.pose` extrapolates with the
             current twist meanwhile). 40 by default: each flow call has a fixed cost (a few ms
-            of Python, small kernels, thread wake-ups), and 40 instead of 10 took 20-35 % off
-            the tracking time of three of the four `faster` YCB sequences on 2 cores of an AMD
-            EPYC, 2026-12-02 (`benchmarks/bench_tracker_options.py`; README, "Speed") with the
-            same errors on both benchmark sets and the demo (`docs/results.md`). For live use
-            where the delay matters, 10 costs that time back.
+            of Python, small kernels, thread wake-ups), and 40 instead of 10 took about a third
+            off the tracking time of three of the four `faster` YCB sequences on 2 cores of an
+            AMD EPYC, 2026-12-02 (`benchmarks/bench_tracker_options.py`; ``docs/results.md``,
+            "Step groups of 40 ms and of 10 ms"), with the benchmark errors of groups of 10 to
+            every digit except the default presets' cracker box `faster` (2.74 cm / 5.69 deg
+            against 2.55 / 6.01) and the demo's seeds 0-5 at 6.12 cm / 12.27 deg against
+            5.94 / 12.55. For live use where the delay matters, 10 costs that time back.
         mask_margin_px: events are kept when they lie within this distance (pixels) of the
             object's predicted silhouette (the convex hull of the projected mesh). It must
             cover the predicted pose's error, or the events of one side are lost and the
@@ -331,7 +333,8 @@ class TrackerConfig:
             deterministic. Needs ``max_searched_per_step > 0``. The work no budget bounds
             (reading and masking every event, the filters and the pose fusions: ~0.7-0.8 of
             real time on 2 cores of a slow AMD EPYC with few events, 2026-12-02) stays.
-            Shedding events costs accuracy: see ``docs/results.md``, Speed.
+            Shedding events costs accuracy: see ``docs/results.md``, "Live use:
+            realtime_load".
         min_searched_per_step: the lowest search budget ``realtime_load`` goes to.
         min_events_per_step: the lowest event budget ``realtime_load`` goes to; 0: it never
             sheds events (only the search budget adapts). The floors bound the accuracy lost:

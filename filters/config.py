@@ -57,8 +57,7 @@ class VelocityKFConfig:
             weighs them by what they know. With 15-25 px/s the tracker's rotation error fell
             by 3-9 % on all four benchmark columns (oracle poses) while its position error rose
             by up to 9 % on three of them; with the shipped pose networks only the
-            paper-matched `faster` column gained (``docs/results.md``, "Tracking accuracy"):
-            off by default.
+            paper-matched `faster` column gained: off by default.
         init_std_linear: m/s, initial standard deviation of ``v_o`` (initial mean zero).
         init_std_angular: rad/s, initial standard deviation of ``ω``.
         normal_flow: apply the normal-flow constraint (paper III-B.4) to RoIs flagged normal-only;

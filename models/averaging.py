@@ -5,7 +5,8 @@ runs from one checkpoint on other renders) usually lie in one basin of the loss;
 often generalises better than either, as a stochastic weight average does within one run
 (Izmailov et al., 2018; Wortsman et al., 2022). For two CPU continuations of the mustard
 bottle's network the mean of the two final weights had a lower median rotation error on
-held-out renders than both (``models/weights/README.md``).
+held-out renders than both (its model card,
+``models/weights/006_mustard_bottle_dope_lite_small.md``, "How it was made").
 
 Floating-point tensors (weights and the batch-norm running statistics) are averaged in float64
 and cast back; integer tensors (``num_batches_tracked``) take their largest value. Averaging

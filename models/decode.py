@@ -101,11 +101,10 @@ class DecodeConfig:
             a pose. 0.1 by default: with the shipped YCB networks on the benchmark's `faster`
             sequences the tracker's rotation RMSE fell from 13.35 to 12.50 deg (paper-matched
             speeds) and from 13.74 to 12.92 deg (default presets; torch on 2 threads; on one:
-            13.12 to 11.94 and 14.34 to 13.29), no object worse, `regular` unchanged
-            (``docs/results.md``, "Tracking accuracy"). At 0.5 the search also replaced the
-            tomato can's fits of confidence 0.17-0.21, which were better than its answers
-            (4.6 -> 15.9 deg), so its confidence is not comparable with the strongest peaks'
-            above ~0.1. The search
+            13.12 to 11.94 and 14.34 to 13.29), no object worse, `regular` unchanged. At 0.5
+            the search also replaced the tomato can's fits of confidence 0.17-0.21, which were
+            better than its answers (4.6 -> 15.9 deg), so its confidence is not comparable with
+            the strongest peaks' above ~0.1. The search
             costs ~10-15 ms per instance (eight points, its P3P batched; it was ~35-45 ms
             with one ``cv2.solveP3P`` per problem: ``bench_pose_speed.py``), paid only where
             it runs.
@@ -125,8 +124,8 @@ class DecodeConfig:
             ADD 0.942 against 0.733 in one pass (median 0.62 cm / 2.20 deg against 0.91 /
             2.81), faster 0.792 against 0.756; the cracker box's weights (320x240) on the
             two benchmark sets' cracker sequences regular 0.838 against 0.796, faster 0.971
-            against 0.854. Other sides were no better over both objects (see
-            ``models/weights/README.md``). It costs a network call on a quarter to a third
+            against 0.854 (both networks' model cards, "Held-out accuracy"). Other sides were
+            no better over both objects. It costs a network call on a quarter to a third
             of a 640x480 image's pixels.
         crop_blend_max_deg: where the crop's rotation and the first pass's differ by at most
             this (degrees), the detection's rotation turns halfway to the first pass's
@@ -136,14 +135,14 @@ class DecodeConfig:
             the object at different sizes and err apart, so their mean can beat either, but
             only where the network's first pass is about as good as its crop. Median rotation
             error on held-out renders (``bench_pose_accuracy.py --crop-blend 45``, six
-            sequences per preset, regular / faster, crop -> blended; session 36): mustard
-            bottle 6.86 -> 5.72 / 6.44 -> 5.83, tomato can 5.52 -> 6.10 / 7.01 -> 6.39, potted
-            meat can 3.34 -> 5.03 / 4.33 -> 4.73 (its first pass errs 8.3 / 6.2 deg), cracker
-            box 3.17 -> 3.63 / 3.47 -> 3.57, coded box 2.20 -> 2.25 / 3.04 -> 2.82 (regular ADD
-            0.942 -> 0.925). The mustard bottle's shipped record turns it on
-            (``WeightsRecord.decode``). Check a network on such
-            renders before turning it on; beyond ~40 deg two poses are different answers (a
-            half turn, a corner swap) and their mean is neither.
+            sequences per preset, seeds 1000-1011, regular / faster, crop -> blended; 2 cores
+            of an AMD EPYC, 2026-11-29): mustard bottle 6.86 -> 5.72 / 6.44 -> 5.83, tomato
+            can 5.52 -> 6.10 / 7.01 -> 6.39, potted meat can 3.34 -> 5.03 / 4.33 -> 4.73 (its
+            first pass errs 8.3 / 6.2 deg), cracker box 3.17 -> 3.63 / 3.47 -> 3.57, coded box
+            2.20 -> 2.25 / 3.04 -> 2.82 (regular ADD 0.942 -> 0.925). The mustard bottle's
+            shipped record turns it on (``WeightsRecord.decode``; its model card, "Decoding").
+            Check a network on such renders before turning it on; beyond ~40 deg two poses are
+            different answers (a half turn, a corner swap) and their mean is neither.
         crop_margin: side of that crop / longer side of the projected cuboid's bounding box
             (>= 1): 1.3 (1.5 was better on the coded box's regular sequences, 0.947, worse
             on its faster ones and on the cracker box).

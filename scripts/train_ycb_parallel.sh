@@ -21,10 +21,11 @@
 # Outputs: runs/pose/<object>_<model>/<object>_<model>.pt and .md (copy them into
 # models/weights to ship them; `evtrack evaluate` finds them there or with --weights-dir).
 # Exits non-zero if any run failed, after all have finished.
-# Measured (2026-11-27, one H200 with 16 cores, CORES=15, the three objects without shipped
-# weights): 112 s to render their 2048 + 128 samples each (the processes' start included),
-# then ~8 steps of 32 per second per run (the loaders, not the GPU, are the limit);
-# models/weights/README.md has the results.
+# Measured (2026-11-27, one H200 with 16 cores, CORES=15, the tomato soup can, the mustard
+# bottle and the potted meat can): 112 s to render their 2048 + 128 samples each (the
+# processes' start included), then ~8 steps of 32 per second per run (the loaders, not the
+# GPU, are the limit); each network's model card (models/weights/<object>_dope_lite_small.md)
+# has its runs and results.
 set -euo pipefail
 
 cores=${CORES:-$(nproc)}
