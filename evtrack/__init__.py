@@ -1,6 +1,6 @@
 """evtrack: fast 6-DoF object pose tracking with an event camera and an RGB-D camera.
 
-Public API (see DESIGN.md)::
+Public API (reference: docs/api/)::
 
     import evtrack
     ev = evtrack.io.read_events("recording.h5")

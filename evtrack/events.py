@@ -1,7 +1,7 @@
 """The event container: a structure of arrays ``x, y, t, p`` with its sensor size.
 
-Conventions (DESIGN.md): ``t`` is int64 microseconds and non-decreasing, ``p`` is int8 in
-{+1, -1}, ``x``/``y`` are integer pixel coordinates (int16 or int32).
+Conventions (docs/architecture.md): ``t`` is int64 microseconds and non-decreasing, ``p`` is
+int8 in {+1, -1}, ``x``/``y`` are integer pixel coordinates (int16 or int32).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Rigid-body helpers over kornia: poses as (R, t), 4x4 matrices and (t, q), and twists.
 
-Conventions (DESIGN.md):
+Conventions (docs/architecture.md, "Conventions"):
     * A pose is object-to-camera: ``P_c = R @ P_o + t``.
     * Quaternions are ``(w, x, y, z)``, unit norm, as in kornia; the sign is not canonicalised
       except by :func:`canonical_quaternion`.

@@ -182,7 +182,7 @@ class GroundTruth:
         pose_t_us: (M,) int64 µs, increasing.
         poses: (M, 4, 4) float64 object-to-camera poses.
         twist_t_us: (K,) int64 µs, increasing.
-        twists: (K, 6) float64 ``[v_o (m/s), ω (rad/s)]`` (DESIGN convention).
+        twists: (K, 6) float64 ``[v_o (m/s), ω (rad/s)]`` (the package's convention).
         event_flow: (N, 2) float32 px/s at each event of ``events.h5`` (same order), NaN where
             the event is not on the object, or ``None``.
     """

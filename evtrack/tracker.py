@@ -1,6 +1,6 @@
 """``Tracker``: 6-DoF pose tracking from events and RGB-D frames (the method paper, Sec. III).
 
-Data flow of the ``full`` method (DESIGN.md), once per velocity step (1 ms by default)::
+Data flow of the ``full`` method (docs/architecture.md), once per velocity step (1 ms by default)::
 
     events of the step ──► kept if within mask_margin_px of the predicted silhouette
         ──► TripletFlow (one flow window per step) ──► RoI flows (px/s)

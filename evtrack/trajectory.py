@@ -8,7 +8,7 @@ CSV layout: ``#`` comment lines first (``# evtrack trajectory v1``, then ``# met
     t_us,tx,ty,tz,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz,status
 
 Pose: object-to-event-camera, translation in metres and quaternion wxyz. Twist: ``[v_o (m/s),
-ω (rad/s)]`` in the event camera frame (DESIGN convention ``Ṗ = v_o + ω × P``). Status: 0 =
+ω (rad/s)]`` in the event camera frame (the convention ``Ṗ = v_o + ω × P``). Status: 0 =
 waiting for the first pose, 1 = tracking, 2 = lost (the last pose is held until a pose
 re-initialises the filter).
 

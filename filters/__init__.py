@@ -1,8 +1,8 @@
 """Filters: the interaction matrix, the 6-DoF velocity Kalman filter and the pose UKFs.
 
-Method: sections III-B and III-C of the paper (see DESIGN.md), with the conventions of
-DESIGN.md: twists ``[v_o, ω]`` in the camera frame with ``Ṗ = v_o + ω × P``, optical flow in
-px/s, quaternions wxyz, float64 by default.
+Method: sections III-B and III-C of the paper (arXiv 2508.14776), with the conventions of
+``docs/architecture.md``: twists ``[v_o, ω]`` in the camera frame with ``Ṗ = v_o + ω × P``,
+optical flow in px/s, quaternions wxyz, float64 by default.
 
     J = interaction_matrix(uv, depth, camera)        # (N,2,6): twist -> px/s
     kf = VelocityKF(camera, batch_size=B)            # flows -> twist, every ~1 ms

@@ -1,6 +1,6 @@
 """The interaction matrix: how a camera-frame twist moves the image of a point, in px/s.
 
-Derivation (DESIGN convention ``Ṗ = v_o + ω × P``, OpenCV axes). For ``P = (X, Y, Z)`` with
+Derivation (the convention ``Ṗ = v_o + ω × P``, OpenCV axes). For ``P = (X, Y, Z)`` with
 normalised coordinates ``x = X/Z``, ``y = Y/Z`` and pixels ``u = fx x + cx``, ``v = fy y + cy``::
 
     Ẋ = v_x + ω_y Z − ω_z Y,   Ẏ = v_y + ω_z X − ω_x Z,   Ż = v_z + ω_x Y − ω_y X

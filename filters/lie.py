@@ -1,6 +1,6 @@
 """Quaternion and SE(3) kernels for the filters: a few tensor ops each, exportable to ONNX.
 
-Conventions (DESIGN.md):
+Conventions (docs/architecture.md, "Conventions"):
     * Quaternions are ``(w, x, y, z)``; ``q`` and ``-q`` are the same rotation.
     * A rotation vector ``φ`` (rad) maps to ``exp(φ) = [cos(|φ|/2), sin(|φ|/2) φ/|φ|]``.
     * Twists are ``[v_o, ω]`` in the camera frame; ``se3_exp(dt·V)`` is the exact motion under a

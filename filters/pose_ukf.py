@@ -6,7 +6,7 @@ object-to-camera pose, with a covariance in the tangent ``[δt, δθ]`` (m, rad;
 left perturbation ``q = exp(δθ) ⊗ q̄``, see :mod:`ukf`). :class:`PoseTwistUKF` appends the twist
 ``V = [v_o, ω]`` to the state (12-D tangent).
 
-Predict: each sigma point moves by the exact constant-twist motion (DESIGN convention
+Predict: each sigma point moves by the exact constant-twist motion (the convention
 ``Ṗ = v_o + ω × P``): ``t' = R_Δ t + p_Δ``, ``q' = q_Δ ⊗ q`` with ``(q_Δ, p_Δ) = exp(dt·V)``
 (:func:`lie.se3_exp`), then ``P += Q·dt`` (``Q`` a noise density, so the filter does not depend
 on the update rate). The paper's first-order form ``(I + [ω]× dt) t + v_o dt`` is the same to

@@ -1,6 +1,6 @@
 """The 6-DoF velocity Kalman filter: RoI optical flow + depth -> object twist (paper III-B).
 
-State: the twist ``V = [v_o (m/s), ω (rad/s)]`` of B tracks in the camera frame (DESIGN
+State: the twist ``V = [v_o (m/s), ω (rad/s)]`` of B tracks in the camera frame (the
 convention ``Ṗ = v_o + ω × P``) and its 6x6 covariance.
 
 Predict over ``dt`` seconds (decaying velocity model, rate-independent)::

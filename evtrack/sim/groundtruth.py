@@ -2,7 +2,7 @@
 
 Flow definition: the flow at pixel ``(u, v)`` and time ``t`` is ``d/dt`` of the projection of
 the 3-D point seen there, ``P = unproject(u, v, z)``, moving with the object's twist:
-``Ṗ = v_o + ω × P`` (camera frame, DESIGN convention). With ``x = X/Z, y = Y/Z``::
+``Ṗ = v_o + ω × P`` (camera frame, the package's convention). With ``x = X/Z, y = Y/Z``::
 
     u̇ = fx (Ẋ Z - X Ż) / Z²,   v̇ = fy (Ẏ Z - Y Ż) / Z².
 

@@ -10,7 +10,7 @@ with a Catmull-Rom velocity.
 Orientation: ``R(s) = exp([r(s)]×) R_ref`` with a random reference rotation ``R_ref`` per
 sequence. The pose is object-to-camera, ``T = [R | t]``.
 
-Twist (DESIGN convention, camera frame, ``Ṗ = v_o + ω × P``): computed analytically,
+Twist (the package's convention, camera frame, ``Ṗ = v_o + ω × P``): computed analytically,
 ``ω = J_l(r) ṙ`` with ``J_l`` the left Jacobian of SO(3), and ``v_o = ṫ - ω × t``.
 """
 
@@ -148,7 +148,7 @@ class Trajectory:
     def twist(self, t: float | np.ndarray) -> np.ndarray:
         """Camera-frame twist ``[v_o, ω]`` at ``t`` seconds: (6,) or (N, 6) float64.
 
-        Every object point moves as ``Ṗ = v_o + ω × P`` (DESIGN convention).
+        Every object point moves as ``Ṗ = v_o + ω × P`` (the package's convention).
         """
         scalar, pos, vel, r, rdot = self._curves(t)
         omega = (left_jacobian(r) @ rdot[..., None])[..., 0]

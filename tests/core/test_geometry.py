@@ -96,7 +96,7 @@ def test_integrate_twist_solves_point_ode():
 
 
 def test_integrate_twist_derivative_convention():
-    """ṫ = v + ω × t and Ṙ = [ω]× R at dt → 0 (the DESIGN convention)."""
+    """ṫ = v + ω × t and Ṙ = [ω]× R at dt → 0 (the package's convention)."""
     g = torch.Generator().manual_seed(7)
     T0 = rand_pose(g)
     V = torch.randn(6, generator=g, dtype=torch.float64)
