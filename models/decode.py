@@ -247,7 +247,8 @@ class PoseDetection:
 
     Attributes:
         pose: (4, 4) float64 object-to-camera transform (metres).
-        confidence: in [0, 1]; see the module docstring.
+        confidence: in [0, 1]; see the module docstring. After the estimator's crop pass
+            (``DecodeConfig.crop_refine``), the better of its two passes' confidences.
         keypoints: (9, 2) float64 pixels in the input image (8 corners, centroid); NaN where
             missing.
         keypoint_scores: (9,) float64 belief peak values; 0 where missing.

@@ -207,7 +207,12 @@ class PoseEstimator(abc.ABC):
         one size), and the first pass's detection joins its alternatives
         (:attr:`PoseDetection.alternatives`). Where the two rotations agree within
         ``decode.crop_blend_max_deg`` the detection's turns halfway to the first pass's, and
-        the crop's own pose joins the alternatives too. The others stay as they were. Most
+        the crop's own pose joins the alternatives too. The refined detection's confidence is
+        the better of the two passes' (its alternatives keep their own), so that instances are
+        ranked by the best look each had. A crop reading less confident than
+        ``decode.search_below`` (the decoder's mark of a failed fit) does not replace a first
+        pass's reading that is not: that detection keeps the first pass's pose and confidence,
+        the crop's readings join its alternatives. The others stay as they were. Most
         confident first again."""
         size = self.crop_size(images[0].shape[1], input_scale)
         jobs, windows = [], []
@@ -223,6 +228,14 @@ class PoseEstimator(abc.ABC):
             if found is None:
                 continue
             first, (kept, *others) = detections[i][j], found
+            failed = self.decode.search_below
+            if kept.confidence < failed <= first.confidence:
+                # a failed second look (its fit below the decoder's mark of a failed one)
+                # is no evidence against a confident first one: a network that mixes the
+                # corners of a near or symmetric object up in the crop would otherwise sink
+                # its object below a distractor's detection
+                refined[i][j] = with_alternatives(first, [kept, *others])
+                continue
             blend = self.decode.crop_blend_max_deg
             turned = (halfway_rotation(kept.pose.numpy(), first.pose.numpy(), blend)
                       if blend > 0 else None)
@@ -230,6 +243,11 @@ class PoseEstimator(abc.ABC):
                 others.append(kept)
                 kept = replace(kept, pose=torch.from_numpy(turned))
             refined[i][j] = with_alternatives(kept, [*others, first])
+            if first.confidence > kept.confidence:
+                # ranked by its better look: the crop enlarges a motion-blurred object and
+                # fits its corners worse than it fits a sharp distractor's, which would
+                # otherwise rank the distractor first
+                refined[i][j] = replace(refined[i][j], confidence=first.confidence)
         for dets in refined:
             dets.sort(key=lambda d: -d.confidence)
         return refined

@@ -54,6 +54,11 @@ class DotNetwork(PoseEstimator):
     and affinity fields towards the centroid, one instance per cluster of dots."""
 
     calls: list[tuple[int, ...]]
+    image_shape = (240, 320)  # (H, W) of the first pass's input; any other is a crop
+
+    def peaks(self, k: int, dots: np.ndarray, centroids: np.ndarray, crop: bool) -> np.ndarray:
+        """Where the network puts keypoint ``k``'s peaks: at its (M, 2) dots, plus the error."""
+        return dots + KEYPOINT_ERROR[k]
 
     def run_network(self, batch):
         self.calls = [*getattr(self, "calls", []), batch.shape]
@@ -72,8 +77,10 @@ class DotNetwork(PoseEstimator):
                 n, labels = cv2.connectedComponents(hit)
                 found[k] = np.array([[xs.mean(), ys.mean()] for xs, ys in (
                     np.nonzero(labels.T == j) for j in range(1, n))]).reshape(-1, 2)
-                found[k] = found[k] + KEYPOINT_ERROR[k]
             centroids = found[8]
+            crop = batch.shape[2:] != self.image_shape
+            for k in range(9):
+                found[k] = self.peaks(k, found[k], centroids, crop)
             for k, points in found.items():
                 for u, v in points:
                     belief[i, k] = np.maximum(
@@ -216,6 +223,77 @@ def test_a_crop_without_the_object_keeps_the_first_pose():
     np.testing.assert_array_equal(kept.pose.numpy(), first.pose.numpy())
     np.testing.assert_array_equal(kept.keypoints.numpy(), first.keypoints.numpy())
     assert kept.alternatives == ()  # nothing was replaced
+
+
+class ConfusedInCrops(DotNetwork):
+    """Sees the object in crops but puts its corners there where no cuboid fits them: each
+    corner's peak moves along the ray from the centroid by its own factor (the affinity still
+    points at the centroid, so the corners join the instance), as the corner maps of a network
+    that mixes the corners of a near or symmetric object up do."""
+
+    RADIAL = np.array([0.73, 1.09, 0.71, 1.41, -0.61, 0.52, 0.36, -0.56])
+
+    def peaks(self, k, dots, centroids, crop):
+        dots = super().peaks(k, dots, centroids, crop)
+        if not crop or k == 8 or not len(centroids) or not len(dots):
+            return dots
+        return dots + self.RADIAL[k] * (dots - centroids[0])
+
+
+@pytest.mark.parametrize("search_below", [0.1, 0.3])
+def test_a_failed_crop_reading_does_not_replace_a_confident_first_pass(search_below):
+    """The first pass's detection stays where the crop's reading is less confident than
+    ``search_below`` (the decoder's mark of a failed fit) and the first pass's is not: a
+    failed second look must not demote a detection below other instances (a distractor)."""
+    truth = pose_at((0.0, 0.0, 0.7))
+    image = paint(CAM, [truth])
+    decode = DecodeConfig(search_below=search_below)
+    (first,) = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0,
+                                                           search_below=search_below))(image)
+    assert first.confidence >= search_below
+    confused = ConfusedInCrops(CAM, CUBOID, decode=decode)
+    (kept,) = confused(image)
+    assert len(confused.calls) == 2
+    np.testing.assert_array_equal(kept.pose.numpy(), first.pose.numpy())
+    assert kept.confidence == first.confidence
+    assert kept.alternatives, "the crop's reading is kept as an alternative"
+    assert all(alt.confidence < search_below for alt in kept.alternatives)  # the premise
+    # with no failure mark (search_below 0) the crop's reading replaces the first's pose
+    (replaced,) = ConfusedInCrops(CAM, CUBOID, decode=DecodeConfig(search_below=0.0))(image)
+    assert not np.array_equal(replaced.pose.numpy(), first.pose.numpy())
+
+
+class BlurredInCrops(ConfusedInCrops):
+    """A crop pass that finds the object but fits its corners worse than the first pass (as
+    a crop enlarging a motion-blurred object does): a valid, less confident reading."""
+
+    RADIAL = np.array([0.48, 1.49, -0.37, 1.48, 0.02, 0.27, 1.2, 0.24])
+
+
+class BlurredEverywhere(BlurredInCrops):
+    """:class:`BlurredInCrops`'s corners in the first pass too."""
+
+    image_shape = (0, 0)
+
+
+def test_a_detection_is_ranked_by_the_better_of_its_two_looks():
+    """The crop's pose replaces the first pass's; the confidence stays the first pass's where
+    that is higher, so a crop that sees the object worse than a distractor's crop sees the
+    distractor does not rank the object below it."""
+    truth = pose_at((0.0, 0.0, 0.7))
+    image = paint(CAM, [truth])
+    (first,) = DotNetwork(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0))(image)
+    (refined,) = BlurredInCrops(CAM, CUBOID)(image)
+    # the crop's pose (a valid reading: a failed one would leave the first pass's), which
+    # fits its corners worse than the first pass did
+    assert not np.array_equal(refined.pose.numpy(), first.pose.numpy())
+    assert refined.reprojection_error_px > 2 * first.reprojection_error_px
+    assert refined.confidence == first.confidence
+    (alternative,) = refined.alternatives
+    np.testing.assert_array_equal(alternative.pose.numpy(), first.pose.numpy())
+    # the crop's own confidence, from a network whose first pass is as bad as its crop
+    (crop_only,) = BlurredEverywhere(CAM, CUBOID, decode=DecodeConfig(crop_refine=0.0))(image)
+    assert DecodeConfig().search_below <= crop_only.confidence < first.confidence
 
 
 def test_crop_intrinsics_see_the_crop_as_the_camera_sees_the_image():
