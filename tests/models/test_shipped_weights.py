@@ -3,11 +3,14 @@ the demo object in held-out renders (a regression test of their quality, not the
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pytest
 import torch
 
 from evtrack.demo import DEMO_OBJECT
+from evtrack.eval.pose_metrics import GROSS_MISS_M
 from evtrack.models import TorchPoseEstimator, load_model
 from evtrack.models.weights import list_weights, zoo_dir
 
@@ -33,20 +36,55 @@ def test_shipped_weights_are_safe_small_and_documented() -> None:
 
 def _renders(path, object_spec: str, n: int, seed: int) -> list:
     """``n`` renders (``SimSource`` samples) of ``object_spec`` at the training resolution of
-    the weights ``path``, 0.4-0.9 m away, with a seed no training run used."""
+    the weights ``path``, 0.4-0.9 m away, in random cluttered scenes of 24 renders each, with
+    a seed no training run used."""
     from evtrack.train.sim_source import SimSource, SimSourceOptions
 
     _, record = load_model(path)
     source = SimSource(object_spec, record.cuboid, n, tuple(record.input_size),
                        object_name=record.object_name, seed=seed,
-                       options=SimSourceOptions(samples_per_scene=n, z_range=(0.4, 0.9)))
+                       options=SimSourceOptions(samples_per_scene=min(n, 24), z_range=(0.4, 0.9)))
     try:
         return [source[i] for i in range(len(source))]
     finally:
         source.close()
 
 
-def _held_out_errors(path, object_spec: str, n: int = 12, seed: int = 987_654):
+@dataclass(frozen=True)
+class HeldOut:
+    """What a shipped network must do on the held-out renders: median position (m) and
+    rotation (deg) errors and gross misses (detections more than 10 cm off, or none) at most
+    these."""
+
+    median_position_m: float
+    median_rotation_deg: float
+    gross_misses: int
+
+
+# 48 renders: two cluttered scenes of 24, seed 987654. A render's last bits differ between
+# machines (the rasteriser's arithmetic, the network's convolution kernels and threads), and
+# a median over 24 renders moved with them across its bound. These bounds stand well outside
+# the spread measured over seven inputs (AMD EPYC, 2026-12-07): scene seeds 987654, 1, 2 and
+# 3 (other images altogether), and seed 987654 rendered by Mesa's softpipe rasteriser instead
+# of llvmpipe, with oneDNN limited to SSE4.1 and with one thread (the last two changed the
+# maps' last bits, not the poses). The worst of the seven, per network (median position cm /
+# median rotation deg / gross misses of 48): coded box 1.65 / 5.07 / 4, cracker box
+# 2.26 / 5.59 / 5, tomato can 3.60 / 8.41 / 4, mustard bottle 3.02 / 8.24 / 8, potted meat
+# can 2.57 / 8.18 / 4. Bounds: 1.5x the worst position and 1.4x the worst rotation (rounded
+# up to 0.5), three gross misses more than the worst.
+HELD_OUT_SEED = 987_654
+HELD_OUT_RENDERS = 48
+HELD_OUT_BOUNDS = {
+    "coded_box": HeldOut(0.025, 7.5, 7),
+    "003_cracker_box": HeldOut(0.035, 8.0, 8),
+    "005_tomato_soup_can": HeldOut(0.055, 12.0, 7),
+    "006_mustard_bottle": HeldOut(0.05, 11.5, 11),
+    "010_potted_meat_can": HeldOut(0.04, 11.5, 7),
+}
+
+
+def _held_out_errors(path, object_spec: str, n: int = HELD_OUT_RENDERS,
+                     seed: int = HELD_OUT_SEED) -> tuple[np.ndarray, np.ndarray]:
     """Translation (m) and rotation (deg) errors, (n,) each, of the most confident detection on
     ``n`` renders of ``object_spec`` (a sim object or a mesh path) with a seed no training run
     used; NaN where nothing was detected."""
@@ -62,15 +100,28 @@ def _held_out_errors(path, object_spec: str, n: int = 12, seed: int = 987_654):
             np.degrees(rotation_errors(T_est, T_true).numpy()))
 
 
+def _check_held_out(name: str, dt: np.ndarray, dr: np.ndarray) -> None:
+    """``dt`` (m), ``dr`` (deg) within the network's :data:`HELD_OUT_BOUNDS`; no detection
+    counts as a gross miss."""
+    bound = HELD_OUT_BOUNDS[name]
+    dt, dr = np.nan_to_num(dt, nan=np.inf), np.nan_to_num(dr, nan=180.0)
+    gross = int(np.sum(dt > GROSS_MISS_M))
+    report = (f"{name}: median {100 * np.median(dt):.2f} cm / {np.median(dr):.2f} deg, "
+              f"{gross} gross misses of {len(dt)}; errors (cm) {np.round(100 * dt, 1)}")
+    assert np.median(dt) < bound.median_position_m, report
+    assert np.median(dr) < bound.median_rotation_deg, report
+    assert gross <= bound.gross_misses, report
+
+
+def test_every_shipped_network_has_held_out_bounds() -> None:
+    names = {record.object_name for _, record in list_weights()}
+    assert names == set(HELD_OUT_BOUNDS), "a shipped network without bounds, or bounds without one"
+
+
 def test_shipped_weights_locate_the_demo_object_in_held_out_renders() -> None:
     pytest.importorskip("moderngl")
     path, _ = _shipped()
-    dt, dr = _held_out_errors(path, DEMO_OBJECT)
-    assert np.isfinite(dt).all(), "no detection"
-    # the shipped weights measure median 0.8 cm / 5.1 deg on these 12 frames (stage-1 weights:
-    # 9.7 cm, four rotations flipped); the bounds leave margin for numeric drift only
-    assert np.median(dt) < 0.04, np.round(dt, 3)
-    assert np.median(dr) < 12.0, np.round(dr, 1)
+    _check_held_out(DEMO_OBJECT, *_held_out_errors(path, DEMO_OBJECT))
 
 
 def _shipped_ycb():
@@ -78,31 +129,14 @@ def _shipped_ycb():
     return [(p, r) for p, r in list_weights() if r.object_name[:3].isdigit()]
 
 
-# the median rotation error allowed on the renders below; the tomato can is nearly symmetric
-# about its axis, whose rotation only its label shows
-_ROTATION_BOUND_DEG = {"005_tomato_soup_can": 12.0, "006_mustard_bottle": 11.0}
-# the median position error allowed (m). The mustard bottle's network is the weakest shipped:
-# its medians over four sets of 24 renders spread 1.90-3.63 cm / 7.32-9.97 deg (session 33, an
-# AMD EPYC: render seeds 987654 (the test's), 1, 2, 3), and the test's set gave 4.06 cm within
-# the full suite on that machine, 3.29 cm on the Intel Xeon it was chosen on
-_POSITION_BOUND_M = {"006_mustard_bottle": 0.05}
-
-
 @pytest.mark.parametrize("index", range(len(_shipped_ycb())))
 def test_shipped_ycb_weights_locate_their_object_in_held_out_renders(index, ycb_dir) -> None:
     """Each shipped YCB network (trained from the coded box's weights with
-    ``model.init_transfer``) finds its own object, rendered from the mesh in ../shared: median
-    errors over 24 cluttered renders under 4 cm and 9 deg (the tomato can: 12 deg; the mustard
-    bottle: 5 cm and 11 deg, see ``_POSITION_BOUND_M``).
-
-    Measured on 24 renders (session 27, an Intel Xeon): cracker box 2.06 cm / 5.26 deg,
-    tomato can 2.47 / 10.33, potted meat can 2.18 / 6.86. The test used 12 until then, and
-    their median moved with the CPU (the renders differ in their last bits between machines):
-    the tomato can 7.0-8.7 deg on an AMD EPYC, 9.64 on that Xeon. A network that mixes its
-    corners up fails the rotation bound by far (the potted meat can's after 108 s of
-    training, corner identity 0.40, not shipped: 8.6 cm / 54 deg on the 12); the tomato can's
-    network after 50 CPU minutes more than its first GPU run (not shipped) measured 2.8-4.4
-    cm / 7.8-10.9 deg on the 12, within the can's bound now."""
+    ``model.init_transfer``) finds its own object, rendered from the mesh in ../shared, in 48
+    cluttered renders: median errors and gross misses within :data:`HELD_OUT_BOUNDS`. A
+    network that mixes its corners up fails the rotation bound by far (one that did, after a
+    short training run, measured 8.6 cm / 54 deg); one whose crop pass sinks its object below
+    a distractor's detection fails the gross-miss bound."""
     pytest.importorskip("moderngl")
     path, record = _shipped_ycb()[index]
     name = record.object_name
@@ -110,10 +144,7 @@ def test_shipped_ycb_weights_locate_their_object_in_held_out_renders(index, ycb_
     card = path.with_suffix(".md").read_text()
     assert name in card and "held-out" in card.lower()  # the card states its held-out accuracy
     mesh = ycb_dir / name / f"{name}_textured.gltf"
-    dt, dr = _held_out_errors(path, str(mesh), n=24)
-    dt, dr = np.nan_to_num(dt, nan=np.inf), np.nan_to_num(dr, nan=180.0)  # a miss: a failure
-    assert np.median(dt) < _POSITION_BOUND_M.get(name, 0.04), np.round(dt, 3)
-    assert np.median(dr) < _ROTATION_BOUND_DEG.get(name, 9.0), np.round(dr, 1)
+    _check_held_out(name, *_held_out_errors(path, str(mesh)))
 
 
 def test_onnx_and_torch_give_the_shipped_network_the_same_poses(tmp_path) -> None:
