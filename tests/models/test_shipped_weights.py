@@ -147,10 +147,22 @@ def test_shipped_ycb_weights_locate_their_object_in_held_out_renders(index, ycb_
     _check_held_out(name, *_held_out_errors(path, str(mesh)))
 
 
+def _same_pose(a, b) -> bool:
+    return bool(torch.allclose(a.pose, b.pose, atol=1e-6, rtol=0)
+                and a.num_points == b.num_points)
+
+
 def test_onnx_and_torch_give_the_shipped_network_the_same_poses(tmp_path) -> None:
-    """Issue #6: identical decoded poses from the exported model, with the crop pass and
-    RANSAC on. Their maps differ in the last bits; before keypoints went to PnP on a grid
-    (``PNP_GRID_PX``), RANSAC turned that into poses 1-2 degrees apart on a third of frames."""
+    """Issue #6: the exported model computes the network's maps to float32 rounding (within
+    1e-4 of torch's; ~5e-6 measured), and the decoded poses are the same: at least 90 % of
+    the detections identical to 1e-6 (matched by pose, not by rank, since two detections of
+    near-equal confidence may swap). Before keypoints went to PnP on a grid
+    (``PNP_GRID_PX``), RANSAC turned the maps' last-bit differences into poses 1-2 degrees
+    apart on a third of frames. Every threshold of the decoding (a keypoint on a grid line,
+    RANSAC's inlier distance, the search's trigger) can still flip where the two backends'
+    maps straddle it, and where that happens depends on the render's own last bits: 1 of ~60
+    detections on renders of three seeds with llvmpipe's default, bilinear-LOD
+    (``GALLIVM_PERF=brilinear``) and approximate-rho sampling, and softpipe's."""
     pytest.importorskip("moderngl")
     pytest.importorskip("onnxruntime")
     from evtrack.models import OnnxPoseEstimator
@@ -159,16 +171,22 @@ def test_onnx_and_torch_give_the_shipped_network_the_same_poses(tmp_path) -> Non
     path, _ = _shipped()
     net, _ = load_model(path)
     onnx_path = export_onnx(net, tmp_path / "demo.onnx")
-    samples = _renders(path, DEMO_OBJECT, 12, seed=4321)
+    samples = _renders(path, DEMO_OBJECT, 24, seed=4321)
     t_est = TorchPoseEstimator.from_weights(path, samples[0].K)
     o_est = OnnxPoseEstimator(onnx_path, samples[0].K, threads=1)
     assert t_est.decode.ransac and t_est.decode.crop_refine > 0
-    compared = 0
+    detections = identical = 0
     for s in samples:
+        for torch_maps, onnx_maps in zip(t_est.predict_maps([s.image])[:2],
+                                         o_est.predict_maps([s.image])[:2], strict=True):
+            np.testing.assert_allclose(onnx_maps, torch_maps, rtol=0, atol=1e-4)
         a, b = t_est(s.image), o_est(s.image)
-        assert len(a) == len(b)
-        for da, db in zip(a, b, strict=True):
-            torch.testing.assert_close(da.pose, db.pose, atol=1e-6, rtol=0)
-            assert da.num_points == db.num_points
-            compared += 1
-    assert compared >= 10  # the network finds the object in (nearly) every render
+        detections += max(len(a), len(b))
+        unmatched = list(b)
+        for da in a:
+            match = next((db for db in unmatched if _same_pose(da, db)), None)
+            if match is not None:
+                unmatched.remove(match)
+                identical += 1
+    assert detections >= 20  # the network finds the object in (nearly) every render
+    assert identical >= 0.9 * detections, f"{identical} of {detections} detections identical"
