@@ -236,7 +236,11 @@ def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
     # measured after 0.3 s: model 4.44 cm / 8.73 deg, sensor 4.17 / 8.21 (2026-11-27; 6.7 /
     # 10.9 and 5.9 / 8.4 without measuring the model's steps before the first pose again).
     # Model depth is taken at the predicted pose, so a pose error also scales the velocity.
-    assert tracker.depth.renders > 50 and tracker.stats.depth_fallbacks == 0
+    # A RoI on the silhouette's edge can miss the model's silhouette rendered at a predicted
+    # pose a little off: 1 of 3214 RoI flows with llvmpipe's default sampling, 3 of 3037 with
+    # its bilinear-LOD sampling (GALLIVM_PERF=brilinear), whose renders differ in last bits.
+    assert tracker.depth.renders > 50
+    assert tracker.stats.depth_fallbacks <= 0.01 * tracker.stats.roi_flows, tracker.stats
     assert err.position_rmse_cm < 1.4 * ref.position_rmse_cm
     assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 3.5
 
