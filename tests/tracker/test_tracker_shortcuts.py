@@ -189,5 +189,7 @@ def test_the_group_mask_sweeps_with_the_object(fast_sequence, monkeypatch):
     swept, n = _mask_coverage(fast_sequence, monkeypatch, swept=True)
     start_only, n0 = _mask_coverage(fast_sequence, monkeypatch, swept=False)
     print(f"object events kept: swept {swept:.4f} of {n}, start only {start_only:.4f} of {n0}")
-    assert swept > 0.99  # measured 0.995 (start only: 0.967)
+    # measured 0.995 and 0.990 on two installs whose renders differ in their last bits (start
+    # only: 0.967 and 0.957); the margin is for that spread
+    assert swept > 0.98
     assert swept > start_only + 0.02
