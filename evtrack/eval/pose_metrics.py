@@ -60,7 +60,7 @@ class PoseAccuracy:
         gross_miss_rate: fraction of *detected* frames whose position is more than
             ``gross_miss_m`` off: the network found something else (a distractor), or the
             object at a badly wrong range. The medians hide these; a tracker must reject them.
-        gross_miss_m: that threshold, metres (0.10 by default).
+        gross_miss_m: that threshold, metres (:data:`GROSS_MISS_M` by default).
     """
 
     frames: int
@@ -71,8 +71,8 @@ class PoseAccuracy:
     add_pass: float
     adds_pass: float
     threshold_m: float
-    gross_miss_rate: float = float("nan")
-    gross_miss_m: float = GROSS_MISS_M
+    gross_miss_rate: float
+    gross_miss_m: float
 
     def as_dict(self) -> dict:
         return asdict(self)
