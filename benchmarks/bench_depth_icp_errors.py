@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
 import cv2
 import numpy as np
@@ -43,10 +43,10 @@ def corrupted_depth(depth: np.ndarray, kind: str, rng: np.random.Generator) -> n
 
 def track(folder: Path, kind: str, depth_icp: bool, seed: int) -> tuple:
     from evtrack.eval.metrics import tracking_errors
-    from evtrack.pose_sources import OraclePoseSource
     from evtrack.sequence import Sequence
-    from evtrack.tracker import Tracker
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
+    from evtrack.tracking.pose_sources import OraclePoseSource
+    from evtrack.tracking.tracker import Tracker
 
     seq = Sequence.load(folder)
     read, rng = seq.depth, np.random.default_rng(seed)

@@ -44,7 +44,7 @@ import sys
 import time
 from pathlib import Path
 
-# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
 import torch
 
@@ -52,7 +52,7 @@ from evtrack.events import Events
 from evtrack.flow import CandidateSearch, FlowConfig, TripletFlow, registration_triton
 from evtrack.flow.compiled import CompiledSearch
 from evtrack.flow.scenes import translating_texture
-from evtrack.openmp_wait import wait_policy
+from evtrack.runtime.openmp_wait import wait_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 

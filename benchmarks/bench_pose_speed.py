@@ -37,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
 import cv2
 import numpy as np
@@ -52,7 +52,7 @@ from evtrack.models import (
     decode_poses,
     export_onnx,
 )
-from evtrack.openmp_wait import wait_policy
+from evtrack.runtime.openmp_wait import wait_policy
 
 SIZES = ((480, 640), (240, 320))
 TARGET_MS = 40.0

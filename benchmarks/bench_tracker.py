@@ -47,17 +47,17 @@ import tempfile
 import time
 from pathlib import Path
 
-# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
 import numpy as np
 import torch
 
 from evtrack import Sequence
 from evtrack.demo import demo_tracker_config
-from evtrack.openmp_wait import wait_policy
-from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
+from evtrack.runtime.openmp_wait import wait_policy
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource
+from evtrack.tracking.tracker import Tracker
 
 
 def _simulate(size: tuple[int, int], duration: float, folder: Path) -> Sequence:

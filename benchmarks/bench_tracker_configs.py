@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
 import torch
 
@@ -32,8 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _run(sequence, config, seed: int, method: str) -> dict:
     from evtrack.eval.metrics import tracking_errors
-    from evtrack.pose_sources import OraclePoseSource
-    from evtrack.tracker import Tracker
+    from evtrack.tracking.pose_sources import OraclePoseSource
+    from evtrack.tracking.tracker import Tracker
 
     source = OraclePoseSource.from_sequence(sequence, std_translation=0.01,
                                             std_rotation=0.03, seed=seed)
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from evtrack import Sequence
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
 
     torch.set_num_threads(args.threads)
     configs = {"defaults": TrackerConfig.from_dict({"torch_threads": args.threads})}

@@ -8,17 +8,18 @@ Variants, cumulative (each adds one change to the one before):
 
 * ``reference``: numpy's BLAS on its own threads (``blas_threads: 0``), the flow's candidate
   search in one loop (no strips), the event mask by the half-plane point test
-  (:func:`evtrack.silhouette.points_in_polygon`, a (N, edges) product);
-* ``blas``: numpy's BLAS on one thread while tracking (:mod:`evtrack.blas_threads`): OpenBLAS's
+  (:func:`evtrack.tracking.silhouette.points_in_polygon`, a (N, edges) product);
+* ``blas``: numpy's BLAS on one thread while tracking (:mod:`evtrack.runtime.blas_threads`):
+OpenBLAS's
   idle workers no longer spin after the mask's product;
 * ``strips``: the search split into horizontal strips of the sensor, one per thread
   (:class:`evtrack.flow.compiled.CompiledSearch`);
-* ``mask``: the event mask by row spans (:func:`evtrack.silhouette.pixels_in_polygon`);
+* ``mask``: the event mask by row spans (:func:`evtrack.tracking.silhouette.pixels_in_polygon`);
 * ``groups``: one flow call per 10 velocity steps instead of 5 (``flow_batch_steps``);
 * ``kf``: the filters' single-track steps compiled with numba
   (:mod:`evtrack.filters.fast_compiled`: the velocity update, the pose predict) instead of
   NumPy;
-* ``depth``: the RoI depth lookup compiled (``evtrack.depth_sources.COMPILED``);
+* ``depth``: the RoI depth lookup compiled (``evtrack.tracking.depth_sources.COMPILED``);
 * ``eq3``: the tracker's Eq. 3 caps, 16 hypotheses from at most 32 events per RoI window
   (the flow's generic 48 from 64 before);
 * ``sample``: the flow searches a hash sample of about 64 events of each RoI window
@@ -47,8 +48,9 @@ and the mask's arithmetic can move an event on the mask's edge); ``groups`` and 
 and 40 steps of events with the hull of the silhouettes predicted at their first step and at
 their last step's end (its errors on the benchmark sets: see
 ``TrackerConfig.flow_batch_steps``); ``eq3`` solves Eq. 3 over fewer hypotheses (its errors: see
-``evtrack.tracking_config``), ``sample`` the data term of fewer events in the crowded windows
-(see ``evtrack.tracker``), ``budget`` the flows of fewer RoIs when the object's events exceed
+``evtrack.tracking.config``), ``sample`` the data term of fewer events in the crowded windows
+(see ``evtrack.tracking.tracker``), ``budget`` the flows of fewer RoIs when the object's events
+exceed
 the budget (see ``TrackerConfig.max_searched_per_step``). Each run is a fresh child process, the
 variants interleaved run by run so that the machine's load drifts over all alike; each child
 tracks the sequence twice and times the second run (the first loads the compiled kernels).
@@ -77,11 +79,11 @@ VARIANTS = ("reference", "blas", "strips", "mask", "groups", "kf", "depth", "eq3
 
 
 def _child(sequence: Path, variant: str, method: str, threads: int, frames: str) -> dict:
-    # first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+    # first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
     import evtrack  # noqa: F401  # isort: skip
 
     from evtrack.flow.compiled import CompiledSearch
-    from evtrack.silhouette import SilhouettePolygon
+    from evtrack.tracking.silhouette import SilhouettePolygon
 
     level = VARIANTS.index(variant)
     if level < VARIANTS.index("kf"):
@@ -94,7 +96,7 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
         def point_test(self, x, y, margin, size):
             import numpy as np
 
-            from evtrack.silhouette import _half_planes
+            from evtrack.tracking.silhouette import _half_planes
 
             # the reference: one (N, 2) @ (2, edges) BLAS product, as the tracker had it
             normals, offsets = _half_planes(np.asarray(self.vertices, np.float64))
@@ -103,7 +105,7 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
 
         SilhouettePolygon.contains_pixels = point_test
     if level < VARIANTS.index("runs"):
-        from evtrack.tracker import Tracker
+        from evtrack.tracking.tracker import Tracker
 
         Tracker.step_runs = False
     if level < VARIANTS.index("depth"):

@@ -4,7 +4,7 @@
         --option NAME=YAML [--option NAME=YAML ...] [--repeats 2] [--frames memory]
         [--method full] [--threads 2]
 
-Each ``--option`` names a set of :class:`~evtrack.tracking_config.TrackerConfig` overrides,
+Each ``--option`` names a set of :class:`~evtrack.tracking.config.TrackerConfig` overrides,
 written as a YAML mapping (parsed with ``yaml.safe_load``, checked by ``TrackerConfig`` before
 anything runs), e.g.::
 
@@ -48,7 +48,7 @@ def parse_option(text: str) -> tuple[str, dict]:
             parse to a mapping, or fields the tracker config does not accept.
     """
     from evtrack.errors import ConfigError
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
 
     name, sep, body = text.partition("=")
     name = name.strip()

@@ -30,7 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
 import torch
 
@@ -38,9 +38,9 @@ from evtrack import Sequence
 from evtrack.eval.metrics import tracking_errors
 from evtrack.models import OnnxPoseEstimator, TorchPoseEstimator, export_onnx, load_model
 from evtrack.models.weights import read_record
-from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource
+from evtrack.tracking.tracker import Tracker
 
 SOURCES = ("oracle", "torch", "onnx", "onnx-spin", "torch+prior", "onnx+prior")
 

@@ -36,7 +36,7 @@ from __future__ import annotations
 import argparse
 import time
 
-# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.openmp_wait)
+# first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
 import evtrack  # noqa: F401  # isort: skip
 import lightning as L
 import torch

@@ -1,4 +1,4 @@
-"""The tracker's speed under OpenMP's wait policies, side by side (evtrack.openmp_wait).
+"""The tracker's speed under OpenMP's wait policies, side by side (evtrack.runtime.openmp_wait).
 
     python benchmarks/bench_wait_policy.py --sequence DIR [DIR ...] [--repeats 2]
                                            [--method full] [--threads 2]

@@ -31,9 +31,9 @@ def time_tracking(sequence: Path, config: dict, threads: int, frames: str = "fil
     import torch
 
     from evtrack import Sequence
-    from evtrack.pose_sources import OraclePoseSource
-    from evtrack.tracker import Tracker
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
+    from evtrack.tracking.pose_sources import OraclePoseSource
+    from evtrack.tracking.tracker import Tracker
 
     torch.set_num_threads(threads)
     seq = Sequence.load(sequence)
@@ -99,7 +99,7 @@ def check_run_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -
     if args.threads < 1:
         ap.error(f"--threads must be >= 1, got {args.threads}")
     from evtrack.errors import ConfigError
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
 
     try:
         TrackerConfig.from_dict({"method": args.method})

@@ -11,7 +11,7 @@ Public API (reference: docs/api/)::
 from __future__ import annotations
 
 # first, before torch loads: sets OMP_WAIT_POLICY=PASSIVE unless set (see the module)
-import evtrack.openmp_wait  # noqa: F401  # isort: skip
+import evtrack.runtime.openmp_wait  # noqa: F401  # isort: skip
 from evtrack import flow, geometry, io
 from evtrack.camera import PinholeCamera
 from evtrack.errors import (
@@ -23,9 +23,9 @@ from evtrack.errors import (
 )
 from evtrack.events import Events, EventsValidationReport, concatenate
 from evtrack.sequence import Sequence
-from evtrack.tracker import Tracker, TrackerStats
-from evtrack.tracking_config import TrackerConfig
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.tracker import Tracker, TrackerStats
+from evtrack.tracking.trajectory import Trajectory
 
 __version__ = "0.1.0"
 

@@ -33,7 +33,7 @@ from evtrack.eval.pose_setup import PoseSourceSpec, find_object_weights
 from evtrack.eval.report import ReportFiles, write_report
 from evtrack.eval.sequences import find_sequences
 from evtrack.eval.tables import Cell
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
 
 __all__ = ["DemoOptions", "DemoResult", "run_demo", "demo_weights", "demo_tracker_config",
            "DEMO_OBJECT", "DEMO_METHODS", "summary_table"]

@@ -16,8 +16,8 @@ import torch
 from torch import Tensor
 
 from evtrack.errors import EventsError
-from evtrack.jit import available as jit_available
-from evtrack.jit import njit
+from evtrack.runtime.jit import available as jit_available
+from evtrack.runtime.jit import njit
 
 __all__ = ["Events", "EventsValidationReport", "concatenate"]
 

@@ -44,7 +44,7 @@ examples:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from evtrack.eval.benchmark import DEFAULT_METHODS
-    from evtrack.tracking_config import METHODS
+    from evtrack.tracking.config import METHODS
 
     p = subparsers.add_parser(
         "evaluate", help="every method on a benchmark: error tables, plots, videos",
@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     from evtrack.eval.pose_setup import pose_caption, resolve_weights
     from evtrack.eval.report import OUTPUT_NAMES
     from evtrack.eval.sequences import find_sequences, require_ground_truth
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
     from evtrack.utils import output_folder
 
     if args.threads is not None and args.threads < 1:

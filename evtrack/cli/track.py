@@ -58,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _pose_source(args: argparse.Namespace, seq):
-    from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
+    from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource
 
     if args.oracle and args.weights is not None:
         raise ConfigError("give either --weights or --oracle, not both")
@@ -92,8 +92,8 @@ def _pose_source(args: argparse.Namespace, seq):
 def run(args: argparse.Namespace) -> int:
     from evtrack import Sequence
     from evtrack.eval.metrics import tracking_errors
-    from evtrack.tracker import Tracker
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
+    from evtrack.tracking.tracker import Tracker
 
     if args.out.suffix.lower() not in (".csv", ".h5", ".hdf5"):
         raise ConfigError(f"--out {args.out}: use a .csv, .h5 or .hdf5 file")

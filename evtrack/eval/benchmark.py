@@ -20,7 +20,7 @@ from evtrack.errors import ConfigError
 from evtrack.eval.metrics import TrackingErrors, tracking_errors
 from evtrack.eval.pose_setup import PoseSourceSpec, make_pose_source
 from evtrack.eval.sequences import BenchmarkSequence
-from evtrack.tracking_config import METHODS, TrackerConfig
+from evtrack.tracking.config import METHODS, TrackerConfig
 from evtrack.utils import threads_per_job
 
 __all__ = ["RunSpec", "RunResult", "ABLATIONS", "DEFAULT_METHODS", "run_specs", "run_one",
@@ -106,7 +106,7 @@ class RunResult:
         trajectory: the saved trajectory file.
         seconds: wall time of the tracking, seconds.
         cpu_seconds: CPU time of the tracking process meanwhile, seconds.
-        stats: the tracker's counters (:class:`~evtrack.tracker.TrackerStats` as a dict).
+        stats: the tracker's counters (:class:`~evtrack.tracking.tracker.TrackerStats` as a dict).
     """
 
     sequence: str
@@ -130,7 +130,7 @@ def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
             pose: PoseSourceSpec, weights: Path | None, out_dir: str | Path,
             torch_threads: int | None = None) -> RunResult:
     """Track ``sequence`` with one run, save the trajectory, measure its errors."""
-    from evtrack.tracker import Tracker
+    from evtrack.tracking.tracker import Tracker
 
     seq = sequence.load()
     cfg = spec.config(base, torch_threads)

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.trajectory import Trajectory
 
 __all__ = [
     "position_errors",

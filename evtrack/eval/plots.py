@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from evtrack.eval.samples import sample_errors
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.trajectory import Trajectory
 
 __all__ = ["SpeedErrors", "plot_tracking_curves", "plot_error_vs_speed", "binned_rmse",
            "euler_degrees"]

@@ -8,7 +8,8 @@
   bit for bit on most frames and within ~1e-6 m and rad on the others, see
   ``models.decode.PNP_GRID_PX``).
 * ``oracle``: the sequence's ground-truth pose plus Gaussian noise
-  (:class:`~evtrack.pose_sources.OraclePoseSource`). **Not an estimator**: tables made with it
+  (:class:`~evtrack.tracking.pose_sources.OraclePoseSource`). **Not an estimator**: tables made
+  with it
   measure the filters and the velocity pipeline, not a pose network, and say so.
 * ``network`` with ``oracle_fallback``: the network where an object has weights, the oracle
   for the objects without (a benchmark whose objects do not all have a trained network yet);
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from evtrack.errors import ConfigError
-from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource, PoseSource
+from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource, PoseSource
 
 BACKENDS = {"torch": ".pt", "onnxruntime": ".onnx"}
 """The pose network's backends and the suffix of the files each runs."""

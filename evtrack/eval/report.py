@@ -27,7 +27,7 @@ from evtrack.eval.plots import SpeedErrors, plot_error_vs_speed, plot_tracking_c
 from evtrack.eval.samples import pixel_speed_at, sample_errors
 from evtrack.eval.sequences import BenchmarkSequence
 from evtrack.eval.tables import write_tables
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.trajectory import Trajectory
 
 __all__ = ["ReportFiles", "OUTPUT_NAMES", "write_report", "write_manifest"]
 

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from evtrack.eval.metrics import position_errors, rotation_errors
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.trajectory import Trajectory
 
 __all__ = ["SampleErrors", "sample_errors", "pixel_speed_at", "SPEED_VERTICES"]
 

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from evtrack.camera import PinholeCamera
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.trajectory import Trajectory
 
 __all__ = ["wireframe_segments", "cuboid_segments", "project_segments", "draw_segments",
            "write_overlay_video", "SHARP_EDGE_DEG", "MAX_EDGES"]

@@ -43,8 +43,8 @@ from torch import Tensor
 
 from evtrack.flow.registration import hash32
 from evtrack.flow.registration_compiled import _hash32
-from evtrack.jit import available as jit_available
-from evtrack.jit import njit
+from evtrack.runtime.jit import available as jit_available
+from evtrack.runtime.jit import njit
 
 __all__ = ["sampled_search"]
 

@@ -29,8 +29,8 @@ from evtrack.flow.registration import (
 )
 from evtrack.flow.registration_compiled import register_closed_groups
 from evtrack.flow.result import FlowResult
-from evtrack.jit import available as jit_available
-from evtrack.jit import njit
+from evtrack.runtime.jit import available as jit_available
+from evtrack.runtime.jit import njit
 
 __all__ = ["TripletFlow"]
 

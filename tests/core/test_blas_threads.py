@@ -1,4 +1,5 @@
-"""evtrack.blas_threads: numpy's BLAS limited inside, restored after, re-entrant per thread."""
+"""evtrack.runtime.blas_threads: numpy's BLAS limited inside, restored after, re-entrant per
+thread."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 
 threadpoolctl = pytest.importorskip("threadpoolctl")
 
-from evtrack.blas_threads import BlasThreads  # noqa: E402
+from evtrack.runtime.blas_threads import BlasThreads  # noqa: E402
 
 
 def _blas_threads() -> list[int]:
@@ -74,7 +75,7 @@ def test_depth_is_per_thread(two_blas_threads):
 
 def test_tracker_config_field():
     from evtrack.errors import ConfigError
-    from evtrack.tracking_config import TrackerConfig
+    from evtrack.tracking.config import TrackerConfig
 
     assert TrackerConfig().blas_threads == 1
     assert TrackerConfig.from_dict({"blas_threads": 0}).blas_threads == 0

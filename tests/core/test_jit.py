@@ -1,4 +1,4 @@
-"""evtrack.jit: the optional numba wrapper and its start-up warm-up."""
+"""evtrack.runtime.jit: the optional numba wrapper and its start-up warm-up."""
 
 from __future__ import annotations
 

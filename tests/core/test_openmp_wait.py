@@ -6,7 +6,7 @@ import os
 import subprocess
 import sys
 
-from evtrack.openmp_wait import WAIT_POLICY_VARIABLE, prefer_passive_wait, wait_policy
+from evtrack.runtime.openmp_wait import WAIT_POLICY_VARIABLE, prefer_passive_wait, wait_policy
 
 
 def test_sets_passive_when_unset_and_torch_not_loaded():

@@ -16,8 +16,8 @@ from evtrack.errors import ConfigError
 from evtrack.eval.benchmark import run_benchmark, run_one, run_specs
 from evtrack.eval.pose_setup import PoseSourceSpec, resolve_weights
 from evtrack.eval.sequences import find_sequences
-from evtrack.tracking_config import TrackerConfig
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.trajectory import Trajectory
 
 
 def rows_of(path):
@@ -140,7 +140,7 @@ def test_oracle_where_missing_gives_the_oracle_to_objects_without_weights(
 def test_oracle_where_missing_keeps_the_network_where_there_are_weights(tiny_benchmark,
                                                                          tmp_path):
     from evtrack.eval.pose_setup import make_pose_source, pose_caption
-    from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
+    from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource
 
     weights = save_tiny_weights(tmp_path / "w" / "box.pt")
     spec = PoseSourceSpec("network", weights_dir=tmp_path / "w", oracle_fallback=True)

@@ -12,7 +12,7 @@ from evtrack import Sequence
 from evtrack.cli import main
 from evtrack.demo import DemoOptions, demo_tracker_config, demo_weights
 from evtrack.errors import ConfigError
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
 
 TINY = ["--size", "64x48", "--duration", "0.6", "--jobs", "1", "--quiet"]
 

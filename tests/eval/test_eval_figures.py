@@ -24,7 +24,7 @@ from evtrack.eval.video import (
     write_overlay_video,
 )
 from evtrack.sim.objects import procedural_object
-from evtrack.trajectory import STATUS_TRACKING, STATUS_WAITING, Trajectory
+from evtrack.tracking.trajectory import STATUS_TRACKING, STATUS_WAITING, Trajectory
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from evtrack.events import Events
 from evtrack.flow import FlowConfig, TripletFlow
 from evtrack.flow.candidates import CandidateSearch
-from evtrack.jit import available as numba_available
+from evtrack.runtime.jit import available as numba_available
 
 SIZE = (9, 7)
 FIELDS = ("event", "offset", "age_j", "age_i", "seq_j", "seq_i", "dt_us")

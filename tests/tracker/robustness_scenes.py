@@ -21,11 +21,11 @@ from tracker_helpers import sim_config
 
 from evtrack import Sequence
 from evtrack.events import Events, concatenate
-from evtrack.pose_sources import OraclePoseSource, PoseMeasurement
-from evtrack.silhouette import Silhouette
 from evtrack.sim.engine import simulate
 from evtrack.sim.objects import ObjectMesh
 from evtrack.sim.trajectory import Trajectory
+from evtrack.tracking.pose_sources import OraclePoseSource, PoseMeasurement
+from evtrack.tracking.silhouette import Silhouette
 
 
 def knot_trajectory(times: list[float], positions: list[list[float]],

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from evtrack.errors import ConfigError
-from evtrack.tracking_config import TrackerConfig, load_tracker_config
+from evtrack.tracking.config import TrackerConfig, load_tracker_config
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -143,7 +143,7 @@ def test_a_device_this_torch_cannot_use_is_a_config_error() -> None:
     import torch
 
     from evtrack.camera import PinholeCamera
-    from evtrack.tracker import Tracker
+    from evtrack.tracking.tracker import Tracker
 
     cam = PinholeCamera(100.0, 100.0, 63.5, 47.5, 128, 96)
     cube = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])

@@ -12,8 +12,8 @@ from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 from evtrack.eval.metrics import rotation_errors
 from evtrack.models.depth_refine import RefineResult
-from evtrack.tracker import Tracker, _alignment_covariance
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.tracker import Tracker, _alignment_covariance
 
 
 def _residuals(delta: np.ndarray, P: np.ndarray, normals: np.ndarray, t: np.ndarray

@@ -1,4 +1,4 @@
-"""The object's range on depth frames (evtrack.depth_range) and its use in the tracker."""
+"""The object's range on depth frames (evtrack.tracking.depth_range) and its use in the tracker."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import pytest
 from tracker_helpers import make_tracker
 
 from evtrack.camera import PinholeCamera
-from evtrack.depth_range import DepthRange
 from evtrack.errors import ConfigError
 from evtrack.sim.objects import procedural_object
 from evtrack.sim.renderer import Renderer
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.depth_range import DepthRange
+from evtrack.tracking.tracker import Tracker
 
 CAM = PinholeCamera(160.0, 160.0, 63.5, 47.5, 128, 96)
 

@@ -9,7 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from evtrack.eval.metrics import position_errors, rotation_errors, tracking_errors
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.trajectory import Trajectory
 
 
 def _poses(n: int, seed: int) -> torch.Tensor:

@@ -9,11 +9,11 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from evtrack.camera import PinholeCamera
-from evtrack.depth_sources import SensorDepth, patch_offsets, roi_depth
-from evtrack.frame_flow import DenseFlow, twist_adjoint
 from evtrack.geometry import integrate_twist
-from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource
-from evtrack.silhouette import Silhouette, pixels_in_polygon, points_in_polygon
+from evtrack.tracking.baselines.frame_flow import DenseFlow, twist_adjoint
+from evtrack.tracking.depth_sources import SensorDepth, patch_offsets, roi_depth
+from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource
+from evtrack.tracking.silhouette import Silhouette, pixels_in_polygon, points_in_polygon
 
 CAM = PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120)
 
@@ -60,7 +60,7 @@ def test_pixels_in_polygon_equals_the_point_test_bit_for_bit(compiled, monkeypat
     """The row-span test answers exactly as the half-plane test on every pixel of the image
     (vertices on pixels, margins that put span ends on pixels, flat and huge polygons), in
     its compiled and its NumPy form."""
-    import evtrack.silhouette as silhouette_module
+    import evtrack.tracking.silhouette as silhouette_module
 
     if compiled and not silhouette_module.jit_available():
         pytest.skip("numba is not installed")
@@ -220,7 +220,7 @@ def test_box_in_image_against_the_projected_corners(shape) -> None:
 @pytest.fixture(params=["compiled", "numpy"])
 def depth_form(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Runs a depth-lookup test with the compiled patch medians (numba) and with NumPy."""
-    import evtrack.depth_sources as depth_sources
+    import evtrack.tracking.depth_sources as depth_sources
 
     if request.param == "compiled" and not depth_sources.numba_available():
         pytest.skip("numba is not installed")
@@ -292,8 +292,8 @@ def test_silhouette_depth_share_counts_the_depths_in_the_pose_range() -> None:
     """A 40 x 40 px object at 1.0 m before a wall at 2.0 m: a pose there is fully supported,
     a pose on the wall not at all, an occluder over half of the object halves the share; the
     samples lie on the image's 4-px grid inside the polygon; no depth: no judgement."""
-    from evtrack.depth_sources import silhouette_depth_share
-    from evtrack.silhouette import SilhouettePolygon
+    from evtrack.tracking.depth_sources import silhouette_depth_share
+    from evtrack.tracking.silhouette import SilhouettePolygon
 
     depth = np.full((120, 160), 2.0, np.float32)
     depth[40:80, 60:100] = 1.0
@@ -443,7 +443,7 @@ def test_twist_adjoint_against_moving_points() -> None:
 
 @pytest.mark.parametrize("algorithm", ["dis", "farneback"])
 def test_dense_flow_measures_a_shift(algorithm) -> None:
-    from evtrack.tracking_config import FrameFlowConfig
+    from evtrack.tracking.config import FrameFlowConfig
 
     rng = np.random.default_rng(0)
     tex = cv2.GaussianBlur(rng.uniform(0, 255, (140, 180)).astype(np.float32), (0, 0), 2.0)
@@ -461,8 +461,8 @@ def test_dense_flow_measures_a_shift(algorithm) -> None:
 def test_ge_previous_event_times_against_a_loop() -> None:
     from evtrack.events import Events
     from evtrack.filters.config import VelocityKFConfig
-    from evtrack.ge_model import GEVelocity
-    from evtrack.tracking_config import GEConfig
+    from evtrack.tracking.baselines.ge_model import GEVelocity
+    from evtrack.tracking.config import GEConfig
 
     rng = np.random.default_rng(0)
     cam = PinholeCamera(10.0, 10.0, 3.5, 2.5, 8, 6)
@@ -490,9 +490,9 @@ def test_ge_measures_a_translating_texture(velocity) -> None:
 
     from evtrack.filters import VelocityKFConfig, interaction_matrix
     from evtrack.flow.scenes import render_events, texture_waves
-    from evtrack.ge_model import GEVelocity
     from evtrack.sim.frames import linear_to_srgb
-    from evtrack.tracking_config import GEConfig
+    from evtrack.tracking.baselines.ge_model import GEVelocity
+    from evtrack.tracking.config import GEConfig
 
     W, H, f, C = 96, 72, 80.0, 0.15
     cam = PinholeCamera(f, f, (W - 1) / 2, (H - 1) / 2, W, H)
@@ -531,7 +531,7 @@ def test_moved_pose_equals_integrate_twist() -> None:
     """The tracker's float path for one pose moved by a twist (``moved_pose``) against the
     tensor one (kornia's SE(3) exponential), large and tiny rotations, either sign of dt."""
     from evtrack.geometry import integrate_twist
-    from evtrack.tracker import moved_pose
+    from evtrack.tracking.tracker import moved_pose
 
     rng = np.random.default_rng(4)
     for scale in (5.0, 1e-5, 0.0):

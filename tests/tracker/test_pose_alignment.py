@@ -1,4 +1,5 @@
-"""PoseRayAligner (evtrack.pose_alignment): a pose moved along its viewing ray onto a depth frame.
+"""PoseRayAligner (evtrack.tracking.pose_alignment): a pose moved along its viewing ray onto a
+depth frame.
 
 The depth frames here are independent of the aligner's point z-buffer: an exact ray-box
 intersection per pixel (the slab method, rays through OpenCV's undistortion where the camera
@@ -15,9 +16,9 @@ from scipy.spatial.transform import Rotation
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
-from evtrack.pose_alignment import PoseRayAligner
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_alignment import PoseRayAligner
+from evtrack.tracking.tracker import Tracker
 
 CAM = PinholeCamera(300.0, 300.0, 159.5, 119.5, 320, 240)
 HALF = np.array([0.05, 0.08, 0.03])  # half sizes of the box, metres
@@ -204,7 +205,7 @@ def test_tracker_aligns_in_the_depth_cameras_frame(tmp_path, method) -> None:
     other methods). A pose 6 cm too far along the RGB camera's ray, handed in by the caller,
     starts the filter within 5 mm of the truth either way (the alignment runs in the depth
     source's camera and the result is carried back)."""
-    from evtrack.pose_sources import PoseMeasurement
+    from evtrack.tracking.pose_sources import PoseMeasurement
 
     path = tmp_path / "box.obj"
     trimesh.creation.box(2 * HALF).export(path)

@@ -1,5 +1,5 @@
 """Half turns of a cuboid-keypoint network's poses, resolved against the filter's pose
-(``TrackerConfig.pose_half_turn_axes``, :mod:`evtrack.pose_flips`)."""
+(``TrackerConfig.pose_half_turn_axes``, :mod:`evtrack.tracking.pose_flips`)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,9 @@ from tracker_helpers import TEST_TRACKER, make_tracker
 
 from evtrack.errors import ConfigError
 from evtrack.eval.metrics import rotation_errors, tracking_errors
-from evtrack.pose_flips import HalfTurnResolver, half_turn
-from evtrack.pose_sources import PoseMeasurement
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_flips import HalfTurnResolver, half_turn
+from evtrack.tracking.pose_sources import PoseMeasurement
 
 CENTER = np.array([0.01, -0.02, 0.005])
 LATENCY_US = int(TEST_TRACKER["pose_latency_ms"] * 1000)

@@ -10,9 +10,9 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 from evtrack.models import RefineResult
-from evtrack.pose_sources import NetworkPoseSource, PoseMeasurement
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_sources import NetworkPoseSource, PoseMeasurement
+from evtrack.tracking.tracker import Tracker
 
 CAM = PinholeCamera(100.0, 100.0, 31.5, 23.5, 64, 48)
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from evtrack.filters import PoseTwistUKF, PoseUKF, PoseUKFConfig
-from evtrack.pose_timeline import PoseTimeline
+from evtrack.tracking.pose_timeline import PoseTimeline
 
 STEP = 1000
 

@@ -12,8 +12,8 @@ import pytest
 from tracker_helpers import make_tracker
 
 from evtrack.errors import ConfigError
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.tracker import Tracker
 
 STREAM_S = 0.01  # one step group: 10 x 1 ms
 MIN_EVENTS = 20  # events per step; the fast test sequence has ~100-200 on the object

@@ -31,11 +31,11 @@ from evtrack.eval.metrics import tracking_errors
 from evtrack.events import Events, concatenate
 from evtrack.flow import TripletFlow
 from evtrack.flow.scenes import translating_texture
-from evtrack.pose_sources import NetworkPoseSource, OraclePoseSource, PoseMeasurement
-from evtrack.silhouette import Silhouette
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
-from evtrack.trajectory import STATUS_LOST, STATUS_TRACKING
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource, PoseMeasurement
+from evtrack.tracking.silhouette import Silhouette
+from evtrack.tracking.tracker import Tracker
+from evtrack.tracking.trajectory import STATUS_LOST, STATUS_TRACKING
 
 LATENCY_US = int(TEST_TRACKER["pose_latency_ms"] * 1000)
 PERIOD_US = int(round(1e6 / TEST_TRACKER["pose_rate_hz"]))

@@ -1,4 +1,5 @@
-"""The shared depth-offset pieces of the pose alignment and the range (evtrack.surface_depth),
+"""The shared depth-offset pieces of the pose alignment and the range
+(evtrack.tracking.surface_depth),
 against hand-made offsets and a ray-cast plane."""
 
 from __future__ import annotations
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 
 from evtrack.camera import PinholeCamera
-from evtrack.surface_depth import SurfaceDepthSampler, robust_offset
+from evtrack.tracking.surface_depth import SurfaceDepthSampler, robust_offset
 
 
 def test_robust_offset_takes_the_agreeing_majority() -> None:

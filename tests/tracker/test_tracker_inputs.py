@@ -9,10 +9,10 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError, EventsError
 from evtrack.events import Events
-from evtrack.pose_sources import PoseMeasurement
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
-from evtrack.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_sources import PoseMeasurement
+from evtrack.tracking.tracker import Tracker
+from evtrack.tracking.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING
 
 CAM = PinholeCamera(100.0, 100.0, 63.5, 47.5, 128, 96)
 CUBE = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
@@ -166,7 +166,7 @@ def test_model_depth_needs_a_mesh() -> None:
 
 def test_track_command(fast_sequence, tmp_path, capsys) -> None:
     from evtrack.cli import main
-    from evtrack.trajectory import Trajectory
+    from evtrack.tracking.trajectory import Trajectory
 
     out = tmp_path / "pose.csv"
     code = main(["track", str(fast_sequence.root), "--out", str(out), "--method", "pose",
@@ -290,7 +290,7 @@ def test_reset_refuses_a_pose_that_is_not_rigid_and_keeps_the_track(pose, match)
 def test_a_network_of_another_object_is_warned_about(fast_sequence) -> None:
     import warnings
 
-    from evtrack.pose_sources import NetworkPoseSource
+    from evtrack.tracking.pose_sources import NetworkPoseSource
 
     class _Estimator:
         camera = None

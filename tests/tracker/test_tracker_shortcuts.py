@@ -10,7 +10,7 @@ import pytest
 import torch
 from tracker_helpers import make_tracker, stream
 
-from evtrack.tracker import Tracker, _Prefetched
+from evtrack.tracking.tracker import Tracker, _Prefetched
 
 
 def test_gives_every_frame_and_reads_the_next_one_in_a_worker():

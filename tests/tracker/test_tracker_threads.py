@@ -148,7 +148,7 @@ def test_depth_maps_prepared_in_the_reader_thread_equal_set_frame(fast_sequence,
                                                                   monkeypatch) -> None:
     """``track`` prepares each sensor depth frame's event-camera map in its reader thread;
     the maps the depth source takes are those ``set_frame`` makes from the same frames."""
-    from evtrack.depth_sources import SensorDepth
+    from evtrack.tracking.depth_sources import SensorDepth
 
     tracker, _ = make_tracker(fast_sequence, method="full")
     assert isinstance(tracker.depth, SensorDepth)

@@ -14,9 +14,9 @@ from tracker_helpers import make_tracker, stream
 from evtrack.errors import ConfigError
 from evtrack.eval.metrics import tracking_errors
 from evtrack.filters import VelocityKF
-from evtrack.pose_sources import PoseMeasurement
-from evtrack.tracking_config import TrackerConfig
-from evtrack.trajectory import STATUS_TRACKING, STATUS_WAITING
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_sources import PoseMeasurement
+from evtrack.tracking.trajectory import STATUS_TRACKING, STATUS_WAITING
 
 
 def _same(a, b) -> None:

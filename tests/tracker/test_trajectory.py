@@ -7,7 +7,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from evtrack.errors import EventFileError
-from evtrack.trajectory import Trajectory
+from evtrack.tracking.trajectory import Trajectory
 
 
 def _traj(n: int = 50) -> Trajectory:

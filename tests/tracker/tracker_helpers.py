@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 
 from evtrack import Sequence
-from evtrack.pose_sources import OraclePoseSource
 from evtrack.sim.config import EventConfig, GroundTruthConfig, SimConfig, TrajectoryConfig
-from evtrack.tracker import Tracker
-from evtrack.tracking_config import TrackerConfig
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.pose_sources import OraclePoseSource
+from evtrack.tracking.tracker import Tracker
 
 # Tracker settings of the accuracy tests: RoIs sized for 128x96 images, poses at 10 Hz
 # arriving 100 ms late (the 0.6 s sequence then holds 6 poses), GE contrast = the threshold.

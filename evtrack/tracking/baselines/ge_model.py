@@ -34,7 +34,7 @@ from evtrack.camera import PinholeCamera
 from evtrack.events import Events
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.interaction import interaction_matrix_pinhole
-from evtrack.tracking_config import GEConfig
+from evtrack.tracking.config import GEConfig
 
 __all__ = ["GEVelocity", "log_gradient"]
 
@@ -61,7 +61,7 @@ class GEVelocity:
 
     Args:
         camera: the event camera (ideal pinhole pixels are used; distortion is undone).
-        config: :class:`~evtrack.tracking_config.GEConfig`.
+        config: :class:`~evtrack.tracking.config.GEConfig`.
         kf_config: the decaying-velocity model and initial covariance (``alpha``,
             ``alpha_dt``, ``q_linear``, ``q_angular``, ``init_std_*``).
         device: where the state lives.

@@ -2,8 +2,10 @@
 
 Two parts of the tracker ask the same question of a sensor depth frame: by how much does the
 object's visible surface at a given pose sit in front of or behind what the sensor measured?
-:class:`~evtrack.pose_alignment.PoseRayAligner` moves the pose network's poses by that offset,
-:class:`~evtrack.depth_range.DepthRange` turns it into a range measurement for the pose filter.
+:class:`~evtrack.tracking.pose_alignment.PoseRayAligner` moves the pose network's poses by that
+offset,
+:class:`~evtrack.tracking.depth_range.DepthRange` turns it into a range measurement for the pose
+filter.
 
 :class:`SurfaceDepthSampler` answers it with a point z-buffer: area-sampled surface points of
 the mesh, back faces culled, are projected through the camera (with its distortion) into

@@ -9,7 +9,7 @@ event mask needs: events within ``margin`` pixels of it are kept (the test is th
 half-planes moved outwards by ``margin``, a mitred offset, slightly generous at sharp corners).
 
 The hull also gives the depth range of the object at the predicted pose, which the depth
-lookup uses to reject background and occluder pixels (:mod:`evtrack.depth_sources`).
+lookup uses to reject background and occluder pixels (:mod:`evtrack.tracking.depth_sources`).
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 from evtrack.filters.scalar_lie import rotation_matrix
-from evtrack.jit import available as jit_available
-from evtrack.jit import njit
+from evtrack.runtime.jit import available as jit_available
+from evtrack.runtime.jit import njit
 
 __all__ = ["Silhouette", "SilhouettePolygon", "hull_vertices", "pixels_in_polygon",
            "points_in_polygon"]

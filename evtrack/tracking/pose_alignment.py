@@ -5,7 +5,8 @@ the mustard bottle's network on the paper-matched `faster` sequence erred 11-14 
 viewing ray and under 1 cm across it (rotation 6-10°). An RGB-D tracker has the depth frame
 of the same instant, which measures that range directly. :class:`PoseRayAligner` measures
 the robust offset ``Δ`` between the mesh's visible surface at the pose and the sensor depth
-(:mod:`evtrack.surface_depth`: a point z-buffer, no renderer needed) and moves the pose along
+(:mod:`evtrack.tracking.surface_depth`: a point z-buffer, no renderer needed) and moves the pose
+along
 ``u = t / |t|`` by it: every visible depth
 changes by about ``δ · t_z / |t|`` when the object moves by ``δ`` along ``u``, so the aligned
 translation is ``t (1 + Δ / t_z)``. Two such passes (the image of the moved object differs
@@ -28,7 +29,7 @@ import numpy as np
 import torch
 
 from evtrack.camera import PinholeCamera
-from evtrack.surface_depth import SurfaceDepthSampler, robust_offset, sample_surface
+from evtrack.tracking.surface_depth import SurfaceDepthSampler, robust_offset, sample_surface
 
 __all__ = ["PoseRayAligner", "RayAlignment"]
 
@@ -105,7 +106,7 @@ class PoseRayAligner:
     @classmethod
     def from_mesh(cls, mesh, camera: PinholeCamera, n_points: int = 3000, seed: int = 0,
                   **kwargs) -> PoseRayAligner:
-        """An aligner on :func:`~evtrack.surface_depth.sample_surface` of ``mesh``;
+        """An aligner on :func:`~evtrack.tracking.surface_depth.sample_surface` of ``mesh``;
         ``kwargs`` go to the constructor."""
         return cls(*sample_surface(mesh, n_points, seed), camera, **kwargs)
 

@@ -5,7 +5,7 @@ a BLAS call large enough to be split across them, the workers busy-wait for the 
 a while before they sleep. The tracker's event mask used to be such a call (an (N, 2) by
 (2, edges) product on every flow call): one worker was running in 82 % of the samples of a
 2 s ``faster`` run and took a core from the flow's kernels and the filters. The mask no
-longer uses BLAS (:func:`evtrack.silhouette.pixels_in_polygon`); the limit stays so that no
+longer uses BLAS (:func:`evtrack.tracking.silhouette.pixels_in_polygon`); the limit stays so that no
 other product can start the spinning again. ``benchmarks/bench_tracker_cpu.py`` on the
 cracker box ``faster`` sequence (2 cores, medians of 2 interleaved runs): 34.4 s with
 OpenBLAS's own threads, 33.6 s with one BLAS thread, 28.8 s when the flow's search strips

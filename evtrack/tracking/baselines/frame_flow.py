@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.tracking_config import FrameFlowConfig
+from evtrack.tracking.config import FrameFlowConfig
 
 __all__ = ["DenseFlow", "FramePairFlow", "grid_in_polygon", "twist_adjoint"]
 
@@ -62,7 +62,7 @@ class DenseFlow:
     """Keep the previous frame and give the dense flow to each new one.
 
     Args:
-        config: algorithm and limits (:class:`~evtrack.tracking_config.FrameFlowConfig`).
+        config: algorithm and limits (:class:`~evtrack.tracking.config.FrameFlowConfig`).
     """
 
     def __init__(self, config: FrameFlowConfig | None = None) -> None:
@@ -96,7 +96,7 @@ def grid_in_polygon(polygon, shape: tuple[int, int], pitch: int, max_points: int
     """Grid pixels (pitch ``pitch``) inside a silhouette polygon and the image.
 
     Args:
-        polygon: a :class:`~evtrack.silhouette.SilhouettePolygon`.
+        polygon: a :class:`~evtrack.tracking.silhouette.SilhouettePolygon`.
         shape: ``(height, width)``.
         pitch: grid spacing in pixels.
         max_points: evenly thinned to at most this many.

@@ -3,7 +3,8 @@
 Both sources keep a depth map in the event camera's pixel grid (metres, NaN = missing) and
 answer :meth:`DepthSource.lookup`: the depth of each RoI is the median of the valid depths in a
 square patch around its centre, keeping only depths inside the object's predicted depth range
-(``z_range`` from :class:`evtrack.silhouette.Silhouette`, widened by a tolerance). That range
+(``z_range`` from :class:`evtrack.tracking.silhouette.Silhouette`, widened by a tolerance). That
+range
 test removes background and occluder pixels, and the pixels the fast-moving object has left
 since the depth frame was taken. A RoI whose patch keeps no depth gets NaN; the tracker then
 uses its fallback (the predicted depth of the object's origin) and counts it.
@@ -28,11 +29,11 @@ import torch
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
-from evtrack.jit import available as numba_available
-from evtrack.jit import njit
+from evtrack.runtime.jit import available as numba_available
+from evtrack.runtime.jit import njit
 
 if TYPE_CHECKING:
-    from evtrack.silhouette import SilhouettePolygon
+    from evtrack.tracking.silhouette import SilhouettePolygon
 
 __all__ = ["DepthSource", "SensorDepth", "ModelDepth", "patch_offsets", "roi_depth",
            "silhouette_depth_share"]
@@ -161,7 +162,7 @@ def silhouette_depth_share(depth_map: np.ndarray, polygon: SilhouettePolygon,
     Args:
         depth_map: (H, W) metres in the silhouette's camera, NaN or <= 0 where missing.
         polygon: the object's silhouette at the pose
-            (:meth:`evtrack.silhouette.Silhouette.polygon`).
+            (:meth:`evtrack.tracking.silhouette.Silhouette.polygon`).
         tolerance_m: metres added to both ends of the depth range.
         stride_px: sampling step in pixels.
 

@@ -5,7 +5,7 @@ which is weak for a small object a metre away: between two poses of the pose net
 filtered position drifts in depth by centimetres (the mustard bottle of the benchmark set,
 oracle poses: 5.5 cm RMSE in depth against 2 cm across). A depth camera sees that depth
 directly. :class:`DepthRange` compares the mesh's visible surface at the predicted pose with
-the sensor depth (:mod:`evtrack.surface_depth`: surface points in image cells, a point
+the sensor depth (:mod:`evtrack.tracking.surface_depth`: surface points in image cells, a point
 z-buffer) and turns their robust mean offset ``Δ`` into a measurement of the position along
 the viewing ray ``u = t / |t|``: moving the object along ``u`` by ``δ`` shifts every visible
 depth by about ``δ · t_z / |t|``, so ``uᵀ t_meas = |t| (1 + Δ / t_z)``. The pose filter fuses
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from evtrack.camera import PinholeCamera
-from evtrack.surface_depth import SurfaceDepthSampler, robust_offset
+from evtrack.tracking.surface_depth import SurfaceDepthSampler, robust_offset
 
 __all__ = ["DepthRange", "RangeResult"]
 

@@ -23,10 +23,12 @@ The methods (``TrackerConfig.method``) share this code:
   re-initialise after the object was lost).
 * ``pose``: no velocity; the pose UKF (``pose_only_ukf``, random-walk process noise) with poses.
 * ``frame-flow``: ROFT-like: dense optical flow between consecutive RGB frames
-  (:mod:`evtrack.frame_flow`) -> a twist per frame pair (``frame_flow_kf``) -> twist
+  (:mod:`evtrack.tracking.baselines.frame_flow`) -> a twist per frame pair (``frame_flow_kf``) ->
+  twist
   measurement of a constant-velocity pose UKF (:class:`~evtrack.filters.PoseTwistUKF`), which is
   predicted every step and fused with the poses.
-* ``ge``: the 1-DoF generative event model (:mod:`evtrack.ge_model`) in place of the flow.
+* ``ge``: the 1-DoF generative event model (:mod:`evtrack.tracking.baselines.ge_model`) in place of
+the flow.
 
 Time: one clock in µs, advanced by the events (a step ``[t_k, t_k + step)`` closes when an event
 at or after its end arrives) and by :meth:`Tracker.advance` / :meth:`Tracker.push_frame`
@@ -47,7 +49,8 @@ Before any of that, a pose whose frame's sensor depth contradicts it (less than
 ``pose_depth_min_share`` of the valid depths inside its silhouette lie in its depth range) is
 dropped and counted (``poses_implausible``): a network's gross errors, which can agree with
 each other, then never re-initialise the filter. Before the check, a pose is moved along its
-viewing ray onto the frame's sensor depth (``pose_depth_align``, :mod:`evtrack.pose_alignment`):
+viewing ray onto the frame's sensor depth (``pose_depth_align``,
+:mod:`evtrack.tracking.pose_alignment`):
 an RGB network errs mostly in range, which the depth frame measures; counted in
 ``poses_depth_aligned``, or ``pose_alignments_skipped`` by reason. Both read the sensor depth
 frame nearest the pose's own time (within ``max_depth_age_ms``): the maps of the last
@@ -111,7 +114,7 @@ is counted in :attr:`TrackerStats.depth_fallbacks`.
 
 Depth range (``depth_range``, off by default; not in the paper): every sensor depth frame also
 measures the object's range along its viewing ray against the mesh's surface at the filter's
-pose of the frame's time (:mod:`evtrack.depth_range`; no renderer), fused at that time as a
+pose of the frame's time (:mod:`evtrack.tracking.depth_range`; no renderer), fused at that time as a
 1-D measurement (:meth:`~evtrack.filters.PoseUKF.update_range`); frames without one are
 counted by reason in :attr:`TrackerStats.depth_ranges_skipped`.
 """
@@ -135,11 +138,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.blas_threads import BlasThreads
 from evtrack.camera import PinholeCamera
 from evtrack.config_values import checked_device
-from evtrack.depth_range import DepthRange
-from evtrack.depth_sources import DepthSource, ModelDepth, SensorDepth, silhouette_depth_share
 from evtrack.errors import ConfigError, EventsError
 from evtrack.eval.metrics import position_errors, rotation_errors
 from evtrack.events import Events, concatenate
@@ -147,9 +147,7 @@ from evtrack.filters import PoseTwistUKF, PoseUKF, VelocityKF
 from evtrack.filters.lie import pivot_map
 from evtrack.filters.scalar_lie import normalized, rotation_matrix, se3_exp
 from evtrack.flow import FlowResult, TripletFlow, sampled_search
-from evtrack.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
 from evtrack.geometry import matrix_to_tq
-from evtrack.jit import warm_up
 
 # evtrack.models is imported here, not where depth_icp is set up: it imports torch's
 # flop counter, which imports Triton where installed (CUDA builds of torch), and Triton's LLVM
@@ -157,13 +155,23 @@ from evtrack.jit import warm_up
 # before it used surface points) is already loaded.
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.models.estimator import check_rgb
-from evtrack.pose_alignment import PoseRayAligner
-from evtrack.pose_flips import HalfTurnResolver
-from evtrack.pose_sources import PoseMeasurement, PoseSource, checked_pose
-from evtrack.pose_timeline import PoseTimeline, pose_measurement_value
-from evtrack.silhouette import Silhouette, SilhouettePolygon
-from evtrack.tracking_config import TrackerConfig
-from evtrack.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING, Trajectory
+from evtrack.runtime.blas_threads import BlasThreads
+from evtrack.runtime.jit import warm_up
+from evtrack.tracking.baselines.frame_flow import DenseFlow, grid_in_polygon, twist_adjoint
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.depth_range import DepthRange
+from evtrack.tracking.depth_sources import (
+    DepthSource,
+    ModelDepth,
+    SensorDepth,
+    silhouette_depth_share,
+)
+from evtrack.tracking.pose_alignment import PoseRayAligner
+from evtrack.tracking.pose_flips import HalfTurnResolver
+from evtrack.tracking.pose_sources import PoseMeasurement, PoseSource, checked_pose
+from evtrack.tracking.pose_timeline import PoseTimeline, pose_measurement_value
+from evtrack.tracking.silhouette import Silhouette, SilhouettePolygon
+from evtrack.tracking.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING, Trajectory
 from evtrack.utils import threads_per_job
 
 __all__ = ["Tracker", "TrackerStats"]
@@ -296,7 +304,7 @@ class TrackerStats:
         poses_implausible: poses dropped before the filter because the sensor depth of their
             frame contradicts them (``TrackerConfig.pose_depth_min_share``).
         poses_from_alternatives: poses that failed that check and were replaced by one of
-            their :attr:`~evtrack.pose_sources.PoseMeasurement.alternatives` that passed it
+            their :attr:`~evtrack.tracking.pose_sources.PoseMeasurement.alternatives` that passed it
             (``TrackerConfig.pose_alternatives``; not counted as implausible).
         poses_half_turned: poses replaced by their half turn about one of
             ``TrackerConfig.pose_half_turn_axes``, which lay nearer the filter's pose;
@@ -304,7 +312,7 @@ class TrackerStats:
             ``pose_half_turn_reinit_after``-th in a row to need the turn.
         poses_depth_aligned: poses moved along their viewing ray onto the sensor depth
             (``TrackerConfig.pose_depth_align``); pose_alignments_skipped: poses that were not,
-            by reason (:class:`~evtrack.pose_alignment.RayAlignment`).
+            by reason (:class:`~evtrack.tracking.pose_alignment.RayAlignment`).
         search_budget_min: with ``TrackerConfig.realtime_load``, the lowest search budget per
             step it set (0: it never lowered it); event_budget_min: the lowest event budget
             per step it set (0: it never shed events); groups_over_load: step groups whose
@@ -317,7 +325,7 @@ class TrackerStats:
             (``remeasure_min_inside``).
         depth_ranges: range measurements from depth frames given to the pose filter
             (``depth_range``); depth_ranges_skipped: depth frames without one, by reason
-            (:class:`~evtrack.depth_range.RangeResult`).
+            (:class:`~evtrack.tracking.depth_range.RangeResult`).
         depth_alignments: poses aligned with depth frames given to the pose filter
             (``depth_icp``); depth_alignments_skipped: aligned frames without one, by reason
             (``"few depth pixels"``, ``"few fit"``: too few depth pixels fit the mesh,
@@ -568,12 +576,12 @@ class Tracker:
     """Track one known rigid object with an event camera and an RGB-D camera.
 
     Args:
-        config: :class:`~evtrack.tracking_config.TrackerConfig` (default: its defaults).
+        config: :class:`~evtrack.tracking.config.TrackerConfig` (default: its defaults).
         camera: the event camera.
         mesh: the object: an :class:`~evtrack.sim.objects.ObjectMesh`, a mesh file (read in its
             own frame, which must be the poses' object frame), or (V, 3) vertices (enough for
             everything but ``depth_source="model"``).
-        pose_source: gives absolute poses from RGB frames (:mod:`evtrack.pose_sources`);
+        pose_source: gives absolute poses from RGB frames (:mod:`evtrack.tracking.pose_sources`);
             ``None``: poses only through :meth:`push_pose` or :meth:`reset`.
         rgb_camera: the RGB-D camera (default: the event camera).
         T_event_rgb: (4, 4) maps RGB-camera points into the event camera (default identity).
@@ -600,7 +608,7 @@ class Tracker:
                  T_event_rgb: Tensor | np.ndarray | None = None) -> None:
         self.config = config if config is not None else TrackerConfig()
         cfg = self.config
-        warm_up()  # numba's start-up now, not at the first events (see evtrack.jit)
+        warm_up()  # numba's start-up now, not at the first events (see evtrack.runtime.jit)
         self.camera = camera
         self.rgb_camera = rgb_camera if rgb_camera is not None else camera
         self.T_event_rgb = (torch.eye(4, dtype=torch.float64) if T_event_rgb is None
@@ -661,7 +669,7 @@ class Tracker:
         self._blas = BlasThreads(cfg.blas_threads)
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
         if self.method == "ge":
-            from evtrack.ge_model import GEVelocity
+            from evtrack.tracking.baselines.ge_model import GEVelocity
 
             if not self._aligned:
                 raise ConfigError("method 'ge' needs the RGB frames in the event camera's image "
@@ -801,7 +809,8 @@ class Tracker:
 
     @property
     def status(self) -> int:
-        """:data:`~evtrack.trajectory.STATUS_WAITING`, ``STATUS_TRACKING`` or ``STATUS_LOST``."""
+        """:data:`~evtrack.tracking.trajectory.STATUS_WAITING`, ``STATUS_TRACKING`` or
+        ``STATUS_LOST``."""
         if self.initialized:
             return STATUS_TRACKING
         return STATUS_LOST if self._ever_lost else STATUS_WAITING
@@ -1413,7 +1422,8 @@ class Tracker:
         """Steps ``k..end-1`` of the group starting at ``t0`` (see :meth:`_quiet_end`) with the
         filters' compiled runs (:meth:`VelocityKF.forward_run
         <evtrack.filters.VelocityKF.forward_run>`, :meth:`PoseTimeline.step_run
-        <evtrack.pose_timeline.PoseTimeline.step_run>`): the same states, outputs and counts as
+        <evtrack.tracking.pose_timeline.PoseTimeline.step_run>`): the same states, outputs and
+        counts as
         step by step, a few calls instead of a few dozen per step.
 
         Returns:
@@ -1946,7 +1956,7 @@ class Tracker:
 
     def _nearer_half_turn(self, m: PoseMeasurement) -> tuple[PoseMeasurement, bool]:
         """``m``, or its half turn about one of ``pose_half_turn_axes`` where that lies nearer
-        the filter's pose at ``m.t_us`` (see :mod:`evtrack.pose_flips`); and whether the
+        the filter's pose at ``m.t_us`` (see :mod:`evtrack.tracking.pose_flips`); and whether the
         filter is to re-initialise on ``m`` as it is instead: the pose is the
         ``pose_half_turn_reinit_after``-th in a row to need the turn, so the track, not the
         network, is deemed half a turn off (it started on a turned pose)."""
@@ -1984,7 +1994,7 @@ class Tracker:
 
     def _fuse_range(self, frame: _DepthFrame) -> None:
         """Measure the object's range on a depth frame at the filter's pose of the frame's
-        time and fuse it there (see :mod:`evtrack.depth_range`)."""
+        time and fuse it there (see :mod:`evtrack.tracking.depth_range`)."""
         if not self.initialized or self.depth_range is None:
             return
         with _Timer(self.stats.time_s, "depth_range"):
@@ -2242,7 +2252,7 @@ class Tracker:
         ``pose_latency_ms`` later, as they would live.
 
         Returns:
-            the :class:`~evtrack.trajectory.Trajectory` (one sample per velocity step).
+            the :class:`~evtrack.tracking.trajectory.Trajectory` (one sample per velocity step).
         """
         threads = torch.get_num_threads()
         if self.config.torch_threads > 0:

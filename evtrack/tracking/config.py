@@ -35,7 +35,7 @@ from evtrack.filters.config import (
     config_from_dict,
 )
 from evtrack.flow.config import FlowConfig
-from evtrack.pose_flips import HalfTurnResolver
+from evtrack.tracking.pose_flips import HalfTurnResolver
 
 __all__ = [
     "METHODS",
@@ -260,7 +260,8 @@ class TrackerConfig:
             streaming calls), restored after each call; 0 leaves the library's setting. One by
             default: the tracker's numpy products are small, and OpenBLAS's idle workers spin
             after each larger one and take a core from the flow (see
-            :mod:`evtrack.blas_threads`, also for trackers running in several threads at once:
+            :mod:`evtrack.runtime.blas_threads`, also for trackers running in several threads at
+            once:
             give them 0 and limit BLAS around them).
         velocity_step_us: the velocity filter runs once per step (µs); the tracker outputs a
             pose and a twist at the end of every step (1 kHz by default). Steps are aligned on
@@ -296,7 +297,8 @@ class TrackerConfig:
             moving camera's textured background can reach it by itself (set 0 then).
         max_events_per_step: at most this many events per velocity step (on average over a
             step group) enter the flow (or the GE model); above it they are thinned by whole
-            cells of 2 x 2 RoIs, deterministically, and counted (see :mod:`evtrack.tracker`),
+            cells of 2 x 2 RoIs, deterministically, and counted (see
+            :mod:`evtrack.tracking.tracker`),
             which bounds the work per step; 0: no cap. Thinning costs accuracy: on the
             cracker box `faster` (8.6 M events/s) 4000 gave 9.2 cm / 13.8 deg against 4.35 /
             6.5 unthinned, in 0.4x the time (real-time factor 10.1 -> 4.0). The default is
@@ -328,7 +330,7 @@ class TrackerConfig:
             together for the next groups, down to ``min_searched_per_step`` and
             ``min_events_per_step``; while there is no backlog both are raised again towards
             ``max_searched_per_step`` and ``max_events_per_step``
-            (:meth:`~evtrack.tracker.Tracker._adapt_budgets`). The budgets then follow the
+            (:meth:`~evtrack.tracking.tracker.Tracker._adapt_budgets`). The budgets then follow the
             machine's speed and load, and so do the results: 0 (the default) keeps them
             deterministic. Needs ``max_searched_per_step > 0``. The work no budget bounds
             (reading and masking every event, the filters and the pose fusions: ~0.7-0.8 of
@@ -363,7 +365,8 @@ class TrackerConfig:
             camera's resolution.
         depth_range: fuse the object's range along its viewing ray, measured on every sensor
             depth frame against the mesh's surface at the predicted pose
-            (:mod:`evtrack.depth_range`), into the pose filter: the depth the event flow sees
+            (:mod:`evtrack.tracking.depth_range`), into the pose filter: the depth the event flow
+            sees
             worst. Off by default (the paper's method uses depth only for the flow's
             interaction matrix); needs ``depth_source: sensor`` and the object's mesh (with
             faces). Not used by ``velocity``, which takes poses only to initialise.
@@ -392,7 +395,8 @@ class TrackerConfig:
             rate).
         pose_min_confidence: detections below this confidence are ignored (they count as
             misses, see ``lost_after_misses``).
-        pose_async: in :meth:`~evtrack.tracker.Tracker.track` (offline), run the pose source
+        pose_async: in :meth:`~evtrack.tracking.tracker.Tracker.track` (offline), run the pose
+        source
             in a worker thread of the tracker (one, so calls keep the frames' order) and take
             its result when it becomes available to the filter (``pose_latency_ms`` after the
             frame): the same trajectory and statistics as calling it at the frame (the tests
@@ -403,10 +407,10 @@ class TrackerConfig:
             numpy's wheels); its exception surfaces from ``track``. A result due at once
             (``pose_latency_ms`` 0) is computed at once. The streaming calls always run the
             pose source in the caller's thread: a live application runs its network where it
-            likes and hands the poses to :meth:`~evtrack.tracker.Tracker.push_pose`.
+            likes and hands the poses to :meth:`~evtrack.tracking.tracker.Tracker.push_pose`.
         pose_prior: while the track holds, hand the pose source the tracker's pose at the
             frame's time (``prior=``, to sources whose ``accepts_prior`` is true:
-            :class:`~evtrack.pose_sources.NetworkPoseSource`), which looks for the object
+            :class:`~evtrack.tracking.pose_sources.NetworkPoseSource`), which looks for the object
             there first: the network then runs once, on a crop around that pose, instead of
             on the whole image and then on a crop
             (:meth:`~evtrack.models.PoseEstimator.estimate_near`; the whole image again when
@@ -438,7 +442,8 @@ class TrackerConfig:
         pose_depth_tolerance_m: see ``pose_depth_min_share``.
         pose_depth_align: before that check, move each pose along its viewing ray until the
             object's surface at the pose lies on its frame's sensor depth
-            (:class:`~evtrack.pose_alignment.PoseRayAligner`; rotation and the position across
+            (:class:`~evtrack.tracking.pose_alignment.PoseRayAligner`; rotation and the position
+            across
             the ray kept). An RGB network errs mostly in range: the mustard bottle's poses on
             the paper-matched `faster` sequence were 11-14 cm off along the ray and under 1 cm
             across it, 0.2-0.7 cm after the alignment. Needs the object's mesh with faces and
@@ -450,7 +455,8 @@ class TrackerConfig:
             farther off is a gross error for the check to drop, not to move onto whatever lies
             behind it.
         pose_alternatives: where a pose fails that check, try the other poses its detector
-            found in the same image (:attr:`~evtrack.pose_sources.PoseMeasurement.alternatives`,
+            found in the same image
+            (:attr:`~evtrack.tracking.pose_sources.PoseMeasurement.alternatives`,
             e.g. the first pass's detection where the network's crop pass replaced it, or the
             strongest peaks' fit where the corner search's was kept), most confident first,
             each aligned and checked the same way; the first that passes is used in its place
@@ -470,7 +476,7 @@ class TrackerConfig:
             them: each pose seen within ``pose_half_turn_max_view_deg`` of one of these axes is
             replaced by its half turn about that axis (through the cuboid's centre) when that
             lies nearer the filter's pose at the pose's time, in rotation
-            (:class:`~evtrack.pose_flips.HalfTurnResolver`; counted in
+            (:class:`~evtrack.tracking.pose_flips.HalfTurnResolver`; counted in
             ``TrackerStats.poses_half_turned``). A cuboid-keypoint network's corner swaps give
             exactly these poses, at the right range, and seen along the axis their silhouettes
             agree, so the depth check cannot drop them (the mustard bottle seen from below:
