@@ -109,7 +109,7 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
 
         Tracker.step_runs = False
     if level < VARIANTS.index("depth"):
-        from evtrack import depth_sources
+        from evtrack.tracking import depth_sources
 
         depth_sources.COMPILED = False
     groups = (40 if level >= VARIANTS.index("long") else

@@ -40,8 +40,8 @@ import numpy as np
 
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.scalar_lie import normalized, quat_mul, quat_rotate, rotation_matrix, se3_exp
-from evtrack.jit import available as _numba_available
-from evtrack.jit import njit as _njit
+from evtrack.runtime.jit import available as _numba_available
+from evtrack.runtime.jit import njit as _njit
 
 __all__ = ["available", "pose_predict", "pose_predict_run", "velocity_update", "velocity_run"]
 

@@ -667,7 +667,7 @@ class PoseUKF(_PoseFilter):
         """``len(twists)`` predicts in a row in one compiled call: step ``k`` moves the pose
         by ``twists[k]`` (1,6) over ``dts[k]`` s, with the same arithmetic as
         :meth:`predict` (bit for bit). For a replay of many steps (a late measurement's,
-        :class:`~evtrack.pose_timeline.PoseTimeline`), where one call per step costs more
+        :class:`~evtrack.tracking.pose_timeline.PoseTimeline`), where one call per step costs more
         than the step.
 
         Returns:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evtrack import jit
+from evtrack.runtime import jit
 
 
 def test_njit_keeps_the_result():
@@ -34,8 +34,8 @@ def test_warm_up_runs_once(monkeypatch):
 
 
 def test_the_tracker_warms_up_when_made(monkeypatch):
-    from evtrack import tracker as tracker_module
     from evtrack.camera import PinholeCamera
+    from evtrack.tracking import tracker as tracker_module
 
     calls = []
     monkeypatch.setattr(tracker_module, "warm_up", lambda: calls.append(1))

@@ -24,13 +24,13 @@ from robustness_scenes import (
 )
 from tracker_helpers import ORACLE_NOISE, TEST_TRACKER, make_tracker, stream
 
-from evtrack import tracker as tracker_module
 from evtrack.camera import PinholeCamera
 from evtrack.errors import EventsError
 from evtrack.eval.metrics import tracking_errors
 from evtrack.events import Events, concatenate
 from evtrack.flow import TripletFlow
 from evtrack.flow.scenes import translating_texture
+from evtrack.tracking import tracker as tracker_module
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource, PoseMeasurement
 from evtrack.tracking.silhouette import Silhouette
