@@ -35,6 +35,7 @@ from evtrack.filters.config import (
     config_from_dict,
 )
 from evtrack.flow.config import FlowConfig
+from evtrack.tracking.methods import METHODS, method_names
 from evtrack.tracking.pose_flips import HalfTurnResolver
 
 __all__ = [
@@ -47,8 +48,6 @@ __all__ = [
     "load_tracker_config",
 ]
 
-#: Tracking methods (``TrackerConfig.method``), see :class:`evtrack.Tracker`.
-METHODS = ("full", "velocity", "pose", "frame-flow", "ge")
 #: Where the depth at the RoIs comes from.
 DEPTH_SOURCES = ("sensor", "model")
 #: Dense optical flow algorithms of the ``frame-flow`` baseline (OpenCV).
@@ -187,7 +186,7 @@ def _pose_ukf_defaults() -> PoseUKFConfig:
     # 5 Hz) instead of the filter's default sixth. Demo sequences (coded box, network poses,
     # seeds 0-5): mean 17.5 cm / 27.6 deg -> 15.9 / 25.2 (seed 3: 42.6 / 61.7 -> 32.8 / 47.4;
     # the other seeds unchanged). Taking the second (reinit_after 2: 14.0 / 22.6) would accept
-    # two random outliers in a row, which tests/tracker/test_robustness.py rejects; the
+    # two random outliers in a row, which tests/tracking/test_robustness.py rejects; the
     # tracker's reinit_on_agreement takes the second only when the two agree with each other
     # (with RANSAC decoding, full method: 15.6 / 25.7 -> 13.9 / 23.1; seed 3 32.6 -> 25.7 cm,
     # seed 2 26.2 -> 22.4 cm, the others unchanged).
@@ -601,8 +600,8 @@ class TrackerConfig:
 
     def __post_init__(self) -> None:
         self._check_types()
-        if self.method not in METHODS:
-            raise ConfigError(f"tracker config field 'method' must be one of {METHODS}, "
+        if self.method not in method_names():
+            raise ConfigError(f"tracker config field 'method' must be one of {method_names()}, "
                               f"got {self.method!r}")
         if self.depth_source not in DEPTH_SOURCES:
             raise ConfigError(f"tracker config field 'depth_source' must be one of "

@@ -55,3 +55,14 @@ class RunCache:
 @pytest.fixture(scope="session")
 def runs(fast_sequence) -> RunCache:
     return RunCache(fast_sequence)
+
+
+@pytest.fixture(params=["compiled", "numpy"])
+def depth_form(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Runs a depth-lookup test with the compiled patch medians (numba) and with NumPy."""
+    import evtrack.tracking.depth_sources as depth_sources
+
+    if request.param == "compiled" and not depth_sources.numba_available():
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(depth_sources, "COMPILED", request.param == "compiled")
+    return request.param

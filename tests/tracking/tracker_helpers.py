@@ -5,8 +5,10 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from evtrack import Sequence
+from evtrack.camera import PinholeCamera
 from evtrack.sim.config import EventConfig, GroundTruthConfig, SimConfig, TrajectoryConfig
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.pose_sources import OraclePoseSource
@@ -19,6 +21,17 @@ from evtrack.tracking.tracker import Tracker
 TEST_TRACKER = {"flow": {"roi_size": 16}, "mask_margin_px": 8.0, "pose_rate_hz": 10.0,
                 "pose_latency_ms": 100.0, "ge": {"contrast": 0.5}}
 ORACLE_NOISE = {"std_translation": 0.01, "std_rotation": 0.03}
+
+#: a small camera of the unit tests of the tracker's parts
+SMALL_CAM = PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120)
+
+
+def rigid_pose(rotvec, t) -> np.ndarray:
+    """(4, 4) float64 pose from a rotation vector (rad) and a translation (m)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
 
 
 def sim_config(duration: float, seed: int) -> SimConfig:

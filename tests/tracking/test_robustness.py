@@ -27,10 +27,8 @@ from tracker_helpers import ORACLE_NOISE, TEST_TRACKER, make_tracker, stream
 from evtrack.camera import PinholeCamera
 from evtrack.errors import EventsError
 from evtrack.eval.metrics import tracking_errors
-from evtrack.events import Events, concatenate
-from evtrack.flow import TripletFlow
+from evtrack.events import Events
 from evtrack.flow.scenes import translating_texture
-from evtrack.tracking import tracker as tracker_module
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource, PoseMeasurement
 from evtrack.tracking.silhouette import Silhouette
@@ -356,7 +354,6 @@ def _textured_object_with_burst(seed: int = 0) -> Events:
     """A texture moving at 300 px/s seen only inside the big cube's silhouette at 0.6 m
     (x 36..91, y 20..75 px) for 50 ms, and a 500 Hz-per-pixel burst over the sensor in
     [20, 30) ms."""
-    from evtrack.flow.scenes import translating_texture
 
     ev, _ = translating_texture((128, 96), velocity=(300.0, 0.0), duration_us=50_000,
                                 seed=seed)
@@ -508,54 +505,8 @@ def test_search_budget_keeps_the_error_bounded(fast_sequence, runs) -> None:
     assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 4.0
 
 
-def _cells_of(tracker: Tracker, ev: Events) -> np.ndarray:
-    s = tracker_module._THIN_CELL_ROIS * tracker.config.flow.roi_size
-    cols = -(-tracker.camera.width // s)
-    return (ev.y.numpy().astype(np.int64) // s) * cols + ev.x.numpy().astype(np.int64) // s
 
 
-def test_thinning_keeps_whole_cells_in_a_fixed_order_with_hysteresis() -> None:
-    """The budget keeps whole cells of 2 x 2 RoIs (every event of a cell or none), a prefix of
-    one fixed order, ``int(n_cells * 0.75**level)`` of them; the level rises as far as needed,
-    stays while the next lower level does not fit in 80 % of the budget, and falls back to 0
-    (no thinning) once everything fits."""
-    config = TrackerConfig.from_dict({"flow": {"roi_size": 8}, "max_events_per_step": 100})
-    tracker = Tracker(config, camera=CAM, mesh=BIG_CUBE)  # 128x96: 8 x 6 cells of 2 x 2 RoIs
-    assert tracker_module._THIN_CELL_ROIS == 2
-    rng = np.random.default_rng(0)
-
-    def random_events(n: int) -> Events:
-        return Events(rng.integers(0, 128, n), rng.integers(0, 96, n), np.arange(n),
-                      rng.integers(0, 2, n), CAM.size)
-
-    def per_cell(m: int) -> Events:  # m events in every cell
-        cx, cy = np.meshgrid(np.arange(8), np.arange(6))
-        x = np.repeat(16 * cx.ravel() + 8, m)
-        y = np.repeat(16 * cy.ravel() + 8, m)
-        return Events(x, y, np.arange(len(x)), np.zeros(len(x), np.int64), CAM.size)
-
-    ev = random_events(4000)
-    kept = tracker._thin(ev, 1000)
-    cells, all_cells = _cells_of(tracker, kept), _cells_of(tracker, ev)
-    taken = np.unique(cells)
-    assert 0 < len(kept) <= 1000 and tracker.stats.events_thinned == len(ev) - len(kept)
-    assert len(taken) == int(48 * 0.75 ** tracker._thin_level)
-    for c in taken:
-        assert (cells == c).sum() == (all_cells == c).sum()  # whole cells
-    # the same cells come first in the next group, whatever its events
-    again = tracker._thin(random_events(4000), 1000)
-    assert set(np.unique(_cells_of(tracker, again))) == set(taken)
-    # levels keep 48, 36, 27, 20, 15, ... cells; 20 events per cell, budget 300: 15 cells
-    tracker._thin_level = 0
-    assert len(tracker._thin(per_cell(20), 300)) == 300 and tracker._thin_level == 4
-    # 14 per cell: 20 cells (280) fit the budget but not 80 % of it (240): level 4 stays
-    assert len(tracker._thin(per_cell(14), 300)) == 15 * 14 and tracker._thin_level == 4
-    # 11 per cell: down as far as fits in 240 (20 cells; 27 would be 297)
-    assert len(tracker._thin(per_cell(11), 300)) == 20 * 11 and tracker._thin_level == 3
-    # 4 per cell (192 events): back to level 0, nothing thinned
-    assert len(tracker._thin(per_cell(4), 300)) == 192 and tracker._thin_level == 0
-    # a budget below any cell's events keeps nothing
-    assert len(tracker._thin(per_cell(20), 10)) == 0
 
 
 def test_thinned_tracking_keeps_the_error_bounded(fast_sequence, runs) -> None:
@@ -579,44 +530,6 @@ def test_thinned_tracking_keeps_the_error_bounded(fast_sequence, runs) -> None:
     assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 3.0
 
 
-def test_thinning_by_cells_keeps_the_flow_of_the_kept_rois() -> None:
-    """A dense texture translating at (900, -400) px/s, thinned to 1/4 of its events per
-    10 ms group: the RoI flows of the kept cells are as accurate as without thinning (median
-    relative endpoint error 0.036 against 0.038 measured; bound 0.045; with cells of one RoI
-    instead of 2 x 2 it was 0.069: a kept RoI's border events need their neighbours), while
-    keeping a quarter of single events (the smallest hashes, the former rule) leaves gaps in
-    every edge's trail that the triplet search fills with unrelated older events (0.182
-    measured; bound: above 0.08)."""
-    W, H = 96, 72
-    velocity = np.array([900.0, -400.0])
-    ev, _ = translating_texture((W, H), velocity=tuple(velocity), duration_us=40_000, seed=3)
-    camera = PinholeCamera(80.0, 80.0, (W - 1) / 2, (H - 1) / 2, W, H)
-    tracker = Tracker(TrackerConfig.from_dict({"flow": {"roi_size": 12}}), camera=camera,
-                      mesh=CUBE)
-    starts = range(0, 40_000, 10_000)
-    budget = len(ev) // len(starts) // 4
-    by_cells = concatenate([tracker._thin(ev.between(t, t + 10_000), budget) for t in starts])
-    index = np.arange(len(ev), dtype=np.uint64)
-    with np.errstate(over="ignore"):
-        hashed = index * np.uint64(0x9E3779B97F4A7C15)
-    keep = np.zeros(len(ev), bool)
-    t = ev.t.numpy()
-    for t0 in starts:
-        group = np.flatnonzero((t >= t0) & (t < t0 + 10_000))
-        keep[group[np.argsort(hashed[group], kind="stable")[:budget]]] = True
-    single = ev[torch.from_numpy(keep)]
-
-    def median_error(events: Events) -> float:
-        res = TripletFlow(roi_size=12, window_us=2000)(events)
-        err = np.linalg.norm(res.flow.numpy() - velocity, axis=1) / np.linalg.norm(velocity)
-        return float(np.median(err))
-
-    assert len(by_cells) <= len(starts) * budget and len(single) == len(starts) * budget
-    whole, cells, singles = median_error(ev), median_error(by_cells), median_error(single)
-    print(f"median relative error: all {whole:.3f}, cells {cells:.3f}, single events "
-          f"{singles:.3f}")
-    assert cells < 0.045 and cells < whole + 0.01
-    assert singles > 0.08
 
 
 # ---------------------------------------------------------------------------- dropped frames
@@ -741,7 +654,6 @@ def test_depth_frame_without_valid_pixels_uses_the_fallback(value) -> None:
     """A depth frame that is all NaN, zero, negative or infinite carries no depth: every RoI
     takes the fallback depth (the predicted depth of the object's origin) and is counted; the
     twist is that of the texture (300 px/s at 0.6 m and 100 px focal length: 1.8 m/s)."""
-    from evtrack.flow.scenes import translating_texture
 
     ev, _ = translating_texture((128, 96), velocity=(300.0, 0.0), duration_us=15_000)
     tracker = Tracker(TrackerConfig.from_dict({"flow": {"roi_size": 16},
@@ -791,7 +703,6 @@ def test_invalid_pose_measurements_are_errors(problem) -> None:
 def test_a_rejected_event_chunk_changes_nothing() -> None:
     """After a chunk is refused (unsorted, or events outside the sensor) the tracker carries
     on exactly as if the chunk had never been pushed."""
-    from evtrack.flow.scenes import translating_texture
 
     ev, _ = translating_texture((128, 96), velocity=(300.0, 0.0), duration_us=20_000)
     half = int(np.searchsorted(ev.t.numpy(), 10_000))
@@ -888,8 +799,9 @@ def test_a_pushed_pose_is_checked_against_the_depth_of_its_time(rest_sequence, l
     tracker, _ = make_tracker(seq, history_ms=300.0)
     tracker.pose_source = None
     checked: list[PoseMeasurement | None] = []
-    depth_checked = tracker._depth_checked
-    tracker._depth_checked = lambda m: checked.append(depth_checked(m)) or checked[-1]
+    gate = tracker.pose_gate
+    depth_checked = gate.depth_checked
+    gate.depth_checked = lambda m: checked.append(depth_checked(m)) or checked[-1]
     times = seq.depth_times_us.numpy()
     i = int(np.argmin(np.abs(times - 300_000)))
     t_pose = int(times[i])
@@ -912,7 +824,7 @@ def test_a_pushed_pose_is_checked_against_the_depth_of_its_time(rest_sequence, l
     error = float(torch.linalg.vector_norm(checked[-1].pose[:3, 3] - truth[:3, 3]))
     assert error < 0.01
     # the kept maps: the frames of the last history_ms, no more (memory stays bounded)
-    kept = sorted(tracker._depth_frames)
+    kept = sorted(tracker.pose_gate.depth_frames)
     newest = int(times[times < t_pose + late_ms * 1000 + 1].max())
     span_us = tracker.config.history_ms * 1000
     assert kept[-1] == newest and kept[0] > 0 and kept[-1] - kept[0] <= span_us
@@ -1007,21 +919,22 @@ def test_a_pose_off_in_range_is_moved_onto_the_depth(rest_sequence, align) -> No
 def _same_runs(make, feed) -> tuple[Tracker, list[tuple[int, bool]]]:
     """Track with the filters' compiled step runs and step by step (``Tracker.step_runs``):
     the trajectories must be equal bit for bit and every counter the same. Returns the run
-    tracker and its view checks made inside runs (step end, lost)."""
+    tracker and its compiled runs (steps done, whether the object was lost in the run)."""
     results = []
     inside: list[tuple[int, bool]] = []
-    original = Tracker._check_view
-
-    def watched(self, t1, t=None, q=None):
-        lost = original(self, t1, t, q)
-        if t is not None:
-            inside.append((t1, lost))
-        return lost
-
     for runs in (True, False):
         tracker = make()
         tracker.step_runs = runs
-        tracker._check_view = watched.__get__(tracker)
+        step_run = tracker.scheduler.step_run
+
+        def watched(t0, k, end, poly, pose, tracker=tracker, step_run=step_run):
+            lost_before = tracker.stats.lost
+            done = step_run(t0, k, end, poly, pose)
+            if done is not None:
+                inside.append((done - k, tracker.stats.lost > lost_before))
+            return done
+
+        tracker.scheduler.step_run = watched
         results.append((feed(tracker), tracker))
     (fast, fast_tracker), (slow, slow_tracker) = results
     assert torch.equal(fast.t_us, slow.t_us) and torch.equal(fast.status, slow.status)
@@ -1044,7 +957,7 @@ def test_step_runs_equal_steps_with_dropped_frames_in_chunks(fast_sequence) -> N
         lambda: make_tracker(seq, method="full")[0],
         lambda tr: stream(tr, seq, np.random.default_rng(5), keep_frame=lambda i: not dropped[i]))
     assert tracker.stats.depth_fallbacks > 0
-    assert len(inside) > 0.5 * tracker.stats.steps  # most steps went through runs
+    assert sum(n for n, _ in inside) > 0.5 * tracker.stats.steps  # most steps in runs
     assert tracker.stats.steps_remeasured > 50  # the late first pose's steps: runs of a group
 
 

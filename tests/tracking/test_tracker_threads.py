@@ -12,6 +12,7 @@ import torch
 from tracker_helpers import make_tracker, stream
 
 from evtrack import utils
+from evtrack.tracking import tracker as tracker_module
 
 
 @pytest.mark.parametrize(("configured", "cores", "expected"), [
@@ -21,8 +22,8 @@ def test_track_runs_on_the_configured_threads(static_sequence, monkeypatch, conf
                                               expected) -> None:
     tracker, _ = make_tracker(static_sequence, method="pose", torch_threads=configured)
     seen: list[int] = []
-    monkeypatch.setattr(tracker, "_track",
-                        lambda seq, progress: seen.append(torch.get_num_threads()))
+    monkeypatch.setattr(tracker_module, "push_sequence",
+                        lambda *args: seen.append(torch.get_num_threads()))
     monkeypatch.setattr(utils, "usable_cpu_count", lambda: cores)
     before = torch.get_num_threads()
     # a caller's count that differs from every expected value, so a leak would show
