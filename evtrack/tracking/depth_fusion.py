@@ -22,6 +22,11 @@ import torch
 
 from evtrack.camera import PinholeCamera
 from evtrack.filters.lie import pivot_map
+
+# evtrack.models is imported with this module, not where depth_icp is set up: it imports
+# torch's flop counter, which imports Triton where installed (CUDA builds of torch), and
+# Triton's LLVM crashes the process when Mesa's (the headless OpenGL of model depth) is
+# already loaded.
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.depth_range import DepthRange

@@ -30,6 +30,8 @@ class PoseCaller:
     Attributes:
         stats: the counters it adds to (``pose_calls``, ``poses``, ``pose_misses``; the time
             in ``pose_source`` and ``pose_wait``).
+        in_worker: run the calls in the worker thread (:meth:`submit`), their results taken
+            when they become available (``pose_async`` inside :meth:`evtrack.Tracker.track`).
     """
 
     def __init__(self, source: PoseSource | None, period_us: int, min_confidence: float) -> None:
@@ -38,6 +40,7 @@ class PoseCaller:
         self.min_confidence = min_confidence
         self.stats = TrackerStats()
         self._pool: ThreadPoolExecutor | None = None
+        self.in_worker = False
         self.reset()
 
     def reset(self) -> None:

@@ -135,7 +135,7 @@ class StepScheduler:
         motion = tr.motion
         step = tr.config.velocity_step_us
         n_steps = (t_end - t0) // step
-        tr._frames_due(t0 + step)
+        tr.frames.due(t0 + step)
         pose = tr._present_pose() if tr.initialized else None
         poly = tr.silhouette.polygon(pose) if pose is not None else None
         tr.gate.burst_ends = []
@@ -149,7 +149,7 @@ class StepScheduler:
         while k < n_steps:
             b = t0 + (k + 1) * step
             if k:
-                tr._frames_due(b)
+                tr.frames.due(b)
             initialized = tr.initialized  # asked once a step (a tensor read): frames_due
             # may change it; nothing below does before the step's filters
             if k and k % SEGMENT_STEPS == 0 and initialized:
@@ -173,7 +173,7 @@ class StepScheduler:
             with StageTimer(st.time_s, "pose"):
                 tr.timeline.step(b, twist if twist_driven else None)
                 tr.stream.now = b
-                tr._apply_due(b)
+                tr.fusion.apply_due(b)
             st.steps += 1
             tr._check_view(b)
             tr._record(b)

@@ -59,8 +59,6 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Callable
-from functools import singledispatchmethod
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -72,85 +70,38 @@ from evtrack.config_values import checked_device
 from evtrack.errors import ConfigError, EventsError
 from evtrack.events import Events
 from evtrack.geometry import matrix_to_tq
-
-# evtrack.models is imported here, not where depth_icp is set up: it imports torch's
-# flop counter, which imports Triton where installed (CUDA builds of torch), and Triton's LLVM
-# crashes the process when Mesa's (the headless OpenGL of model depth, and of depth_range
-# before it used surface points) is already loaded.
-from evtrack.models.estimator import check_rgb
 from evtrack.runtime.blas_threads import BlasThreads
 from evtrack.runtime.jit import warm_up
 from evtrack.tracking.config import TrackerConfig
-from evtrack.tracking.depth_fusion import DepthFusion
-from evtrack.tracking.depth_sources import DepthSource, ModelDepth, SensorDepth
 from evtrack.tracking.event_gate import EventGate
+from evtrack.tracking.frames import FrameIntake, checked_rgb
+from evtrack.tracking.fusion import MeasurementFusion
 from evtrack.tracking.inputs import (
-    DepthFrame,
     FrameInput,
-    FrameQueue,
     MeasurementQueue,
-    PendingPoseCall,
-    PoseMiss,
     StreamClock,
-    TwistMeasurement,
 )
 from evtrack.tracking.load_control import LoadController
 from evtrack.tracking.motion import MotionContext, MotionServices, motion_source_class
-from evtrack.tracking.offline import PreparedDepth, push_sequence
+from evtrack.tracking.offline import push_sequence
 from evtrack.tracking.outputs import TrackOutputs, ViewCheck, extrapolated, quat_to_matrix
-from evtrack.tracking.pose_alignment import PoseRayAligner
 from evtrack.tracking.pose_calls import PoseCaller
-from evtrack.tracking.pose_flips import HalfTurnResolver
-from evtrack.tracking.pose_gate import PoseGate
 from evtrack.tracking.pose_sources import PoseMeasurement, PoseSource, checked_pose
 from evtrack.tracking.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.tracking.roi_depth import RoiDepth
 from evtrack.tracking.scheduler import StepScheduler
 from evtrack.tracking.silhouette import Silhouette, SilhouettePolygon
-from evtrack.tracking.stats import StageTimer, TrackerStats
+from evtrack.tracking.stats import TrackerStats
 from evtrack.tracking.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING, Trajectory
+from evtrack.tracking.wiring import (
+    load_mesh,
+    make_depth_fusion,
+    make_depth_source,
+    make_pose_gate,
+)
 from evtrack.utils import threads_per_job
 
 __all__ = ["Tracker", "TrackerStats"]
-
-
-def _check_rgb(t_us: int, rgb: Any, camera: PinholeCamera) -> np.ndarray:
-    """``rgb`` if it is a uint8 (H, W, 3) image of ``camera``'s size.
-
-    Raises:
-        ValueError: naming the frame's time, what it got and what was expected.
-    """
-    where = f"RGB frame at t={t_us} µs"
-    try:
-        check_rgb(rgb)  # the pose estimators' own check of the image's format
-    except ValueError as exc:
-        raise ValueError(f"{where}: {exc}") from None
-    if rgb.shape[:2] != (camera.height, camera.width):
-        raise ValueError(f"{where} is {rgb.shape[1]}x{rgb.shape[0]}, the RGB-D camera is "
-                         f"{camera.width}x{camera.height}")
-    return rgb
-
-
-def _load_mesh(mesh: Any) -> tuple[Any, np.ndarray]:
-    """ObjectMesh, a mesh file (object frame kept: no recentring) or (V, 3) vertices."""
-    from evtrack.sim.objects import ObjectMesh, load_mesh
-
-    if isinstance(mesh, ObjectMesh):
-        return mesh, np.asarray(mesh.vertices, np.float64)
-    if isinstance(mesh, str | Path):
-        m = load_mesh(mesh, recenter=False)
-        return m, np.asarray(m.vertices, np.float64)
-    vertices = np.asarray(mesh, np.float64)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ConfigError(f"mesh must be an ObjectMesh, a mesh file or (V, 3) vertices, got "
-                          f"an array of shape {vertices.shape}")
-    return None, vertices
-
-
-def _needs_mesh(mesh: Any, what: str) -> None:
-    if mesh is None:
-        raise ConfigError(f"{what} needs the object's mesh (an ObjectMesh or a mesh file), not "
-                          "bare vertices")
 
 
 class Tracker:
@@ -202,9 +153,8 @@ class Tracker:
                             else torch.as_tensor(T_event_rgb, dtype=torch.float64))
         if self.T_event_rgb.shape != (4, 4):
             raise ConfigError(f"T_event_rgb must be (4, 4), got {tuple(self.T_event_rgb.shape)}")
-        self.pose_source = pose_source
         self.clock: Callable[[], float] = time.perf_counter
-        self.mesh, vertices = _load_mesh(mesh)
+        self.mesh, vertices = load_mesh(mesh)
         self.device = checked_device(cfg.device, "tracker config field 'device'")
         self.silhouette = Silhouette(vertices, camera)
         self.method = cfg.method
@@ -213,11 +163,15 @@ class Tracker:
         self.motion = motion_source_class(cfg.method)(MotionContext(
             cfg, camera, self.rgb_camera, self.T_event_rgb, self.device, vertices,
             self.silhouette, aligned))
-        self.roi_depth = RoiDepth(self._make_depth_source(vertices), cfg.max_depth_age_ms)
-        self.pose_gate = self._make_pose_gate(vertices)
+        depth = make_depth_source(cfg, self.motion, self.mesh, self.rgb_camera,
+                                  self.T_event_rgb)
+        self.roi_depth = RoiDepth(depth, cfg.max_depth_age_ms)
+        self.pose_gate = make_pose_gate(cfg, self.motion, self.mesh, vertices, depth,
+                                        self.T_event_rgb)
         self.ukf = self.motion.pose_filter()
         self.timeline = PoseTimeline(self.ukf, int(round(cfg.history_ms * 1e3)))
-        self.depth_fusion = self._make_depth_fusion()
+        self.depth_fusion = make_depth_fusion(cfg, self.motion, self.mesh, depth, self.timeline,
+                                              self._past_pose)
         self._blas = BlasThreads(cfg.blas_threads)
         self.gate = EventGate(camera, self.silhouette, cfg.mask_margin_px, cfg.burst_rate_hz,
                               cfg.flow.roi_size)
@@ -226,59 +180,23 @@ class Tracker:
                               cfg.velocity_step_us)
         self.pose_calls = PoseCaller(pose_source, cfg.pose_period_us, cfg.pose_min_confidence)
         self.scheduler = StepScheduler(self)
+        self.fusion = MeasurementFusion(self)
+        self.frames = FrameIntake(self)
         self.motion.bind(MotionServices(
             now=lambda: self.stream.now, initialized=lambda: self.initialized, pose=self.pose,
             past_pose=self._past_pose, segment_pose=self._segment_pose,
-            schedule=self._schedule_now, step_runs=lambda: self.step_runs,
+            schedule=self.fusion.schedule, step_runs=lambda: self.step_runs,
             timeline=self.timeline, depth=self.roi_depth, gate=self.gate))
-        self._async_poses = False  # inside track() with pose_async
         self.reset()
 
-    def _make_depth_source(self, vertices: np.ndarray) -> DepthSource:
-        """The depth of the sensing camera (the event camera's, the RGB camera's for a
-        frame-based motion source): sensor frames or the mesh rendered at the pose."""
-        cfg = self.config
-        cam = self.motion.sensing_camera()
-        if cfg.depth_source == "model":
-            _needs_mesh(self.mesh, "depth_source 'model'")
-            return ModelDepth(self.mesh, cam, cfg.model_depth_scale, cfg.model_depth_interval_us,
-                              cfg.depth_patch_px, cfg.depth_stride_px)
-        if self.motion.depth_from_event() is not None:  # the frames are the sensing camera's
-            return SensorDepth(cam, cam, None, cfg.depth_patch_px, cfg.depth_stride_px)
-        return SensorDepth(cam, self.rgb_camera, self.T_event_rgb, cfg.depth_patch_px,
-                           cfg.depth_stride_px)
+    @property
+    def pose_source(self) -> PoseSource | None:
+        """The pose source (replaceable: the next frames' calls go to the new one)."""
+        return self.pose_calls.source
 
-    def _make_pose_gate(self, vertices: np.ndarray) -> PoseGate:
-        cfg = self.config
-        source = self.roi_depth.source
-        sensor = isinstance(source, SensorDepth)
-        aligner = None
-        if cfg.pose_depth_align and self.mesh is not None and sensor:
-            aligner = PoseRayAligner.from_mesh(self.mesh, source.camera,
-                                               max_shift_m=cfg.pose_depth_align_max_m)
-        half_turns = None
-        if cfg.pose_half_turn_axes:
-            lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-            half_turns = HalfTurnResolver(cfg.pose_half_turn_axes, (lo + hi) / 2,
-                                          cfg.pose_half_turn_max_view_deg)
-        to_depth = self.motion.depth_from_event()
-        return PoseGate(cfg, self.motion.sensing_silhouette(), sensor, aligner, half_turns,
-                        None if to_depth is None else to_depth.numpy(),
-                        None if to_depth is None else self.T_event_rgb.numpy())
-
-    def _make_depth_fusion(self) -> DepthFusion | None:
-        cfg = self.config
-        if self.motion.poses_only_initialise or not (cfg.depth_range or cfg.depth_icp):
-            return None
-        if cfg.depth_range:
-            _needs_mesh(self.mesh, "depth_range")
-        if cfg.depth_icp:
-            _needs_mesh(self.mesh, "depth_icp")
-        # the depth maps are in the sensing camera, the filter's pose in the event camera
-        to_depth = self.motion.depth_from_event()
-        T = torch.eye(4, dtype=torch.float64) if to_depth is None else to_depth
-        return DepthFusion(cfg, self.mesh, self.roi_depth.source.camera, T.numpy(),
-                           self.timeline, self._past_pose)
+    @pose_source.setter
+    def pose_source(self, source: PoseSource | None) -> None:
+        self.pose_calls.source = source
 
     @classmethod
     def for_sequence(cls, sequence, config: TrackerConfig | None = None,
@@ -324,16 +242,14 @@ class Tracker:
         self.motion.reset()
         self.ukf.reset(1)
         for part in (self.roi_depth, self.gate, self.load, self.pose_gate, self.pose_calls,
-                     self.depth_fusion, self.scheduler):
+                     self.depth_fusion, self.scheduler, self.fusion, self.frames):
             if part is not None:
                 part.reset()
         self.view.out_of_view_us = 0
         self.stream = StreamClock(self.config.velocity_step_us)
         self.measurements = MeasurementQueue()
-        self.frames = FrameQueue()
         self.outputs = TrackOutputs()
         self._ever_lost = False
-        self._misses = 0  # pose-source misses in a row
         self._held: np.ndarray | None = None
         if t_us is not None:
             self._start_clock(int(t_us))
@@ -434,17 +350,8 @@ class Tracker:
             return
         with self._blas:
             self.scheduler.advance(self.stream.horizon, whole_groups=False)
-            self._frames_due(self.stream.horizon + 1)
-        self.measurements.replace_pending_calls(self._settled)
-
-    def _settled(self, available: int, call: PendingPoseCall) -> tuple[int, Any]:
-        """A worker's pose-source call not due yet, waited for and left pending as the
-        synchronous path would have (the pose or the miss scheduled for its time): the end of
-        a stream then leaves the same state and statistics either way."""
-        m = self.pose_calls.result(call.result)
-        if self.pose_calls.accepted(m):
-            return max(m.t_us, available), m
-        return available, PoseMiss(call.t_us)
+            self.frames.due(self.stream.horizon + 1)
+        self.measurements.replace_pending_calls(self.fusion.settled)
 
     def push_frame(self, t_us: int, rgb: FrameInput = None, depth: FrameInput = None) -> None:
         """Add the RGB-D frame taken at ``t_us`` (after the events before ``t_us``).
@@ -473,7 +380,7 @@ class Tracker:
             self.roi_depth.source.check_frame(t_us, depth)
         self.stream.moved_by = f"push_frame(t_us={t_us})"
         if rgb is not None and not callable(rgb) and self._uses_rgb:
-            _check_rgb(t_us, rgb, self.rgb_camera)
+            checked_rgb(t_us, rgb, self.rgb_camera)
         if self.stream.now is None:
             self._start_clock(t_us)
         self.stats.frames += 1
@@ -482,89 +389,13 @@ class Tracker:
         self.frames.push(t_us, rgb, depth)
         with self._blas:
             if t_us < self.stream.now:
-                self._frames_due(self.stream.now)
+                self.frames.due(self.stream.now)
             self._advance_to(t_us)
 
     @property
     def _uses_rgb(self) -> bool:
         """Whether the RGB images are read: by the pose source or the motion source."""
         return self.pose_source is not None or self.motion.uses_rgb
-
-    def _frames_due(self, t_before: int) -> None:
-        """Process the queued frames taken before ``t_before``."""
-        for t_us, rgb, depth in self.frames.pop_before(t_before):
-            with StageTimer(self.stats.time_s, "frames"):
-                try:
-                    self._process_frame(t_us, rgb, depth)
-                except Exception as exc:
-                    if hasattr(exc, "add_note"):  # Python >= 3.11
-                        exc.add_note(f"(while processing the frame pushed for t={t_us} µs; "
-                                     "the tracker goes on without it)")
-                    raise
-
-    def _process_frame(self, t_us: int, rgb: FrameInput, depth: FrameInput) -> None:
-        depth_map = self._take_depth(t_us, depth)
-        if rgb is None:
-            return
-        get_rgb = ((lambda: _check_rgb(t_us, rgb(), self.rgb_camera)) if callable(rgb)
-                   else (lambda: rgb))
-        image = self.motion.on_rgb(t_us, get_rgb) if self.motion.uses_rgb else None
-        if not self._wants_pose(t_us):
-            return
-        self.stats.pose_calls += 1
-        available = t_us + self.config.pose_latency_us
-        uses_depth = self.pose_calls.uses_depth
-        if depth_map is None and depth is not None and uses_depth:
-            depth_map = depth() if callable(depth) else depth
-        depth_in = depth_map if uses_depth else None
-        prior = self._pose_prior(t_us)
-        if self._async_poses and available > self.stream.now:
-            # computed in the worker (the RGB frame read there too), taken at `available`:
-            # the same result at the same moment for the filter
-            future = self.pose_calls.submit(t_us, image if image is not None else get_rgb,
-                                            depth_in, prior)
-            self.measurements.push(available, PendingPoseCall(t_us, future))
-            return
-        m = self.pose_calls.call(t_us, image if image is not None else get_rgb(), depth_in,
-                                 prior)
-        if self.pose_calls.accepted(m):
-            self.push_pose(m, available_us=available)
-        else:
-            self.stats.pose_misses += 1
-            self._schedule_now(max(available, self.stream.now), PoseMiss(t_us))
-
-    def _take_depth(self, t_us: int, depth: FrameInput) -> np.ndarray | None:
-        """A sensor depth frame: in use for the RoIs (unless a newer one is), kept for the
-        pose gate and measured by the depth fusions; returns it as read (``None``: none)."""
-        if depth is None or not self.roi_depth.sensor:
-            return None
-        source = self.roi_depth.source
-        depth_map = depth() if callable(depth) else depth
-        if isinstance(depth_map, PreparedDepth):  # from track(): prepared ahead
-            event_map, depth_map = depth_map.event_map, depth_map.raw
-        else:
-            event_map = source.prepare(t_us, depth_map)
-        if source.t_us is None or t_us >= source.t_us:
-            source.set_prepared(t_us, event_map)  # else the newer map stays in use
-        self.pose_gate.remember_depth(t_us, event_map)
-        if self.depth_fusion is not None:
-            self._schedule_now(t_us, DepthFrame(t_us, event_map))
-        return depth_map
-
-    def _wants_pose(self, t_us: int) -> bool:
-        if self.pose_source is None:
-            return False
-        if self.motion.poses_only_initialise and self.initialized:
-            return False
-        return self.pose_calls.wants(t_us)
-
-    def _pose_prior(self, t_us: int) -> np.ndarray | None:
-        """(4, 4) the pose (event camera frame) handed to the pose source for the frame at
-        ``t_us`` (``TrackerConfig.pose_prior``), or ``None``: no prior wanted, a source that
-        takes none, or no track (before the first pose, after a loss)."""
-        if not (self.config.pose_prior and self.initialized and self.pose_calls.accepts_prior):
-            return None
-        return np.array(self.pose(t_us), dtype=np.float64)
 
     def push_pose(self, measurement: PoseMeasurement, available_us: int | None = None) -> None:
         """Add a pose measurement (e.g. from a pose network running in another thread).
@@ -587,95 +418,7 @@ class Tracker:
         self.stats.poses += 1
         self.measurements.push(avail, measurement)
         with self._blas:
-            self._apply_due(self.stream.now)
-
-    # ------------------------------------------------------------------ measurements
-    def _schedule_now(self, available_us: int, item: Any) -> None:
-        """Queue a measurement and apply what is due at the clock."""
-        self.measurements.push(available_us, item)
-        self._apply_due(self.stream.now)
-
-    def _apply_due(self, t_now: int) -> None:
-        while (due := self.measurements.pop_due(t_now)) is not None:
-            available, item = due
-            self._apply(item, available, t_now)
-
-    @singledispatchmethod
-    def _apply(self, item: Any, available: int, t_now: int) -> None:
-        raise TypeError(f"no handler for a queued {type(item).__name__}")
-
-    @_apply.register
-    def _(self, item: PoseMeasurement, available: int, t_now: int) -> None:
-        self._fuse_pose(item)
-
-    @_apply.register
-    def _(self, item: DepthFrame, available: int, t_now: int) -> None:
-        if self.initialized:
-            self.depth_fusion.fuse_range(item)
-        if self.initialized:
-            self.depth_fusion.fuse_alignment(item)
-
-    @_apply.register
-    def _(self, item: PoseMiss, available: int, t_now: int) -> None:
-        self._on_miss(t_now)
-
-    @_apply.register
-    def _(self, item: TwistMeasurement, available: int, t_now: int) -> None:
-        if self.initialized and self.timeline.add(item.t_us, "twist", (item.twist,), item.cov):
-            self.stats.twist_measurements += 1
-
-    @_apply.register
-    def _(self, item: PendingPoseCall, available: int, t_now: int) -> None:
-        """A worker's pose-source result, due at ``available`` (<= ``t_now``): handled as the
-        synchronous path's pose or miss, scheduled for ``available`` at the frame's turn,
-        would be now."""
-        m = self.pose_calls.result(item.result)  # a pose source's exception is raised here
-        if not self.pose_calls.accepted(m):
-            self._on_miss(t_now)
-            return
-        due = max(m.t_us, available)
-        if due <= t_now:
-            self._fuse_pose(m)
-        else:  # a measurement time after the frame's (not from the built-in sources)
-            self.measurements.push(due, m)
-
-    def _on_miss(self, t_now: int) -> None:
-        self._misses += 1
-        limit = self.config.lost_after_misses
-        if limit and self._misses >= limit and self.initialized:
-            self._lose(t_now)
-
-    def _fuse_pose(self, m: PoseMeasurement) -> None:
-        checked = self.pose_gate.checked(m)
-        if checked is None:
-            return
-        m = checked
-        self._misses = 0
-        was_init = self.initialized
-        if self.motion.poses_only_initialise and was_init:
-            return  # poses only (re-)initialise
-        turned_back = False  # the track deemed half a turn off: re-initialise on m
-        if self.pose_gate.half_turns is not None and was_init:
-            m, turned_back = self.pose_gate.nearer_half_turn(m, self._past_pose(m.t_us))
-        ukf = self.ukf
-        rejected, reinit = int(ukf.rejected[0]), int(ukf.reinitialised[0])
-        t, q = pose_measurement_value(m.pose, ukf.t.dtype, self.device)
-        cov = None if m.cov is None else m.cov.to(ukf.t.dtype).to(self.device).unsqueeze(0)
-        if m.t_us > self.timeline.now:  # pragma: no cover - _apply_due never lets it happen
-            raise RuntimeError(f"pose at {m.t_us} µs applied before the clock reached it")
-        agrees = was_init and self.pose_gate.agrees_with_rejected(m.t_us, m.pose)
-        kind = "pose_reinit" if turned_back or agrees else "pose"
-        if not self.timeline.add(m.t_us, kind, (t, q), cov):
-            self.stats.poses_late += 1
-            return
-        newly_rejected = int(ukf.rejected[0]) - rejected
-        newly_reinit = int(ukf.reinitialised[0]) - reinit
-        self.stats.poses_rejected += max(0, newly_rejected)
-        self.stats.reinitialisations += max(0, newly_reinit)
-        self.pose_gate.fused(m, rejected=newly_rejected > 0 and newly_reinit <= 0)
-        if self.initialized and not was_init:
-            self.view.out_of_view_us = 0
-            self.motion.track_started(m.t_us)
+            self.fusion.apply_due(self.stream.now)
 
     def _budgets_after_group(self, wall_s: float, stream_s: float) -> None:
         """``realtime_load``: the load controller's budgets after a step group."""
@@ -768,7 +511,7 @@ class Tracker:
         threads = torch.get_num_threads()
         if self.config.torch_threads > 0:
             torch.set_num_threads(threads_per_job(self.config.torch_threads))
-        self._async_poses = self.config.pose_async
+        self.pose_calls.in_worker = self.config.pose_async
         try:
             with self._blas:  # the worker's pose calls all end inside (flush settles them)
                 self.reset()
@@ -776,5 +519,5 @@ class Tracker:
                 push_sequence(self, sequence, prepare, progress)
                 return self.trajectory()
         finally:
-            self._async_poses = False
+            self.pose_calls.in_worker = False
             torch.set_num_threads(threads)

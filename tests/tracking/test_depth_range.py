@@ -137,7 +137,7 @@ def test_depth_range_config_is_checked(fast_sequence) -> None:
         Tracker(TrackerConfig(depth_range=True), camera=CAM, mesh=cube)
     # the velocity baseline takes poses only to initialise: no range there
     velocity, _ = make_tracker(fast_sequence, method="velocity", depth_range=True)
-    assert velocity.depth_range is None
+    assert velocity.depth_fusion is None
 
 
 @pytest.mark.parametrize("method", ["pose", "frame-flow", "ge"])
@@ -175,7 +175,7 @@ def test_the_range_needs_no_renderer(scene, monkeypatch) -> None:
     res = DepthRange(box, CAM).measure(depth, truth)
     assert res.ok and abs(res.distance - float(np.linalg.norm(truth[:3, 3]))) < 0.001
     tracker = Tracker(TrackerConfig(depth_range=True), camera=CAM, mesh=box)
-    assert tracker.depth_range is not None
+    assert tracker.depth_fusion.depth_range is not None
 
 
 def test_the_removed_render_scale_field_says_what_to_do() -> None:

@@ -238,7 +238,7 @@ def _record_flow_calls(tracker: Tracker) -> list[tuple[int, int, int, int]]:
     """Wrap the tracker's flow: record (events, first t, last t, events searched) of every
     call."""
     calls: list[tuple[int, int, int, int]] = []
-    update = tracker.flow.update
+    update = tracker.motion.flow.update
 
     def recorded(ev: Events, **kwargs):
         search = kwargs.get("search")
@@ -246,7 +246,7 @@ def _record_flow_calls(tracker: Tracker) -> list[tuple[int, int, int, int]]:
                       len(ev) if search is None else int(search.sum())))
         return update(ev, **kwargs)
 
-    tracker.flow.update = recorded
+    tracker.motion.flow.update = recorded
     return calls
 
 
@@ -306,9 +306,9 @@ def test_after_a_burst_the_flow_filter_continues_each_pixel_first_event(fast_seq
     noisy = with_events(seq, merged(ev, noise_burst(ev.sensor_size, t0, t1 - t0, 100 * rate,
                                                     seed=5)))
     tracker, _ = make_tracker(noisy, method="full")
-    span = tracker.flow.config.refractory_us
+    span = tracker.motion.flow.config.refractory_us
     log: list[tuple[str, Events]] = []
-    update, cont = tracker.flow.update, tracker.flow.continue_bursts
+    update, cont = tracker.motion.flow.update, tracker.motion.flow.continue_bursts
 
     def logged_update(events, **kw):
         log.append(("update", events))
@@ -318,7 +318,7 @@ def test_after_a_burst_the_flow_filter_continues_each_pixel_first_event(fast_seq
         log.append(("continue", events))
         return cont(events)
 
-    tracker.flow.update, tracker.flow.continue_bursts = logged_update, logged_continue
+    tracker.motion.flow.update, tracker.motion.flow.continue_bursts = logged_update, logged_continue
     tracker.track(noisy)
     assert tracker.stats.burst_steps == (t1 - t0) // STEP_US
     marked = [e for kind, e in log if kind == "continue" and len(e)]
@@ -910,7 +910,7 @@ def test_a_pose_off_in_range_is_moved_onto_the_depth(rest_sequence, align) -> No
         assert error < 0.01
     else:
         assert error > 0.045
-    aligner = tracker.pose_aligner or Tracker.for_sequence(seq, TrackerConfig()).pose_aligner
+    aligner = tracker.pose_gate.aligner or Tracker.for_sequence(seq, TrackerConfig()).pose_gate.aligner
     res = aligner.align(seq.depth(len(seq.depth_times_us) - 5), exact.pose)
     assert res.ok and abs(res.shift) < 0.005
 

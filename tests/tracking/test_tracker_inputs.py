@@ -263,13 +263,13 @@ def test_an_older_depth_frame_does_not_replace_the_newer_one() -> None:
     tracker.reset(_pose(), t_us=0)
     tracker.push_frame(100_000, depth=np.full((96, 128), 0.6, np.float32))
     tracker.advance(130_000)
-    assert tracker.depth.t_us == 100_000
+    assert tracker.roi_depth.source.t_us == 100_000
     tracker.push_frame(60_000, depth=np.full((96, 128), np.nan, np.float32))
-    assert tracker.depth.t_us == 100_000
-    assert float(np.nanmax(tracker.depth.map)) == pytest.approx(0.6)
+    assert tracker.roi_depth.source.t_us == 100_000
+    assert float(np.nanmax(tracker.roi_depth.source.map)) == pytest.approx(0.6)
     tracker.push_frame(140_000, depth=np.full((96, 128), 0.7, np.float32))
     tracker.advance(150_000)
-    assert tracker.depth.t_us == 140_000
+    assert tracker.roi_depth.source.t_us == 140_000
 
 
 @pytest.mark.parametrize(("pose", "match"), [

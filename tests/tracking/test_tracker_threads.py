@@ -152,7 +152,7 @@ def test_depth_maps_prepared_in_the_reader_thread_equal_set_frame(fast_sequence,
     from evtrack.tracking.depth_sources import SensorDepth
 
     tracker, _ = make_tracker(fast_sequence, method="full")
-    assert isinstance(tracker.depth, SensorDepth)
+    assert isinstance(tracker.roi_depth.source, SensorDepth)
     taken: list[tuple[int, np.ndarray, str]] = []
     inner = SensorDepth.set_prepared
 

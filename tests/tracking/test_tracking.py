@@ -211,7 +211,7 @@ def test_velocity_noise_pivots_about_the_tracked_object(fast_sequence, runs) -> 
     """velocity_kf.object_centred (default): the velocity filter's process noise is set about
     the object's current position (off: the paper's diagonal noise)."""
     _, tracker, _ = runs.get("full")
-    Q = tracker.vkf.q_matrix
+    Q = tracker.motion.vkf.q_matrix
     p = torch.from_numpy(tracker.pose()[:3, 3])
     expected = VelocityKF(tracker.camera)
     expected.set_pivot(p)  # about the final pose; Q was set at the last step's predicted pose
@@ -239,7 +239,7 @@ def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
     # A RoI on the silhouette's edge can miss the model's silhouette rendered at a predicted
     # pose a little off: 1 of 3214 RoI flows with llvmpipe's default sampling, 3 of 3037 with
     # its bilinear-LOD sampling (GALLIVM_PERF=brilinear), whose renders differ in last bits.
-    assert tracker.depth.renders > 50
+    assert tracker.roi_depth.source.renders > 50
     assert tracker.stats.depth_fallbacks <= 0.01 * tracker.stats.roi_flows, tracker.stats
     assert err.position_rmse_cm < 1.4 * ref.position_rmse_cm
     assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 3.5

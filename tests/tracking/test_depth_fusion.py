@@ -13,7 +13,8 @@ from evtrack.errors import ConfigError
 from evtrack.eval.metrics import rotation_errors
 from evtrack.models.depth_refine import RefineResult
 from evtrack.tracking.config import TrackerConfig
-from evtrack.tracking.tracker import Tracker, _alignment_covariance
+from evtrack.tracking.depth_fusion import alignment_covariance
+from evtrack.tracking.tracker import Tracker
 
 
 def _residuals(delta: np.ndarray, P: np.ndarray, normals: np.ndarray, t: np.ndarray
@@ -47,7 +48,7 @@ def test_alignment_covariance_against_a_finite_difference_fit(seed) -> None:
         J[:, k] = (_residuals(d, P, normals, t) - _residuals(-d, P, normals, t)) / (2 * h)
     expected = 0.002 ** 2 * np.linalg.inv(J.T @ J)
     floors = np.diag([1e-6] * 3 + [1e-4] * 3)
-    got = _alignment_covariance(res, 1e-3, 1e-2)
+    got = alignment_covariance(res, 1e-3, 1e-2)
     np.testing.assert_allclose(got - floors, expected, rtol=1e-5, atol=1e-14)
 
 
@@ -62,7 +63,7 @@ def test_unseen_direction_gets_a_huge_variance() -> None:
     a = np.hstack([normals, np.cross(P - centre, normals)])
     pose = np.eye(4)
     pose[:3, 3] = centre
-    cov = _alignment_covariance(RefineResult(pose, True, 200, 200, 0.001, 3, "", a.T @ a,
+    cov = alignment_covariance(RefineResult(pose, True, 200, 200, 0.001, 3, "", a.T @ a,
                                              centre), 0.0, 0.0)
     assert cov[5, 5] > 1e4 * max(cov[3, 3], cov[4, 4])
     assert np.isfinite(cov).all()
@@ -88,7 +89,7 @@ def test_tracker_aligns_depth_frames_and_tracks_rotation_better(fast_sequence) -
     plain, _ = make_tracker(seq, oracle=oracle)
     aligned, _ = make_tracker(seq, oracle=oracle, depth_icp=True, depth_icp_rate_hz=100.0)
     a, b = plain.track(seq), aligned.track(seq)
-    assert plain.stats.depth_alignments == 0 and plain.depth_icp is None
+    assert plain.stats.depth_alignments == 0 and plain.depth_fusion is None
     st = aligned.stats
     frames = len(seq.depth_times_us)
     assert st.depth_alignments >= 0.6 * frames, st.depth_alignments_skipped
@@ -120,7 +121,7 @@ def test_depth_icp_config_is_checked(fast_sequence) -> None:
         Tracker(TrackerConfig(depth_icp=True), camera=PinholeCamera(160.0, 160.0, 63.5, 47.5,
                                                                     128, 96), mesh=cube)
     velocity, _ = make_tracker(fast_sequence, method="velocity", depth_icp=True)
-    assert velocity.depth_icp is None
+    assert velocity.depth_fusion is None
 
 
 @pytest.mark.parametrize("method", ["pose", "frame-flow", "ge"])
