@@ -237,18 +237,34 @@ class Range:
             text = f"{'<' if high[0] == ')' else '<='} {high[1]:g}"
         return f"{text} {self.unit}" if self.unit else text
 
-    def contains(self, value: float) -> bool:
-        return (math.isfinite(value)
-                and (self.gt is None or value > self.gt) and (self.ge is None or value >= self.ge)
-                and (self.lt is None or value < self.lt) and (self.le is None or value <= self.le))
+    @functools.cached_property
+    def _bounds(self) -> tuple[float, bool, float, bool]:
+        """``(low, low is open, high, high is open)``; a missing bound is an open infinity, so
+        that the comparisons alone also refuse infinities and NaN."""
+        low, low_open = ((self.gt, True) if self.gt is not None
+                         else (self.ge, False) if self.ge is not None else (-math.inf, True))
+        high, high_open = ((self.lt, True) if self.lt is not None
+                           else (self.le, False) if self.le is not None else (math.inf, True))
+        return low, low_open, high, high_open
 
-    def problem(self, value: Any) -> str | None:
-        """What is wrong with ``value``, or ``None`` when it is in range (non-numbers pass:
-        their type is the loader's business)."""
-        items = value if isinstance(value, tuple | list) else (value,)
-        numbers = [v for v in items if isinstance(v, int | float) and not isinstance(v, bool)]
-        if all(self.contains(v) for v in numbers):
-            return None
+    def contains(self, value: float) -> bool:
+        """Whether the number ``value`` is in range (and finite)."""
+        low, low_open, high, high_open = self._bounds
+        return ((value > low if low_open else value >= low)
+                and (value < high if high_open else value <= high)
+                and math.isfinite(value))
+
+    def accepts(self, value: Any) -> bool:
+        """Whether ``value`` is in range: a number, or each number of a tuple or list (other
+        values pass: their type is the loader's business)."""
+        if isinstance(value, tuple | list):
+            return all(self.accepts(v) for v in value)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return True
+        return self.contains(value)
+
+    def problem(self, value: Any) -> str:
+        """``must be <range> (<note>), got <value>``."""
         note = f" ({self.note})" if self.note else ""
         return f"must be {self.text()}{note}, got {value!r}"
 
@@ -331,9 +347,8 @@ def check_fields(config: Any) -> None:
             continue
         if choices is not None and not _literal_match(value, choices):
             raise FieldError(config, name, _choices_problem(value, choices))
-        problem = limits.problem(value) if limits is not None else None
-        if problem is not None:
-            raise FieldError(config, name, problem)
+        if limits is not None and not limits.accepts(value):
+            raise FieldError(config, name, limits.problem(value))
 
 
 def unknown_fields(unknown: Any, known: Any) -> str:
