@@ -97,6 +97,7 @@ __all__ = [
     "checked_device",
     "convert_value",
     "converter",
+    "field_units",
     "from_dict",
     "number_from_text",
     "read_yaml",
@@ -295,6 +296,12 @@ def setting(default: Any = dataclasses.MISSING, *,
         metadata[_RANGE] = Range(gt, ge, lt, le, unit, note)
     return dataclasses.field(default=default, default_factory=default_factory,
                              metadata=metadata)
+
+
+def field_units(cls: type) -> dict[str, str]:
+    """The units that the fields of the dataclass ``cls`` declare with :func:`setting`, by
+    field name (``{"max_speed": "m/s"}``)."""
+    return {f.name: f.metadata[_UNIT] for f in dataclasses.fields(cls) if _UNIT in f.metadata}
 
 
 # ---------------------------------------------------------------------------- field checks

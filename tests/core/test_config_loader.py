@@ -17,6 +17,7 @@ from evtrack.configs import (
     RenamedKeyWarning,
     apply_overrides,
     convert_value,
+    field_units,
     from_dict,
     read_yaml,
     setting,
@@ -187,6 +188,11 @@ def test_values_out_of_range():
     assert info.value.field == "max_speed" and info.value.owner is Gate
     with pytest.raises(FieldError, match=r"^Tracker.method: must be one of \['lm', 'none'\]"):
         Tracker("x", method="gn")  # type: ignore[arg-type]
+
+
+def test_units_are_declared_with_the_range():
+    assert field_units(Gate) == {"max_speed": "m/s"}
+    assert field_units(Tracker) == {"rate_hz": "Hz"}
 
 
 def test_renamed_keys_warn_with_the_new_key():
