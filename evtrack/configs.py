@@ -46,8 +46,9 @@ field, or a plain :class:`ConfigError` about the whole section; the loader puts 
 section in front.
 
 **Renamed keys**: a class lists ``old key -> new key`` in ``RENAMED_KEYS``; the new key may be a
-dotted path into a nested section. A file that uses the old key still loads, with a
-:class:`RenamedKeyWarning` (a ``FutureWarning``) naming the new key; giving both is an error::
+dotted path into a nested section (``ClassVar``, so that the dataclass does not take it for a
+field). A file that uses the old key still loads, with a :class:`RenamedKeyWarning` (a
+``FutureWarning``) naming the new key; giving both is an error::
 
     @dataclass(frozen=True)
     class TrackerConfig(Config):
