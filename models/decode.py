@@ -26,19 +26,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields, replace
-from typing import Any
+from dataclasses import dataclass, replace
+from typing import Any, Literal
 
 import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.config_values import checked_scalar, unknown_fields
-from evtrack.errors import ConfigError
+from evtrack.configs import Config, setting
 from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
 from evtrack.models.keypoints import (
-    SUBPIXEL_METHODS,
     find_peaks,
     grid_to_pixel,
     pixel_to_grid,
@@ -48,6 +46,7 @@ from evtrack.models.pose_search import merge_points, search_pose
 
 __all__ = [
     "DecodeConfig",
+    "SubpixelMethod",
     "PoseDetection",
     "InstanceKeypoints",
     "extract_instances",
@@ -58,12 +57,16 @@ __all__ = [
 ]
 
 
+SubpixelMethod = Literal["log_quadratic", "centroid", "none"]
+"""The sub-cell peak refinements of :func:`~evtrack.models.keypoints.find_peaks`
+(:data:`~evtrack.models.keypoints.SUBPIXEL_METHODS`)."""
+
 _MIN_KEYPOINT_SPREAD_PX = 1.0
 """Keypoints spread over less than this (pixels, either axis) give no pose."""
 
 
 @dataclass(frozen=True)
-class DecodeConfig:
+class DecodeConfig(Config):
     """How belief maps and affinity fields become poses.
 
     Attributes:
@@ -156,89 +159,36 @@ class DecodeConfig:
             image itself does not. 0: always twice.
     """
 
-    peak_threshold: float = 0.1
-    nms_radius: int = 1
-    subpixel: str = "log_quadratic"
-    max_angle_deg: float = 30.0
-    min_affinity_norm: float = 0.2
-    min_points: int = 5
+    peak_threshold: float = setting(0.1, ge=0.0, le=1.0)
+    nms_radius: int = setting(1, ge=1, unit="cells")
+    subpixel: SubpixelMethod = "log_quadratic"
+    max_angle_deg: float = setting(30.0, gt=0.0, le=180.0, unit="deg")
+    min_affinity_norm: float = setting(0.2, ge=0.0, le=1.0)
+    min_points: int = setting(5, ge=4, note="PnP needs 4")
     ransac: bool = True
-    ransac_reprojection_px: float = 6.0
-    ransac_iterations: int = 100
-    refine: str = "lm"
-    reprojection_scale_px: float = 8.0
-    min_confidence: float = 0.0
-    max_instances: int = 16
-    correspondence: str = "strongest"
-    search_below: float = 0.1
-    search_identity_weight: float = 0.5
-    search_max_points: int = 8
-    search_merge_cells: float = 1.0
-    search_gate_cells: float = 1.5
-    crop_refine: float = 0.5
-    crop_margin: float = 1.3
-    prior_recrop: float = 0.05
-    crop_blend_max_deg: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.correspondence not in ("strongest", "search"):
-            raise ConfigError(f"decode.correspondence must be 'strongest' or 'search', got "
-                              f"{self.correspondence!r}")
-        if not (math.isfinite(self.search_below) and 0.0 <= self.search_below <= 1.0):
-            raise ConfigError(f"decode.search_below must be in [0, 1] (a confidence; 0: off), "
-                              f"got {self.search_below}")
-        if not 0.0 <= self.search_identity_weight <= 1.0:
-            raise ConfigError("decode.search_identity_weight must be in [0, 1], got "
-                              f"{self.search_identity_weight}")
-        if self.search_max_points < 2:
-            raise ConfigError(f"decode.search_max_points must be >= 2, got "
-                              f"{self.search_max_points}")
-        if self.subpixel not in SUBPIXEL_METHODS:
-            raise ConfigError(f"decode.subpixel must be one of {SUBPIXEL_METHODS}")
-        if self.refine not in ("lm", "none"):
-            raise ConfigError(f"decode.refine must be 'lm' or 'none', got {self.refine!r}")
-        if self.min_points < 4:
-            raise ConfigError(f"decode.min_points must be >= 4 for PnP, got {self.min_points}")
-        if not 0 < self.max_angle_deg <= 180:
-            raise ConfigError(f"decode.max_angle_deg must be in (0, 180], got {self.max_angle_deg}")
-        if not (math.isfinite(self.crop_refine) and 0.0 <= self.crop_refine <= 4.0):
-            raise ConfigError(f"decode.crop_refine must be in [0, 4] (a fraction of the network "
-                              f"input width; 0: off), got {self.crop_refine}")
-        if not (math.isfinite(self.prior_recrop) and 0.0 <= self.prior_recrop <= 1.0):
-            raise ConfigError(f"decode.prior_recrop must be in [0, 1] (a fraction of the crop "
-                              f"side), got {self.prior_recrop}")
-        if not (math.isfinite(self.crop_margin) and self.crop_margin >= 1.0):
-            raise ConfigError(f"decode.crop_margin must be >= 1, got {self.crop_margin}")
-        if not (math.isfinite(self.crop_blend_max_deg) and 0.0 <= self.crop_blend_max_deg <= 180.0):
-            raise ConfigError(f"decode.crop_blend_max_deg must be in [0, 180] (degrees; 0: off), "
-                              f"got {self.crop_blend_max_deg}")
-        if self.nms_radius < 1 or self.max_instances < 1:
-            raise ConfigError("decode.nms_radius and decode.max_instances must be >= 1")
-        for name, low, high in (("peak_threshold", 0.0, 1.0), ("min_affinity_norm", 0.0, 1.0),
-                                ("min_confidence", 0.0, 1.0)):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and low <= value <= high):
-                raise ConfigError(f"decode.{name} must be in [{low:g}, {high:g}], got {value}")
-        for name in ("ransac_reprojection_px", "reprojection_scale_px", "search_merge_cells",
-                     "search_gate_cells"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ConfigError(f"decode.{name} must be > 0, got {value}")
-        if self.ransac_iterations < 1:
-            raise ConfigError(f"decode.ransac_iterations must be >= 1, got "
-                              f"{self.ransac_iterations}")
+    ransac_reprojection_px: float = setting(6.0, gt=0.0, unit="px")
+    ransac_iterations: int = setting(100, ge=1)
+    refine: Literal["lm", "none"] = "lm"
+    reprojection_scale_px: float = setting(8.0, gt=0.0, unit="px")
+    min_confidence: float = setting(0.0, ge=0.0, le=1.0)
+    max_instances: int = setting(16, ge=1)
+    correspondence: Literal["strongest", "search"] = "strongest"
+    search_below: float = setting(0.1, ge=0.0, le=1.0, note="a confidence; 0: off")
+    search_identity_weight: float = setting(0.5, ge=0.0, le=1.0)
+    search_max_points: int = setting(8, ge=2)
+    search_merge_cells: float = setting(1.0, gt=0.0, unit="cells")
+    search_gate_cells: float = setting(1.5, gt=0.0, unit="cells")
+    crop_refine: float = setting(0.5, ge=0.0, le=4.0,
+                                 note="a fraction of the network input width; 0: off")
+    crop_margin: float = setting(1.3, ge=1.0)
+    prior_recrop: float = setting(0.05, ge=0.0, le=1.0, note="a fraction of the crop side")
+    crop_blend_max_deg: float = setting(0.0, ge=0.0, le=180.0, unit="deg", note="0: off")
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None, source: str = "decode") -> DecodeConfig:
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"{source}: {unknown_fields(unknown, known)}")
-        defaults = cls()
-        data = {name: checked_scalar(name, value, getattr(defaults, name), source)
-                for name, value in data.items()}
-        return cls(**data)
+        """Build from a mapping of fields (``None``: the defaults); errors name ``source``
+        and the field."""
+        return super().from_dict(data, source)
 
 
 @dataclass
@@ -307,7 +257,7 @@ def extract_instances(
         )
     if belief.shape[1:] != affinity.shape[1:]:
         raise ValueError(f"belief {belief.shape} and affinity {affinity.shape} sizes differ")
-    peaks = find_peaks(belief, cfg.peak_threshold, cfg.nms_radius, cfg.subpixel)  # type: ignore[arg-type]
+    peaks = find_peaks(belief, cfg.peak_threshold, cfg.nms_radius, cfg.subpixel)
     centroids = peaks[CENTROID_INDEX][: cfg.max_instances]
     m = len(centroids)
     if m == 0:
@@ -400,10 +350,29 @@ def solve_pose(
     dist = None if dist is None else np.asarray(dist, dtype=np.float64).reshape(-1)
     obj = np.ascontiguousarray(cuboid.points()[mask])
     img = np.ascontiguousarray(on_pnp_grid(instance.keypoints[mask]))
-    used = np.ones(n, dtype=bool)
-    starts: list[tuple[np.ndarray, np.ndarray]] = []
     if np.ptp(img, axis=0).max() < _MIN_KEYPOINT_SPREAD_PX:
         return None  # every keypoint on (nearly) one pixel: no pose, and OpenCV's solvers assert
+    epnp, used = _epnp_start(obj, img, K, dist, cfg)
+    obj_u, img_u = obj[used], img[used]
+    starts = [s for s in (epnp, _sqpnp_start(obj_u, img_u, K, dist)) if s is not None]
+    best = _best_refined(starts, obj_u, img_u, K, dist, cfg, cuboid.points())
+    if best is None:
+        return None
+    err, rvec, tvec = best
+    return _detection(rvec, tvec, instance.keypoints, instance.scores, err, int(used.sum()), cfg,
+                      object_name)
+
+
+_Start = tuple[np.ndarray, np.ndarray]
+"""A PnP solution ``(rvec, tvec)``."""
+
+
+def _epnp_start(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray | None,
+                cfg: DecodeConfig) -> tuple[_Start | None, np.ndarray]:
+    """EPnP, inside RANSAC when ``cfg.ransac`` and there are >= 6 points: the solution (or
+    ``None``) and the mask of the points it keeps (RANSAC's inliers, else all)."""
+    n = len(obj)
+    used = np.ones(n, dtype=bool)
     try:
         if cfg.ransac and n >= 6:
             ok, rvec, tvec, inliers = cv2.solvePnPRansac(
@@ -413,20 +382,34 @@ def solve_pose(
             if ok and inliers is not None and len(inliers) >= cfg.min_points:
                 used = np.zeros(n, dtype=bool)
                 used[inliers.reshape(-1)] = True
-                starts.append((rvec, tvec))
+                return (rvec, tvec), used
         else:
             ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_EPNP)
             if ok:
-                starts.append((rvec, tvec))
+                return (rvec, tvec), used
     except cv2.error:
-        pass  # a degenerate configuration: the SQPnP start below may still succeed
-    obj_u, img_u = obj[used], img[used]
+        pass  # a degenerate configuration: the SQPnP start may still succeed
+    return None, used
+
+
+def _sqpnp_start(obj: np.ndarray, img: np.ndarray, K: np.ndarray, dist: np.ndarray | None
+                 ) -> _Start | None:
+    """SQPnP's solution, or ``None``."""
     try:
-        ok, rvec, tvec = cv2.solvePnP(obj_u, img_u, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_SQPNP)
         if ok:
-            starts.append((rvec, tvec))
+            return rvec, tvec
     except cv2.error:
         pass  # SQPnP asserts on (nearly) collinear or coincident points
+    return None
+
+
+def _best_refined(
+    starts: Sequence[_Start], obj: np.ndarray, img: np.ndarray, K: np.ndarray,
+    dist: np.ndarray | None, cfg: DecodeConfig, corners: np.ndarray,
+) -> tuple[float, np.ndarray, np.ndarray] | None:
+    """Each start refined (``cfg.refine``); the one with the smallest reprojection RMS (px)
+    that puts every cuboid point in front of the camera, as ``(rms, rvec, tvec)``."""
     best: tuple[float, np.ndarray, np.ndarray] | None = None
     for rvec, tvec in starts:
         rvec, tvec = rvec.astype(np.float64).copy(), tvec.astype(np.float64).copy()
@@ -434,19 +417,15 @@ def solve_pose(
             continue
         if cfg.refine == "lm":
             try:
-                rvec, tvec = cv2.solvePnPRefineLM(obj_u, img_u, K, dist, rvec, tvec)
+                rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
             except cv2.error:
                 continue
-        if not _in_front(cuboid.points(), rvec, tvec):
+        if not _in_front(corners, rvec, tvec):
             continue
-        err = _reprojection_rms(obj_u, img_u, rvec, tvec, K, dist)
+        err = _reprojection_rms(obj, img, rvec, tvec, K, dist)
         if np.isfinite(err) and (best is None or err < best[0]):
             best = (err, rvec, tvec)
-    if best is None:
-        return None
-    err, rvec, tvec = best
-    return _detection(rvec, tvec, instance.keypoints, instance.scores, err, int(used.sum()), cfg,
-                      object_name)
+    return best
 
 
 def _detection(

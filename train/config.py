@@ -1,7 +1,8 @@
 """Training configuration: dataclasses with documented defaults, loaded from YAML (no eval).
 
 A config file has the sections of :class:`TrainConfig`; every field not given keeps its
-default, an unknown or mistyped field is a :class:`~evtrack.errors.ConfigError` naming it.
+default, an unknown, mistyped or out-of-range field is a :class:`~evtrack.errors.ConfigError`
+naming the file and the field (:mod:`evtrack.configs` reads it).
 Relative paths (``object.mesh``, ``data.cache_dir``, ``output_dir``, shard folders) are
 relative to the working directory, as with Lightning's CLI: run ``evtrack train`` from the
 repository root. ``trainer`` is passed to ``lightning.Trainer`` unchanged (accelerator, devices,
@@ -11,18 +12,11 @@ training are configured.
 
 from __future__ import annotations
 
-import dataclasses
 import inspect
-import types
-import typing
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, fields
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
-import yaml
-
-from evtrack.config_values import number_from_text
+from evtrack.configs import Config, FieldError, apply_overrides, setting
 from evtrack.errors import ConfigError
 from evtrack.models.cuboid import Cuboid
 from evtrack.models.weights import IMAGENET_MEAN, IMAGENET_STD
@@ -35,7 +29,6 @@ __all__ = [
     "ModelConfig",
     "DataConfig",
     "TrainConfig",
-    "load_dataclass",
     "apply_overrides",
     "RESERVED_TRAINER_KEYS",
 ]
@@ -44,139 +37,9 @@ __all__ = [
 RESERVED_TRAINER_KEYS = ("logger", "callbacks", "default_root_dir", "use_distributed_sampler")
 
 
-# ---------------------------------------------------------------------------- generic loader
-def _convert(tp: Any, value: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if tp is Any:
-        return value
-    if origin in (typing.Union, types.UnionType):
-        if value is None:
-            if type(None) in args:
-                return None
-            raise ConfigError(f"{where}: must not be null")
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(arg, value, where)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if len(errors) == 1 else f"{where}: invalid value {value!r}")
-    if dataclasses.is_dataclass(tp):
-        if hasattr(tp, "from_dict"):
-            return tp.from_dict(value, where)
-        return load_dataclass(tp, value, where)
-    if origin is tuple:
-        if not isinstance(value, Sequence) or isinstance(value, str):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        pairs = enumerate(zip(args, value, strict=True))
-        return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in pairs)
-    if origin is dict or tp is dict:
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
-        return dict(value)
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true/false, got {value!r}")
-        return value
-    if tp is int:
-        value = number_from_text(value)  # "1e3": YAML 1.1 reads it as a string
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        value = number_from_text(value)  # "1e-3": YAML 1.1 reads it as a string
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{where}: unsupported field type {tp!r}")
-
-
-def load_dataclass(cls: type, data: Any, where: str) -> Any:
-    """Build dataclass ``cls`` from a mapping, recursively, with errors naming the field.
-
-    Raises:
-        ConfigError: not a mapping, unknown or missing fields, wrong types, invalid values.
-    """
-    if data is None:
-        data = {}
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    known = {f.name: f for f in fields(cls)}
-    unknown = sorted(set(data) - set(known))
-    if unknown:
-        raise ConfigError(f"{where}: unknown field(s) {unknown}; known: {sorted(known)}")
-    missing = [
-        n for n, f in known.items()
-        if n not in data and f.default is dataclasses.MISSING
-        and f.default_factory is dataclasses.MISSING
-    ]
-    if missing:
-        raise ConfigError(f"{where}: missing required field(s) {missing}")
-    kwargs = {k: _convert(hints[k], v, f"{where}.{k}") for k, v in data.items()}
-    try:
-        return cls(**kwargs)
-    except ConfigError:
-        raise
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{where}: {exc}") from exc
-
-
-def _plain(obj: Any) -> Any:
-    """Dataclasses/tuples -> dicts/lists (YAML- and JSON-safe)."""
-    if hasattr(obj, "to_dict"):
-        return _plain(obj.to_dict())
-    if dataclasses.is_dataclass(obj):
-        return {f.name: _plain(getattr(obj, f.name)) for f in fields(obj)}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    return obj
-
-
-def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
-    """Apply ``"a.b.c=value"`` overrides (value parsed as YAML) to a nested dict copy."""
-    import copy
-
-    out = copy.deepcopy(data)
-    for item in overrides:
-        if "=" not in item:
-            raise ConfigError(f"override {item!r} must look like section.field=value")
-        key, raw = item.split("=", 1)
-        parts = key.strip().split(".")
-        if not all(parts):
-            raise ConfigError(f"override {item!r}: empty field name")
-        try:
-            value = yaml.safe_load(raw)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"override {item!r}: value is not valid YAML: {exc}") from exc
-        node = out
-        for p in parts[:-1]:
-            child = node.setdefault(p, {})
-            if not isinstance(child, dict):
-                raise ConfigError(f"override {item!r}: {p!r} is not a section")
-            node = child
-        node[parts[-1]] = value
-    return out
-
-
 # ---------------------------------------------------------------------------- sections
 @dataclass(frozen=True)
-class ObjectConfig:
+class ObjectConfig(Config):
     """The object to learn.
 
     The cuboid comes from ``mesh``, else from ``dimensions``, else from the synthetic data
@@ -198,10 +61,14 @@ class ObjectConfig:
     dimensions: tuple[float, float, float] | None = None
     center: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.mesh is not None and self.dimensions is not None:
+            raise FieldError(self, "mesh", "give either mesh or dimensions, not both")
+
     def cuboid(self) -> Cuboid:
+        """The object's cuboid (see the class docstring for where it comes from)."""
         if self.mesh is not None:
-            if self.dimensions is not None:
-                raise ConfigError("object: give either mesh or dimensions, not both")
             box = Cuboid.from_mesh(self.mesh)
             return Cuboid(box.dimensions) if self.recenter else box
         if self.dimensions is not None:
@@ -219,7 +86,7 @@ class ObjectConfig:
 
 
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(Config):
     """The network.
 
     Attributes:
@@ -252,13 +119,14 @@ class ModelConfig:
     channels_last: bool = False
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.init_transfer and self.init_weights is None:
-            raise ConfigError("model.init_transfer is set but model.init_weights is not: "
-                              "name the weights to transfer from")
+            raise FieldError(self, "init_transfer", "is set but init_weights is not: name the "
+                             "weights to transfer from")
 
 
 @dataclass(frozen=True)
-class DataConfig:
+class DataConfig(Config):
     """Training and validation data.
 
     Attributes:
@@ -283,32 +151,27 @@ class DataConfig:
     options: dict[str, Any] = field(default_factory=dict)
     val_source: str | None = None
     val_options: dict[str, Any] | None = None
-    train_samples: int = 4096
-    val_samples: int = 256
+    train_samples: int = setting(4096, ge=1)
+    val_samples: int = setting(256, ge=0)
     image_size: tuple[int, int] = (240, 320)
     seed: int = 0
     val_seed: int = 1
     cache_dir: str | None = None
-    samples_per_shard: int = 256
-    render_workers: int = 0
-    batch_size: int = 16
-    num_workers: int = 0
+    samples_per_shard: int = setting(256, ge=1)
+    render_workers: int = setting(0, ge=0)
+    batch_size: int = setting(16, ge=1)
+    num_workers: int = setting(0, ge=0)
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     targets: TargetConfig = field(default_factory=TargetConfig)
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         h, w = self.image_size
         if h <= 0 or w <= 0 or h % 8 or w % 8:
-            raise ConfigError(f"data.image_size must be positive multiples of 8, got "
-                              f"{self.image_size}")
-        if self.train_samples < 1 or self.val_samples < 0 or self.batch_size < 1:
-            raise ConfigError("data: train_samples and batch_size must be >= 1, "
-                              "val_samples >= 0")
-        if self.num_workers < 0 or self.render_workers < 0 or self.samples_per_shard < 1:
-            raise ConfigError("data: num_workers and render_workers must be >= 0, "
-                              "samples_per_shard >= 1")
+            raise FieldError(self, "image_size", f"must be positive multiples of 8, got "
+                             f"{self.image_size}")
         if self.seed == self.val_seed and self.val_source is None and self.val_samples:
-            raise ConfigError("data: seed and val_seed are equal, so validation samples would "
+            raise ConfigError("seed and val_seed are equal, so validation samples would "
                               "repeat training samples")
 
 
@@ -321,7 +184,7 @@ _TRAINER_NUMBERS = ("gradient_clip_val",)
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Config):
     """A whole training run (see the module docstring).
 
     Attributes:
@@ -348,51 +211,38 @@ class TrainConfig:
     output_dir: str = "runs/pose"
     run_name: str | None = None
     seed: int = 0
-    logger: str = "csv"
+    logger: Literal["csv", "tensorboard"] = "csv"
     licence: str = "BSD-3-Clause"
 
     def __post_init__(self) -> None:
-        if self.logger not in ("csv", "tensorboard"):
-            raise ConfigError(f"logger must be 'csv' or 'tensorboard', got {self.logger!r}")
+        super().__post_init__()
         reserved = sorted(set(self.trainer) & set(RESERVED_TRAINER_KEYS))
         if reserved:
-            raise ConfigError(f"trainer: {reserved} are set by evtrack train; remove them")
+            raise FieldError(self, "trainer", f"{reserved} are set by evtrack train; remove them")
         import lightning
 
         accepted = set(inspect.signature(lightning.Trainer.__init__).parameters) - {"self"}
         unknown = sorted(set(self.trainer) - accepted)
         if unknown:
-            raise ConfigError(f"trainer: unknown lightning.Trainer argument(s) {unknown}")
+            raise FieldError(self, "trainer", f"unknown lightning.Trainer argument(s) {unknown}")
         for key, value in self.trainer.items():  # the common numbers, before any rendering
-            if key in _TRAINER_INTEGERS and value is not None and (
-                    isinstance(value, bool) or not isinstance(value, int)):
-                raise ConfigError(f"trainer.{key}: expected an integer, got {value!r}")
-            if key in _TRAINER_NUMBERS and value is not None and (
-                    isinstance(value, bool) or not isinstance(value, int | float)):
-                raise ConfigError(f"trainer.{key}: expected a number, got {value!r}")
+            problem = _trainer_value_problem(key, value)
+            if problem:
+                raise FieldError(self, f"trainer.{key}", problem)
 
     @property
     def name(self) -> str:
         return self.run_name or f"{self.object.name}_{self.model.name}"
 
-    @classmethod
-    def from_dict(cls, data: Any, source: str = "config") -> TrainConfig:
-        return load_dataclass(cls, data, source)
 
-    @classmethod
-    def from_yaml(cls, path: str | Path, overrides: Sequence[str] = ()) -> TrainConfig:
-        """Load ``path`` and apply ``section.field=value`` overrides."""
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"{path}: config file not found")
-        try:
-            data = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{path}: invalid YAML: {exc}") from exc
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: the top level must be a mapping of sections")
-        return load_dataclass(cls, apply_overrides(data, overrides), str(path))
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain nested dict (round-trips through :meth:`from_dict`)."""
-        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)}
+def _trainer_value_problem(key: str, value: Any) -> str | None:
+    """What is wrong with the ``lightning.Trainer`` argument ``key=value`` that Lightning
+    itself would find only once the run starts, or ``None``."""
+    if value is None:
+        return None
+    if key in _TRAINER_INTEGERS and (isinstance(value, bool) or not isinstance(value, int)):
+        return f"expected an integer, got {value!r}"
+    if key in _TRAINER_NUMBERS and (isinstance(value, bool)
+                                    or not isinstance(value, int | float)):
+        return f"expected a number, got {value!r}"
+    return None

@@ -3,8 +3,8 @@
 Every section is a dataclass whose defaults are the values used by the benchmark set
 (640x480, 500 FPS renders, 60 FPS RGB-D). :func:`load_config` reads a YAML file with the
 same nesting (``camera``, ``scene``, ``render``, ``trajectory``, ``events``, ``frames``,
-``ground_truth``); unknown or mistyped fields raise :class:`~evtrack.errors.ConfigError`
-naming the file and the field.
+``ground_truth``) with :mod:`evtrack.configs`: unknown, mistyped or out-of-range fields raise
+:class:`~evtrack.errors.ConfigError` naming the file and the field.
 
 Example:
     >>> cfg = SimConfig.from_dict({"duration": 0.5, "trajectory": {"preset": "faster"}})
@@ -14,18 +14,12 @@ Example:
 
 from __future__ import annotations
 
-import dataclasses
-import types
-import typing
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
-
-import yaml
+from typing import Any, Literal
 
 from evtrack.camera import PinholeCamera
-from evtrack.config_values import number_from_text
+from evtrack.configs import Config, FieldError, setting
 from evtrack.errors import ConfigError
 
 __all__ = [
@@ -38,6 +32,7 @@ __all__ = [
     "GroundTruthConfig",
     "SimConfig",
     "TRAJECTORY_PRESETS",
+    "TrajectoryPreset",
     "load_config",
 ]
 
@@ -48,9 +43,12 @@ TRAJECTORY_PRESETS: dict[str, dict[str, float]] = {
     "faster": {"linear_speed": 0.8, "angular_speed": 2.5},
 }
 
+TrajectoryPreset = Literal["regular", "faster"]
+"""The names of :data:`TRAJECTORY_PRESETS`."""
+
 
 @dataclass
-class CameraConfig:
+class CameraConfig(Config):
     """The simulated camera (event camera and RGB-D camera share it: identical optics).
 
     Attributes:
@@ -82,7 +80,7 @@ class CameraConfig:
 
 
 @dataclass
-class SceneConfig:
+class SceneConfig(Config):
     """What surrounds the object: background, lighting, distractors.
 
     Attributes:
@@ -114,7 +112,7 @@ class SceneConfig:
 
 
 @dataclass
-class RenderConfig:
+class RenderConfig(Config):
     """Render timing and clipping.
 
     Attributes:
@@ -140,7 +138,7 @@ class RenderConfig:
 
 
 @dataclass
-class TrajectoryConfig:
+class TrajectoryConfig(Config):
     """Random smooth 6-DoF trajectories (see :mod:`evtrack.sim.trajectory`).
 
     Attributes:
@@ -161,9 +159,9 @@ class TrajectoryConfig:
             ``[1 - jitter, 1 + jitter]``.
     """
 
-    preset: str = "regular"
-    linear_speed: float | None = None
-    angular_speed: float | None = None
+    preset: TrajectoryPreset = "regular"
+    linear_speed: float | None = setting(None, gt=0, unit="m/s")
+    angular_speed: float | None = setting(None, gt=0, unit="rad/s")
     z_range: tuple[float, float] = (0.4, 1.2)
     view_margin: float = 0.5
     waypoint_step: tuple[float, float] = (0.08, 0.35)
@@ -173,24 +171,18 @@ class TrajectoryConfig:
     duration_jitter: float = 0.3
 
     def __post_init__(self) -> None:
-        if self.preset not in TRAJECTORY_PRESETS:
-            raise ConfigError(
-                f"trajectory.preset must be one of {sorted(TRAJECTORY_PRESETS)}, "
-                f"got {self.preset!r}"
-            )
+        super().__post_init__()
         preset = TRAJECTORY_PRESETS[self.preset]
         if self.linear_speed is None:
             self.linear_speed = preset["linear_speed"]
         if self.angular_speed is None:
             self.angular_speed = preset["angular_speed"]
         if not 0 < self.z_range[0] < self.z_range[1]:
-            raise ConfigError(f"trajectory.z_range must be 0 < near < far, got {self.z_range}")
-        if self.linear_speed <= 0 or self.angular_speed <= 0:
-            raise ConfigError("trajectory speeds must be positive")
+            raise FieldError(self, "z_range", f"must be 0 < near < far, got {self.z_range}")
 
 
 @dataclass
-class EventConfig:
+class EventConfig(Config):
     """The event-camera model (see :mod:`evtrack.sim.esim`).
 
     Attributes:
@@ -207,29 +199,20 @@ class EventConfig:
         device: torch device of the simulator (``"cpu"``, ``"cuda"``).
     """
 
-    threshold_on: float = 0.2
-    threshold_off: float = 0.2
-    threshold_mismatch: float = 0.03
-    min_threshold: float = 0.01
-    refractory_us: float = 100.0
-    log_eps: float = 0.01
-    shot_noise_hz: float = 0.0
-    leak_noise_hz: float = 0.0
-    leak_mismatch: float = 0.1
+    threshold_on: float = setting(0.2, gt=0)
+    threshold_off: float = setting(0.2, gt=0)
+    threshold_mismatch: float = setting(0.03, ge=0)
+    min_threshold: float = setting(0.01, gt=0)
+    refractory_us: float = setting(100.0, ge=0, unit="µs")
+    log_eps: float = setting(0.01, gt=0)
+    shot_noise_hz: float = setting(0.0, ge=0, unit="Hz")
+    leak_noise_hz: float = setting(0.0, ge=0, unit="Hz")
+    leak_mismatch: float = setting(0.1, ge=0)
     device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        for name in ("threshold_on", "threshold_off", "min_threshold", "log_eps"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"events.{name} must be positive, got {getattr(self, name)}")
-        for name in ("threshold_mismatch", "refractory_us", "shot_noise_hz", "leak_noise_hz",
-                     "leak_mismatch"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"events.{name} must be >= 0, got {getattr(self, name)}")
 
 
 @dataclass
-class FrameConfig:
+class FrameConfig(Config):
     """The RGB-D camera: exposure (motion blur), sensor noise, depth noise.
 
     Attributes:
@@ -246,20 +229,14 @@ class FrameConfig:
         depth_range: valid depth range, metres; outside it depth is missing.
     """
 
-    rgb_hz: float = 60.0
-    exposure: float = 1.0
+    rgb_hz: float = setting(60.0, gt=0, unit="Hz")
+    exposure: float = setting(1.0, gt=0, le=1)
     read_noise: float = 0.004
     shot_noise: float = 0.01
     depth_noise: float = 0.0024
     depth_dropout: float = 0.005
     depth_shadow_baseline: float = 0.055
     depth_range: tuple[float, float] = (0.2, 10.0)
-
-    def __post_init__(self) -> None:
-        if not 0 < self.exposure <= 1:
-            raise ConfigError(f"frames.exposure must be in (0, 1], got {self.exposure}")
-        if not self.rgb_hz > 0:
-            raise ConfigError(f"frames.rgb_hz must be positive, got {self.rgb_hz}")
 
     @classmethod
     def noiseless(cls, **overrides: Any) -> FrameConfig:
@@ -271,7 +248,7 @@ class FrameConfig:
 
 
 @dataclass
-class GroundTruthConfig:
+class GroundTruthConfig(Config):
     """Which ground truth to store.
 
     Attributes:
@@ -284,7 +261,7 @@ class GroundTruthConfig:
 
 
 @dataclass
-class SimConfig:
+class SimConfig(Config):
     """Everything one simulated sequence needs besides the object.
 
     Attributes:
@@ -297,7 +274,7 @@ class SimConfig:
             element-wise ops with 2 threads on 2 loaded cores).
     """
 
-    duration: float = 2.0
+    duration: float = setting(2.0, gt=0, unit="s")
     seed: int = 0
     torch_threads: int = 1
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -309,122 +286,14 @@ class SimConfig:
     ground_truth: GroundTruthConfig = field(default_factory=GroundTruthConfig)
 
     def __post_init__(self) -> None:
-        if not self.duration > 0:
-            raise ConfigError(f"duration must be positive, got {self.duration}")
+        super().__post_init__()
         if self.render.render_hz < self.frames.rgb_hz:
             raise ConfigError(
                 f"render.render_hz ({self.render.render_hz}) must be at least frames.rgb_hz "
                 f"({self.frames.rgb_hz})"
             )
 
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any], source: str = "config") -> SimConfig:
-        """Build from nested mappings; errors name ``source`` and the offending field."""
-        return _from_dict(cls, data, source, "")
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain nested dict (YAML-safe: tuples become lists)."""
-        return _plain(dataclasses.asdict(self))
-
-    def to_yaml(self, path: str | Path) -> None:
-        from evtrack.utils import atomic_write_text
-
-        atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
-
 
 def load_config(path: str | Path) -> SimConfig:
     """Read a :class:`SimConfig` from a YAML file (``yaml.safe_load``; never evaluated)."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: simulation config not found") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: invalid YAML: {exc}") from exc
-    return SimConfig.from_dict(data or {}, source=str(path))
-
-
-# ---------------------------------------------------------------------------- helpers
-def _plain(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value
-
-
-def _convert(value: Any, annotation: Any, where: str) -> Any:
-    """Check and convert a YAML value to the annotated field type."""
-    origin = typing.get_origin(annotation)
-    if origin in (typing.Union, types.UnionType):
-        options = typing.get_args(annotation)
-        if value is None and type(None) in options:
-            return None
-        errors = []
-        for opt in options:
-            if opt is type(None):
-                continue
-            try:
-                return _convert(value, opt, where)
-            except ConfigError as exc:
-                errors.append(str(exc))
-        raise ConfigError(errors[0] if errors else f"{where}: invalid value {value!r}")
-    if origin is tuple:
-        args = typing.get_args(annotation)
-        if len(args) == 2 and args[1] is Ellipsis:  # tuple[T, ...]: any length
-            if not isinstance(value, (list, tuple)):
-                raise ConfigError(f"{where}: expected a list, got {value!r}")
-            return tuple(_convert(v, args[0], f"{where}[{i}]") for i, v in enumerate(value))
-        if not isinstance(value, (list, tuple)) or len(value) != len(args):
-            raise ConfigError(f"{where}: expected a list of {len(args)} numbers, got {value!r}")
-        return tuple(_convert(v, a, f"{where}[{i}]")
-                     for i, (v, a) in enumerate(zip(value, args, strict=True)))
-    if annotation is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true/false, got {value!r}")
-        return value
-    if annotation is int:
-        value = number_from_text(value)  # "1e3": YAML 1.1 reads it as a string
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if annotation is float:
-        value = number_from_text(value)  # "1e-3": YAML 1.1 reads it as a string
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if annotation is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{where}: unsupported field type {annotation!r}")  # pragma: no cover
-
-
-def _from_dict(cls: type, data: Any, source: str, prefix: str) -> Any:
-    if not isinstance(data, Mapping):
-        where = prefix.rstrip(".") or "top level"
-        raise ConfigError(f"{source}: {where}: expected a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ConfigError(
-            f"{source}: unknown field(s) {[prefix + u for u in unknown]} "
-            f"(known: {sorted(fields)})"
-        )
-    kwargs = {}
-    for name, value in data.items():
-        hint = hints[name]
-        where = f"{source}: {prefix}{name}"
-        if dataclasses.is_dataclass(hint):
-            kwargs[name] = _from_dict(hint, value, source, f"{prefix}{name}.")
-        else:
-            kwargs[name] = _convert(value, hint, where)
-    try:
-        return cls(**kwargs)
-    except ConfigError as exc:
-        if str(exc).startswith(source):
-            raise
-        raise ConfigError(f"{source}: {exc}") from exc
+    return SimConfig.from_yaml(path)

@@ -31,6 +31,7 @@ from evtrack.sim.config import SimConfig, TrajectoryConfig
 from evtrack.sim.esim import EventSimulator, log_intensity
 from evtrack.sim.frames import (
     ExposureAccumulator,
+    ExposureWindow,
     add_depth_noise,
     add_rgb_noise,
     exposure_windows,
@@ -155,22 +156,202 @@ def simulate(
             base renders.
 
     Returns:
-        counts, pixel-speed statistics and stage timings.
+        counts, pixel-speed statistics and stage timings (seconds).
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise FileExistsError(f"{out_dir} exists; pass overwrite=True to replace it")
-    timer = _Timer()
     t_start = time.perf_counter()
-    cam = config.camera.camera()
-    seeds = _seeds(config.seed)
-    duration_us = int(round(config.duration * 1e6))
-    if trajectory is None:
-        trajectory = sequence_trajectory(config, obj)
-    scene = sequence_scene(config)
-    base_times = render_times_us(config.duration, config.render.render_hz)
-    windows = exposure_windows(base_times, config.frames.rgb_hz, config.frames.exposure,
-                               duration_us)
+    run = _Simulation(obj, config, name or out_dir.name, trajectory)
+    bar = None
+    if progress is True:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(run.base_times), unit="render", desc=f"simulate {run.meta.name}")
+    tick = bar.update if bar is not None else (progress if callable(progress) else None)
+
+    renderer = Renderer(run.cam, config.render.near, config.render.far)
+    threads_before = torch.get_num_threads()
+    if config.torch_threads > 0:
+        torch.set_num_threads(config.torch_threads)
+    try:
+        run.prepare(renderer)
+        with SequenceWriter(out_dir, run.meta, overwrite=overwrite) as writer:
+            run.write(writer, tick)
+    finally:
+        torch.set_num_threads(threads_before)
+        renderer.release()
+        if bar is not None:
+            bar.close()
+    stats = run.stats
+    stats.timings = dict(run.timer.totals)
+    total = time.perf_counter() - t_start
+    stats.timings["other"] = total - sum(stats.timings.values())  # set-up, closing files
+    stats.timings["total"] = total
+    return stats
+
+
+class _Simulation:
+    """One :func:`simulate` run: its schedule, random streams, and the state of the stream of
+    renders (events waiting to be written, the open exposure, the ground truth so far)."""
+
+    def __init__(self, obj: ObjectMesh, config: SimConfig, name: str,
+                 trajectory: Trajectory | None) -> None:
+        self.obj, self.config = obj, config
+        self.timer = _Timer()
+        self.cam = cam = config.camera.camera()
+        seeds = _seeds(config.seed)
+        duration_us = int(round(config.duration * 1e6))
+        if trajectory is None:
+            trajectory = sequence_trajectory(config, obj)
+        self.trajectory = trajectory
+        self.scene = sequence_scene(config)
+        self.base_times = render_times_us(config.duration, config.render.render_hz)
+        windows = exposure_windows(self.base_times, config.frames.rgb_hz,
+                                   config.frames.exposure, duration_us)
+        self.frame_of_render, self.depth_render = _frame_schedule(windows, self.base_times)
+        self.esim = EventSimulator(cam.width, cam.height, config.events,
+                                   seed=int(seeds["events"].generate_state(1)[0]))
+        self.rgb_rng = np.random.default_rng(seeds["rgb_noise"])
+        self.depth_rng = np.random.default_rng(seeds["depth_noise"])
+        self.stats = SimulationStats(num_base_renders=len(self.base_times))
+        self.pose_times: list[int] = []
+        self.flows: list[np.ndarray] = []
+        self.pending: list[Events] = []
+        self.pending_n = 0
+        self.acc = ExposureAccumulator()
+        self.min_threshold = min(config.events.threshold_on, config.events.threshold_off)
+        self.meta = SequenceMeta(
+            event_camera=cam, name=name, object_name=obj.name, mesh_path=MESH_FILE,
+            rgb_camera=cam, rates={"render_hz": config.render.render_hz,
+                                   "rgb_hz": config.frames.rgb_hz,
+                                   "depth_hz": config.frames.rgb_hz},
+            depth_unit="mm_png16", source="simulation")
+        self.renderer: Renderer
+        self.writer: SequenceWriter
+
+    def prepare(self, renderer: Renderer) -> None:
+        """Set up ``renderer`` with the scene and the object."""
+        self.renderer = renderer
+        self.scene.apply(renderer)
+        renderer.set_object(self.obj)
+
+    def write(self, writer: SequenceWriter, tick: Callable[[int], Any] | None) -> None:
+        """Render every base time (and the adaptive midpoints); write the events, frames,
+        ground truth and mesh."""
+        self.writer = writer
+        prev = self.render(int(self.base_times[0]), 0)
+        self.esim.reset(prev.log, prev.t_us)
+        self.pose_times.append(prev.t_us)
+        if tick:
+            tick(1)
+        for k in range(1, len(self.base_times)):
+            cur = self.render(int(self.base_times[k]), k)
+            self.step(prev, cur, 0)
+            prev = cur
+            if tick:
+                tick(1)
+        self.flush()
+        self.write_ground_truth()
+        self.meta.extra = _extra(self.config, self.obj, self.trajectory, self.scene, self.stats)
+        with self.timer("write"):
+            self.obj.export(writer.file_path(MESH_FILE))
+
+    def render(self, t_us: int, base_index: int | None = None) -> _RenderState:
+        """Render at ``t_us``; a base render (``base_index``) also feeds the frames."""
+        with self.timer("render"):
+            raw = self.renderer.render_raw(self.trajectory.pose(t_us * 1e-6))
+            w = raw[..., 3]
+            depth = np.abs(w)
+            mask = w > 0
+        if base_index is not None:
+            self.frames(base_index, t_us, raw, depth)
+        with self.timer("events"):
+            log = log_intensity(torch.from_numpy(raw[..., :3]).to(self.esim.device),
+                                self.config.events.log_eps)
+        return _RenderState(int(t_us), log, depth, mask)
+
+    def step(self, a: _RenderState, b: _RenderState, level: int) -> None:
+        """The events from ``a`` to ``b``, after splitting the interval where the adaptive
+        rendering asks for it (``level``: splits so far)."""
+        render = self.config.render
+        if (render.adaptive and b.t_us - a.t_us >= 2
+                and _too_big(a, b, render.depth_jump,
+                             render.max_log_change * self.min_threshold)):
+            if level < render.max_subdivisions:
+                if level == 0:
+                    self.stats.subdivided_intervals += 1
+                mid = self.render((a.t_us + b.t_us) // 2)
+                self.step(a, mid, level + 1)
+                self.step(mid, b, level + 1)
+                return
+            self.stats.capped_intervals += 1
+        self.emit(a, b)
+
+    def emit(self, a: _RenderState, b: _RenderState) -> None:
+        """Step the event simulator to ``b``; its events (and their flow) join the queue."""
+        with self.timer("events"):
+            ev = self.esim.step(b.log, b.t_us).to("cpu")
+        self.pose_times.append(b.t_us)
+        if not len(ev):
+            return
+        if self.config.ground_truth.event_flow:
+            with self.timer("ground_truth"):
+                self.flows.append(event_flow(
+                    ev.x.numpy(), ev.y.numpy(), ev.t.numpy(), a.t_us, a.depth, a.mask,
+                    b.t_us, b.depth, b.mask, self.trajectory, self.cam))
+        self.pending.append(ev)
+        self.pending_n += len(ev)
+        self.stats.num_events += len(ev)
+        if self.pending_n >= _FLUSH_EVENTS:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the queued events."""
+        if self.pending:
+            with self.timer("write"):
+                self.writer.add_events(concatenate(self.pending))
+            self.pending, self.pending_n = [], 0
+
+    def frames(self, k: int, t_us: int, raw: np.ndarray, depth: np.ndarray) -> None:
+        """Base render ``k`` into the open RGB exposure (a frame when it closes) and, if it is
+        the one nearest a frame's timestamp, into a depth frame."""
+        frames = self.config.frames
+        with self.timer("frames"):
+            w = self.frame_of_render.get(k)
+            if w is not None:
+                self.acc.add(raw)  # the whole RGBA buffer: contiguous, fast; alpha unused
+                if k == w.last:
+                    noisy = add_rgb_noise(self.acc.mean()[..., :3], self.rgb_rng, frames)
+                    self.writer.add_rgb(w.t_us, linear_to_srgb(noisy))
+                    self.acc.reset()
+                    self.stats.num_rgb += 1
+            if k in self.depth_render:
+                self.writer.add_depth(t_us, add_depth_noise(depth, self.depth_rng, frames,
+                                                            self.cam.fx))
+
+    def write_ground_truth(self) -> None:
+        """Poses and twists at every render, the events' flow, the pixel-speed statistics."""
+        with self.timer("ground_truth"):
+            t_us = np.asarray(self.pose_times, np.int64)
+            poses = self.trajectory.pose(t_us * 1e-6)
+            twists = self.trajectory.twist(t_us * 1e-6)
+            flow = None
+            if self.config.ground_truth.event_flow:
+                flow = (np.concatenate(self.flows) if self.flows
+                        else np.zeros((0, 2), np.float32))
+            self.writer.set_ground_truth(GroundTruth(t_us, poses, t_us, twists, flow))
+            samples = speed_samples(self.obj, self.trajectory, t_us, self.cam,
+                                    self.config.ground_truth.velocity_samples)
+        self.stats.num_renders = len(self.pose_times)
+        self.stats.pixel_speed = speed_percentiles(samples)
+        self.stats.pixel_speed_samples = samples
+
+
+def _frame_schedule(windows: list[ExposureWindow], base_times: np.ndarray
+                    ) -> tuple[dict[int, ExposureWindow], dict[int, ExposureWindow]]:
+    """For each base render index: the RGB exposure window it belongs to, and the window whose
+    depth frame it gives (the render nearest the window's timestamp)."""
     frame_of_render = {}
     depth_render = {}
     for w in windows:
@@ -178,141 +359,7 @@ def simulate(
             frame_of_render[k] = w
         ks = np.arange(w.first, w.last + 1)
         depth_render[int(ks[np.argmin(np.abs(base_times[ks] - w.t_us))])] = w
-    ev_cfg = config.events
-    esim = EventSimulator(cam.width, cam.height, ev_cfg,
-                          seed=int(seeds["events"].generate_state(1)[0]))
-    rgb_rng = np.random.default_rng(seeds["rgb_noise"])
-    depth_rng = np.random.default_rng(seeds["depth_noise"])
-    stats = SimulationStats(num_base_renders=len(base_times))
-    pose_times: list[int] = []
-    flows: list[np.ndarray] = []
-    pending: list[Events] = []
-    pending_n = 0
-    acc = ExposureAccumulator()
-    min_threshold = min(ev_cfg.threshold_on, ev_cfg.threshold_off)
-
-    meta = SequenceMeta(
-        event_camera=cam, name=name or out_dir.name, object_name=obj.name, mesh_path=MESH_FILE,
-        rgb_camera=cam, rates={"render_hz": config.render.render_hz,
-                               "rgb_hz": config.frames.rgb_hz, "depth_hz": config.frames.rgb_hz},
-        depth_unit="mm_png16", source="simulation")
-
-    bar = None
-    if progress is True:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(base_times), unit="render", desc=f"simulate {meta.name}")
-    tick = bar.update if bar is not None else (progress if callable(progress) else None)
-
-    renderer = Renderer(cam, config.render.near, config.render.far)
-    threads_before = torch.get_num_threads()
-    if config.torch_threads > 0:
-        torch.set_num_threads(config.torch_threads)
-    try:
-        scene.apply(renderer)
-        renderer.set_object(obj)
-
-        def render(t_us: int, base_index: int | None = None) -> _RenderState:
-            with timer("render"):
-                raw = renderer.render_raw(trajectory.pose(t_us * 1e-6))
-                w = raw[..., 3]
-                depth = np.abs(w)
-                mask = w > 0
-            if base_index is not None:
-                frames(base_index, t_us, raw, depth)
-            with timer("events"):
-                log = log_intensity(torch.from_numpy(raw[..., :3]).to(esim.device),
-                                    ev_cfg.log_eps)
-            return _RenderState(int(t_us), log, depth, mask)
-
-        def flush(writer: SequenceWriter) -> None:
-            nonlocal pending, pending_n
-            if pending:
-                with timer("write"):
-                    writer.add_events(concatenate(pending))
-                pending, pending_n = [], 0
-
-        def step(a: _RenderState, b: _RenderState, writer: SequenceWriter, level: int) -> None:
-            nonlocal pending_n
-            if (config.render.adaptive and b.t_us - a.t_us >= 2
-                    and _too_big(a, b, config.render.depth_jump,
-                                 config.render.max_log_change * min_threshold)):
-                if level < config.render.max_subdivisions:
-                    if level == 0:
-                        stats.subdivided_intervals += 1
-                    mid = render((a.t_us + b.t_us) // 2)
-                    step(a, mid, writer, level + 1)
-                    step(mid, b, writer, level + 1)
-                    return
-                stats.capped_intervals += 1
-            with timer("events"):
-                ev = esim.step(b.log, b.t_us).to("cpu")
-            pose_times.append(b.t_us)
-            if len(ev):
-                if config.ground_truth.event_flow:
-                    with timer("ground_truth"):
-                        flows.append(event_flow(
-                            ev.x.numpy(), ev.y.numpy(), ev.t.numpy(), a.t_us, a.depth, a.mask,
-                            b.t_us, b.depth, b.mask, trajectory, cam))
-                pending.append(ev)
-                pending_n += len(ev)
-                stats.num_events += len(ev)
-                if pending_n >= _FLUSH_EVENTS:
-                    flush(writer)
-
-        def frames(k: int, t_us: int, raw: np.ndarray, depth: np.ndarray) -> None:
-            with timer("frames"):
-                w = frame_of_render.get(k)
-                if w is not None:
-                    acc.add(raw)  # the whole RGBA buffer: contiguous, fast; alpha unused
-                    if k == w.last:
-                        noisy = add_rgb_noise(acc.mean()[..., :3], rgb_rng, config.frames)
-                        writer.add_rgb(w.t_us, linear_to_srgb(noisy))
-                        acc.reset()
-                        stats.num_rgb += 1
-                if k in depth_render:
-                    writer.add_depth(t_us, add_depth_noise(depth, depth_rng, config.frames,
-                                                           cam.fx))
-
-        with SequenceWriter(out_dir, meta, overwrite=overwrite) as writer:
-            prev = render(int(base_times[0]), 0)
-            esim.reset(prev.log, prev.t_us)
-            pose_times.append(prev.t_us)
-            if tick:
-                tick(1)
-            for k in range(1, len(base_times)):
-                cur = render(int(base_times[k]), k)
-                step(prev, cur, writer, 0)
-                prev = cur
-                if tick:
-                    tick(1)
-            flush(writer)
-            with timer("ground_truth"):
-                t_us = np.asarray(pose_times, np.int64)
-                poses = trajectory.pose(t_us * 1e-6)
-                twists = trajectory.twist(t_us * 1e-6)
-                flow = None
-                if config.ground_truth.event_flow:
-                    flow = (np.concatenate(flows) if flows else np.zeros((0, 2), np.float32))
-                writer.set_ground_truth(GroundTruth(t_us, poses, t_us, twists, flow))
-                samples = speed_samples(obj, trajectory, t_us, cam,
-                                         config.ground_truth.velocity_samples)
-            stats.num_renders = len(pose_times)
-            stats.pixel_speed = speed_percentiles(samples)
-            stats.pixel_speed_samples = samples
-            meta.extra = _extra(config, obj, trajectory, scene, stats)
-            with timer("write"):
-                obj.export(writer.file_path(MESH_FILE))
-    finally:
-        torch.set_num_threads(threads_before)
-        renderer.release()
-        if bar is not None:
-            bar.close()
-    stats.timings = dict(timer.totals)
-    total = time.perf_counter() - t_start
-    stats.timings["other"] = total - sum(stats.timings.values())  # set-up, closing files
-    stats.timings["total"] = total
-    return stats
+    return frame_of_render, depth_render
 
 
 def _too_big(a: _RenderState, b: _RenderState, depth_jump: float, limit: float) -> bool:

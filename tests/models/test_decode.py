@@ -427,6 +427,32 @@ def test_search_below_is_validated(value):
         DecodeConfig(search_below=value)
 
 
+def test_decode_config_errors_name_the_field_and_its_range():
+    with pytest.raises(ConfigError, match=r"^DecodeConfig.crop_blend_max_deg: must be in "
+                                          r"\[0, 180\] deg \(0: off\), got 200.0$"):
+        DecodeConfig(crop_blend_max_deg=200.0)
+    with pytest.raises(ConfigError, match=r"^record.decode: min_points: must be >= 4 \(PnP needs "
+                                          r"4\), got 3$"):
+        DecodeConfig.from_dict({"min_points": 3}, "record.decode")
+    with pytest.raises(ConfigError, match=r"^decode: unknown field\(s\) \['crop_blend'\] "
+                                          r"\('crop_blend': did you mean 'crop_blend_max_deg'\?\)"):
+        DecodeConfig.from_dict({"crop_blend": 45})
+    assert DecodeConfig.from_dict({"peak_threshold": "5e-2"}).peak_threshold == 0.05
+    assert DecodeConfig.from_dict(DecodeConfig(refine="none").to_dict()) == DecodeConfig(
+        refine="none")
+
+
+def test_subpixel_choices_are_those_of_find_peaks():
+    from typing import get_args
+
+    from evtrack.models.decode import SubpixelMethod
+    from evtrack.models.keypoints import SUBPIXEL_METHODS
+
+    assert get_args(SubpixelMethod) == SUBPIXEL_METHODS
+    with pytest.raises(ConfigError, match="subpixel"):
+        DecodeConfig(subpixel="quadratic")
+
+
 def test_search_config_is_validated():
     with pytest.raises(ConfigError, match="correspondence"):
         DecodeConfig(correspondence="hungarian")

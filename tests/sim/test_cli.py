@@ -41,7 +41,7 @@ def test_simulate_errors(tmp_path, capsys) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("events:\n  threshold_on: -1\n")
     assert main(base + ["--object", "can", "--config", str(bad)]) == 1
-    assert "threshold_on must be positive" in capsys.readouterr().err
+    assert f"{bad}: events.threshold_on: must be > 0, got -1.0" in capsys.readouterr().err
     zero = ["simulate", "--duration", "0.02", "--object", "can", "--out", str(tmp_path / "x")]
     assert main(zero + ["--width", "0", "--height", "120"]) == 1  # once: a 640x120 camera
     assert "--width must be positive, got 0" in capsys.readouterr().err

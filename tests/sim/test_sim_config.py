@@ -37,13 +37,20 @@ def test_defaults_and_camera() -> None:
 @pytest.mark.parametrize("data, match", [
     ({"durration": 1.0}, r"unknown field\(s\) \['durration'\]"),
     ({"events": {"threshold_on": "high"}}, r"events.threshold_on: expected a number"),
-    ({"events": {"threshold_on": -0.1}}, r"events.threshold_on must be positive"),
-    ({"trajectory": {"preset": "slow"}}, r"trajectory.preset must be one of"),
+    ({"events": {"threshold_on": -0.1}}, r"^x.yaml: events.threshold_on: must be > 0, got -0.1$"),
+    ({"trajectory": {"preset": "slow"}},
+     r"trajectory.preset: must be one of \['regular', 'faster'\], got 'slow'"),
     ({"scene": {"light_direction": [1, 2]}}, r"scene.light_direction: expected a list of 3"),
-    ({"render": {"adaptive": "yes"}}, r"render.adaptive: expected true/false"),
+    ({"render": {"adaptive": "yes"}}, r"render.adaptive: expected true or false"),
     ({"camera": 5}, r"camera: expected a mapping"),
-    ({"duration": 0}, r"duration must be positive"),
+    ({"duration": 0}, r"^x.yaml: duration: must be > 0 s, got 0"),
     ({"render": {"render_hz": 30.0}}, r"render_hz .* must be at least frames.rgb_hz"),
+    ({"trajectory": {"z_range": [1.0, 0.5]}},
+     r"^x.yaml: trajectory.z_range: must be 0 < near < far, got \(1.0, 0.5\)$"),
+    ({"trajectory": {"linear_speed": 0}}, r"trajectory.linear_speed: must be > 0 m/s, got 0"),
+    ({"frames": {"exposure": 1.5}}, r"frames.exposure: must be in \(0, 1\], got 1.5"),
+    ({"scene": {"light_direction": [1, 2, "up"]}},
+     r"scene.light_direction\[2\]: expected a number, got 'up'"),
 ])
 def test_errors_name_the_field(data, match) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -68,6 +75,31 @@ def test_load_errors(tmp_path) -> None:
     ok.write_text("duration: 0.5\ntrajectory:\n  preset: faster\n")
     cfg = load_config(ok)
     assert cfg.duration == 0.5 and cfg.trajectory.linear_speed == 0.8
+
+
+def test_trajectory_preset_names_are_the_presets() -> None:
+    from typing import get_args
+
+    from evtrack.sim.config import TRAJECTORY_PRESETS, TrajectoryPreset
+
+    assert set(get_args(TrajectoryPreset)) == set(TRAJECTORY_PRESETS)
+
+
+def test_checks_hold_for_configs_built_in_code() -> None:
+    from evtrack.sim.config import EventConfig, FrameConfig
+
+    with pytest.raises(ConfigError, match=r"^EventConfig.refractory_us: must be >= 0 µs"):
+        EventConfig(refractory_us=-1.0)
+    with pytest.raises(ConfigError, match=r"^FrameConfig.rgb_hz: must be > 0 Hz"):
+        FrameConfig(rgb_hz=float("nan"))
+    with pytest.raises(ConfigError, match=r"^TrajectoryConfig.preset: must be one of"):
+        TrajectoryConfig(preset="slow")
+
+
+def test_to_yaml_round_trips(tmp_path) -> None:
+    cfg = SimConfig.from_dict({"duration": 0.5, "scene": {"distractor_kinds": ["can"]}})
+    cfg.to_yaml(tmp_path / "cfg.yaml")
+    assert load_config(tmp_path / "cfg.yaml") == cfg
 
 
 def test_distractor_kinds_load_from_yaml_as_a_list():

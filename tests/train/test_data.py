@@ -105,7 +105,7 @@ def test_render_workers_fill_the_same_cache(tmp_path, monkeypatch):
     for i in range(6):
         np.testing.assert_array_equal(serial[i].image, parallel[i].image)
         np.testing.assert_array_equal(serial[i].keypoints, parallel[i].keypoints)
-    with pytest.raises(ConfigError, match="render_workers must be >= 0"):
+    with pytest.raises(ConfigError, match="render_workers: must be >= 0"):
         DataConfig(render_workers=-1)
 
 
