@@ -219,7 +219,7 @@ def test_velocity_noise_pivots_about_the_tracked_object(fast_sequence, runs) -> 
     assert float(Q[:3, 3:].abs().max()) > 0
     plain, _ = make_tracker(fast_sequence, method="full", velocity_kf={"object_centred": False})
     plain.track(fast_sequence)
-    assert torch.equal(plain.vkf.q_matrix, torch.diag(plain.vkf.q_density))
+    assert torch.equal(plain.motion.vkf.q_matrix, torch.diag(plain.motion.vkf.q_density))
 
 
 def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
