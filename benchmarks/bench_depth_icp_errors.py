@@ -1,11 +1,12 @@
-"""The depth alignment (``depth_icp``) under depth errors the simulator does not make.
+"""The depth alignment (``depth_fusion.icp``) under depth errors the simulator does not make.
 
     python benchmarks/bench_depth_icp_errors.py --sequence DIR [DIR ...] [--seed 0]
 
 The simulator's depth noise is independent per pixel (RealSense-like axial noise, 2.4 mm at
 1 m), which an ICP fit averages away. A real sensor's errors are not independent. Every
 sequence is tracked by the full method (oracle poses: 1 cm / 0.03 rad per axis at 5 Hz, 200 ms
-latency, as ``evtrack evaluate --oracle``) with and without ``depth_icp``, on its depth frames
+latency, as ``evtrack evaluate --oracle``) with and without ``depth_fusion.icp``, on its depth
+frames
 as simulated and with two corruptions added to every frame:
 
 * ``bias``: a 1 % scale error (every depth 1 % too far: 1 cm at 1 m), as an uncalibrated
@@ -53,7 +54,7 @@ def track(folder: Path, kind: str, depth_icp: bool, seed: int) -> tuple:
     seq.depth = lambda i: corrupted_depth(read(i), kind, rng)  # what track() reads
     source = OraclePoseSource.from_sequence(seq, std_translation=0.01, std_rotation=0.03,
                                             seed=seed)
-    tracker = Tracker.for_sequence(seq, TrackerConfig(depth_icp=depth_icp), source)
+    tracker = Tracker.for_sequence(seq, TrackerConfig(depth_fusion={"icp": depth_icp}), source)
     errors = tracking_errors(tracker.track(seq), seq.ground_truth)
     return errors, tracker.stats
 

@@ -20,7 +20,7 @@ and every run's time. Then the least-squares line through the sequences' points,
 filters' steps, the pose source's calls and checks, the depth frames, the silhouettes;
 ``per_mev``: what each Mev/s of events adds), the event rate at which that line reaches
 real time, ``(1 - fixed) / per_mev``, and each sequence's residual. The line is a summary,
-not a law: above ``max_searched_per_step`` searched events per step the search and the
+not a law: above ``load.max_searched_per_step`` searched events per step the search and the
 registration stop growing with the rate, so the dense sequences cost less per event than
 the sparse ones.
 

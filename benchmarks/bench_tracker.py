@@ -56,11 +56,11 @@ Columns:
     group p50/p95: processing time of one step group (``flow_batch_steps`` velocity steps:
         one flow call and the filter steps) — the latency of an output in live use.
     filters/step: mean time of one velocity-filter + pose-filter step (µs).
-    cap: ``max_events_per_step`` (events per 1 ms step entering the flow; thinned above it):
+    cap: ``load.max_events_per_step`` (events per 1 ms step entering the flow; thinned above it):
         ``--caps`` compares the speed and the error of several budgets.
-    sample: ``search_per_roi_window`` (events of a RoI window searched for candidates, a hash
+    sample: ``load.search_per_roi_window`` (events of a RoI window searched for candidates, a hash
         sample; 0: all): ``--search-per-window`` compares several.
-    rt, min bgt, min ev: ``realtime_load`` (0: off), the lowest search budget and the lowest
+    rt, min bgt, min ev: ``load.realtime`` (0: off), the lowest search budget and the lowest
         event budget per step it set (0: none); ``--realtime-load 0 0.9`` compares the
         deterministic default with live use.
     runs: the processing time of each run (with ``--repeats``; the other columns are medians).
@@ -90,6 +90,7 @@ import sys
 import tarfile
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 # first, before torch loads: evtrack sets OpenMP's wait policy (see evtrack.runtime.openmp_wait)
@@ -214,6 +215,15 @@ def _plain(value):
     return value
 
 
+def _option(cfg, section: str, name: str, flat: str | None = None):
+    """A tracker option by its place in the config's sections, or by its flat name in the
+    config of a tree from before the sections (``flat``: that name where it differs)."""
+    part = getattr(cfg, section, None)
+    if part is not None and hasattr(part, name):
+        return getattr(part, name)
+    return getattr(cfg, flat or name)
+
+
 def measure(job: dict) -> dict:
     """Track one sequence once and time it; the row of the tables.
 
@@ -226,7 +236,9 @@ def measure(job: dict) -> dict:
     seq = Sequence.load(job["sequence"])
     if job.get("duration") is not None:
         truncate(seq, job["duration"])
-    cfg = TrackerConfig.from_dict(job["config"])
+    with warnings.catch_warnings():  # the rows' flat option names: read by both trees
+        warnings.simplefilter("ignore", FutureWarning)
+        cfg = TrackerConfig.from_dict(job["config"])
     source, source_name = _pose_source(seq, job["pose"], threads)
     tracker = Tracker.for_sequence(seq, cfg, source)
     groups: list[float] = []
@@ -252,9 +264,11 @@ def measure(job: dict) -> dict:
            "size": f"{seq.meta.event_camera.width}x{seq.meta.event_camera.height}",
            "roi": cfg.flow.roi_size, "margin": cfg.mask_margin_px,
            "batch": cfg.flow_batch_steps, "pose_hz": cfg.pose_rate_hz,
-           "cap": cfg.max_events_per_step,
-           "sample": cfg.search_per_roi_window, "budget": cfg.max_searched_per_step,
-           "unsearched": getattr(st, "events_unsearched", 0), "rt": cfg.realtime_load,
+           "cap": _option(cfg, "load", "max_events_per_step"),
+           "sample": _option(cfg, "load", "search_per_roi_window"),
+           "budget": _option(cfg, "load", "max_searched_per_step"),
+           "unsearched": getattr(st, "events_unsearched", 0),
+           "rt": _option(cfg, "load", "realtime", flat="realtime_load"),
            "budget_min": getattr(st, "search_budget_min", 0),
            "events_min": getattr(st, "event_budget_min", 0),
            "async": "on" if cfg.pose_async else "off",
@@ -638,7 +652,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="max_searched_per_step values to compare (events searched per "
                          "velocity step, by cells of RoIs; 0: no budget; default: the config's)")
     ap.add_argument("--realtime-load", type=float, nargs="+", default=[None], metavar="L",
-                    help="TrackerConfig.realtime_load values to compare (the search and event "
+                    help="TrackerConfig.load.realtime values to compare (the search and event "
                          "budgets follow the processing load, live use; 0: off, the default)")
     ap.add_argument("--pose-async", nargs="+", choices=["on", "off"], default=[None],
                     help="TrackerConfig.pose_async values to compare (on: the pose source in "

@@ -23,9 +23,9 @@ OpenBLAS's
 * ``eq3``: the tracker's Eq. 3 caps, 16 hypotheses from at most 32 events per RoI window
   (the flow's generic 48 from 64 before);
 * ``sample``: the flow searches a hash sample of about 64 events of each RoI window
-  (``search_per_roi_window``; every event still enters the search's history);
+  (``load.search_per_roi_window``; every event still enters the search's history);
 * ``budget``: of those, at most 2500 events per velocity step are searched, by whole RoIs
-  (``max_searched_per_step``), the tracker's default;
+  (``load.max_searched_per_step``), the tracker's default;
 * ``runs``: the velocity steps between two events of the stream (a frame, a pose due) in
   the filters' compiled runs (``Tracker.step_runs``: ``VelocityKF.forward_run``,
   ``PoseTimeline.step_run``), a few calls for ~10 steps instead of a few dozen per step, and
@@ -51,7 +51,8 @@ their last step's end (its errors on the benchmark sets: see
 ``evtrack.tracking.config``), ``sample`` the data term of fewer events in the crowded windows
 (see ``evtrack.tracking.tracker``), ``budget`` the flows of fewer RoIs when the object's events
 exceed
-the budget (see ``TrackerConfig.max_searched_per_step``). Each run is a fresh child process, the
+the budget (see ``TrackerConfig.load.max_searched_per_step``). Each run is a fresh child process,
+the
 variants interleaved run by run so that the machine's load drifts over all alike; each child
 tracks the sequence twice and times the second run (the first loads the compiled kernels).
 Oracle poses (1 cm / 0.03 rad noise), as in ``benchmarks/bench_tracker.py``. Printed per
@@ -119,9 +120,9 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
     if level < VARIANTS.index("eq3"):
         config["flow"] = {"max_hypotheses": 48, "max_events_per_roi": 64}
     if level < VARIANTS.index("sample"):
-        config["search_per_roi_window"] = 0
+        config.setdefault("load", {})["search_per_roi_window"] = 0
     if level < VARIANTS.index("budget"):
-        config["max_searched_per_step"] = 0
+        config.setdefault("load", {})["max_searched_per_step"] = 0
     return time_tracking(sequence, config, threads, frames)
 
 

@@ -9,7 +9,7 @@ written as a YAML mapping (parsed with ``yaml.safe_load``, checked by ``TrackerC
 anything runs), e.g.::
 
     --option g20='flow_batch_steps: 20'
-    --option pw48='{search_per_roi_window: 48, max_searched_per_step: 1875}'
+    --option pw48='{load: {search_per_roi_window: 48, max_searched_per_step: 1875}}'
 
 ``defaults`` (no override) always runs first, as the reference. ``method`` and
 ``torch_threads`` are this script's ``--method`` and ``--threads``, the same for every

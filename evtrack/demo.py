@@ -73,9 +73,9 @@ class DemoOptions:
         oracle: use ground-truth poses with noise (1 cm, 0.03 rad) instead of a network.
         depth_refine: refine the network's poses on the depth frames (ICP with the mesh).
         depth_range: fuse the object's range measured on each depth frame into the pose
-            filter (the tracker's ``depth_range``; not the paper's method).
+            filter (the tracker's ``depth_fusion.range``; not the paper's method).
         depth_icp: align the mesh with the depth frames and fuse the aligned poses (the
-            tracker's ``depth_icp``; not the paper's method).
+            tracker's ``depth_fusion.icp``; not the paper's method).
         seed: seed of the trajectory, the scene, the sensor noise and the oracle.
         overwrite: replace the outputs of an earlier demo in ``out``.
         jobs: worker processes tracking the methods in parallel.
@@ -157,14 +157,14 @@ def demo_tracker_config(width: int, depth_range: bool = False, depth_icp: bool =
                         ) -> TrackerConfig:
     """Tracker defaults with the demo's RoI size (``DEMO_ROI_AT_REFERENCE``, at least
     ``MIN_ROI``) and the default mask margin, both scaled from 640 px to the image width;
-    ``depth_range`` and ``depth_icp`` set the tracker's fields of those names (off by default,
-    as in the paper)."""
+    ``depth_fusion.range`` and ``depth_fusion.icp`` set the tracker's ``depth_fusion.range`` and
+    ``depth_fusion.icp`` (off by default, as in the paper)."""
     default = TrackerConfig()
     scale = width / REFERENCE_WIDTH
     roi = max(MIN_ROI, round(DEMO_ROI_AT_REFERENCE * scale))
     return TrackerConfig.from_dict(
         {"flow": {"roi_size": roi}, "mask_margin_px": default.mask_margin_px * scale,
-         "depth_range": bool(depth_range), "depth_icp": bool(depth_icp)},
+         "depth_fusion": {"range": bool(depth_range), "icp": bool(depth_icp)}},
         "demo tracker config")
 
 

@@ -209,7 +209,7 @@ class PoseDetection:
             (the strongest peaks' fit where the search's was kept, or the reverse; the first
             pass's detection where the crop pass replaced it), most confident first, each
             without alternatives of its own. A tracker with depth can verify them where the
-            kept pose fails (``TrackerConfig.pose_alternatives``).
+            kept pose fails (``TrackerConfig.pose_gate.alternatives``).
     """
 
     pose: Tensor

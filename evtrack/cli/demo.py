@@ -55,14 +55,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "before tracking; the paper's estimator is RGB only")
     p.add_argument("--depth-range", action="store_true",
                    help="fuse the object's range measured on each depth frame into the pose "
-                        "filter (tracker option depth_range; the paper uses depth only in the "
+                        "filter (tracker option depth_fusion.range; the paper uses depth only "
+                        "in the "
                         "flow's interaction matrix). Over demo seeds 0-5 it took the full "
                         "method's mean from 5.85 to 2.46 cm (rotation 12.3 -> 12.7 deg; "
                         "2026-11-29)")
     p.add_argument("--depth-icp", action="store_true",
                    help="align the object's mesh with the depth frames (ICP from the filter's "
                         "pose, 30 a second) and fuse the aligned poses into the pose filter "
-                        "(tracker option depth_icp; not in the paper)")
+                        "(tracker option depth_fusion.icp; not in the paper)")
     p.add_argument("--seed", type=int, default=d.seed,
                    help="seed of the motion, scene, sensor noise and oracle (default: 0)")
     p.add_argument("--overwrite", action="store_true",

@@ -60,8 +60,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="also run the full method without the normal-flow constraint, "
                         "without measurement weighting, without the pose filter's velocity "
                         "bias (the paper's pose filter), with the range of every depth "
-                        "frame fused (depth_range) and with the mesh aligned with the depth "
-                        "frames (depth_icp), both not in the paper (Table III)")
+                        "frame fused (depth_fusion.range) and with the mesh aligned with the depth "
+                        "frames (depth_fusion.icp), both not in the paper (Table III)")
     p.add_argument("--out", type=Path, default=None, metavar="RESULTS_DIR",
                    help="results folder (default: <DIR>-results beside the benchmark)")
     src = p.add_mutually_exclusive_group()

@@ -44,11 +44,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "object's mesh)")
     p.add_argument("--depth-range", action="store_true",
                    help="also fuse the object's range measured on every depth frame (the mesh "
-                        "at the predicted pose against the sensor depth; depth_range in the "
+                        "at the predicted pose against the sensor depth; depth_fusion.range in the "
                         "config; not in the paper)")
     p.add_argument("--depth-icp", action="store_true",
                    help="also align the object's mesh with the depth frames (ICP from the "
-                        "filter's pose) and fuse the aligned poses; depth_icp in the config; "
+                        "filter's pose) and fuse the aligned poses; depth_fusion.icp in the "
+                        "config; "
                         "not in the paper")
     p.add_argument("--device", default=None, help="torch device (overrides the config's)")
     p.add_argument("--threads", type=int, default=None,
@@ -100,10 +101,11 @@ def run(args: argparse.Namespace) -> int:
     check_writable(args.out, "--out")  # before the tracking, not after it
     seq = Sequence.load(args.sequence)
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
-    changes = {k: v for k, v in (("method", args.method), ("device", args.device),
-                                 ("torch_threads", args.threads),
-                                 ("depth_range", args.depth_range),
-                                 ("depth_icp", args.depth_icp)) if v}
+    changes: dict = {k: v for k, v in (("method", args.method), ("device", args.device),
+                                       ("torch_threads", args.threads)) if v}
+    fusion = {k: True for k, v in (("range", args.depth_range), ("icp", args.depth_icp)) if v}
+    if fusion:
+        changes["depth_fusion"] = fusion
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
     traj = tracker.track(seq, progress=not args.quiet)
@@ -111,9 +113,9 @@ def run(args: argparse.Namespace) -> int:
     st = tracker.stats
     print(f"{args.out}: {len(traj)} samples ({cfg.method}), {int(traj.tracked.sum())} tracking; "
           f"{st.events} events, {st.poses} poses ({st.poses_rejected} rejected), "
-          f"{st.lost} losses" + (f", {st.depth_ranges} depth ranges fused" if cfg.depth_range
+          f"{st.lost} losses" + (f", {st.depth_ranges} depth ranges fused" if cfg.depth_fusion.range
                                  else "")
-          + (f", {st.depth_alignments} depth alignments fused" if cfg.depth_icp else ""))
+          + (f", {st.depth_alignments} depth alignments fused" if cfg.depth_fusion.icp else ""))
     if st.roi_flows and st.depth_fallbacks > 0.5 * st.roi_flows:
         print(f"warning: {st.depth_fallbacks} of {st.roi_flows} RoI flows had no depth from the "
               "depth frames and took the fallback (the predicted depth of the object's centre); "

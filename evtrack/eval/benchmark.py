@@ -56,8 +56,8 @@ class RunSpec:
 
 #: Ablations of the full method (the paper's Table III, and without the pose filter's velocity
 #: bias, which the paper's filter does not have), and two extensions (not in the paper): the
-#: range of every depth frame fused into the pose filter (``depth_range``), and the mesh
-#: aligned with the depth frames (``depth_icp``).
+#: range of every depth frame fused into the pose filter (``depth_fusion.range``), and the
+#: mesh aligned with the depth frames (``depth_fusion.icp``).
 ABLATIONS = (
     RunSpec("full-no-normal-flow", "full", "full w/o normal-flow constraint",
             {"velocity_kf": {"normal_flow": False}}),
@@ -66,9 +66,9 @@ ABLATIONS = (
     RunSpec("full-no-velocity-bias", "full", "full w/o velocity bias (the paper's pose filter)",
             {"pose_ukf": {"velocity_bias": False}}),
     RunSpec("full-depth-range", "full", "full + depth range (not in the paper)",
-            {"depth_range": True}),
+            {"depth_fusion": {"range": True}}),
     RunSpec("full-depth-icp", "full", "full + depth alignment (not in the paper)",
-            {"depth_icp": True}),
+            {"depth_fusion": {"icp": True}}),
 )
 
 

@@ -286,13 +286,13 @@ class FlowConfig:
 
     # ------------------------------------------------------------------ loading
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None) -> FlowConfig:
+    def from_dict(cls, data: dict[str, Any] | None, source: str = "flow config") -> FlowConfig:
         """Build from a mapping; missing fields keep their defaults, unknown ones are errors."""
         data = dict(data or {})
         known = {f.name for f in dataclasses.fields(cls) if f.init}
         unknown = sorted(set(data) - known)
         if unknown:
-            raise ConfigError(f"flow config: {unknown_fields(unknown, known)}")
+            raise ConfigError(f"{source}: {unknown_fields(unknown, known)}")
         types = {"radius": int, "history": int, "tolerance_us": int, "refractory_us": int,
                  "max_span_us": int,
                  "roi_size": int,

@@ -1,13 +1,13 @@
 """The RGB-D extensions (not in the paper): measurements of the pose from each sensor depth
 frame, fused by the pose filter at the frame's time.
 
-* ``depth_range``: the object's range along its viewing ray against the mesh's surface at the
+* ``depth_fusion.range``: the object's range along its viewing ray against the mesh's surface at the
   filter's pose of the frame's time (:mod:`evtrack.tracking.depth_range`; no renderer), a 1-D
   measurement (:meth:`~evtrack.filters.PoseUKF.update_range`); frames without one are counted
   by reason in ``depth_ranges_skipped``.
-* ``depth_icp``: the mesh aligned with the depth frame from the filter's pose of the frame's
+* ``depth_fusion.icp``: the mesh aligned with the depth frame from the filter's pose of the frame's
   time (:class:`~evtrack.models.DepthRefiner`), the aligned pose fused with the fit's
-  covariance, at most ``depth_icp_rate_hz``; refused fits are counted by reason in
+  covariance, at most ``depth_fusion.icp_rate_hz``; refused fits are counted by reason in
   ``depth_alignments_skipped``.
 """
 
@@ -77,13 +77,13 @@ class DepthFusion:
         self.T_event_depth = np.linalg.inv(T_depth_event)
         self.stats = TrackerStats()
         self.depth_range: DepthRange | None = None
-        if config.depth_range:
-            self.depth_range = DepthRange(mesh, depth_camera, std_m=config.depth_range_std_m)
+        if config.depth_fusion.range:
+            self.depth_range = DepthRange(mesh, depth_camera, std_m=config.depth_fusion.range_std_m)
         self.depth_icp: DepthRefiner | None = None
-        if config.depth_icp:
+        if config.depth_fusion.icp:
             self.depth_icp = DepthRefiner.from_mesh(mesh, DepthRefineConfig(
-                model_points=config.depth_icp_points,
-                max_scene_points=config.depth_icp_scene_points))
+                model_points=config.depth_fusion.icp_points,
+                max_scene_points=config.depth_fusion.icp_scene_points))
             self._K = depth_camera.K().numpy()
             self._dist = None if depth_camera.dist is None else depth_camera.dist.numpy()
         self.reset()
@@ -126,7 +126,7 @@ class DepthFusion:
         if self.depth_icp is None:
             return
         cfg = self.config
-        period_us = 1e6 / cfg.depth_icp_rate_hz
+        period_us = 1e6 / cfg.depth_fusion.icp_rate_hz
         last = self.last_alignment_us
         if last is not None and 0 <= frame.t_us - last < 0.9 * period_us:
             return
@@ -140,8 +140,8 @@ class DepthFusion:
             if not res.refined:
                 count_reason(self.stats.depth_alignments_skipped, res.refusal)
                 return
-            cov_d = alignment_covariance(res, cfg.depth_icp_std_m,
-                                         math.radians(cfg.depth_icp_std_deg))
+            cov_d = alignment_covariance(res, cfg.depth_fusion.icp_std_m,
+                                         math.radians(cfg.depth_fusion.icp_std_deg))
             A = self.T_event_depth
             T_meas = A @ res.pose
             Ra = np.kron(np.eye(2), A[:3, :3])  # both tangent blocks rotate with the frame

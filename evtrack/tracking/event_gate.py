@@ -8,7 +8,7 @@
   needs at least ``BURST_MIN_OUTSIDE`` of the image outside the mask, and assumes a static
   camera (as the method does): a moving camera's textured background can exceed the rate by
   itself, and then ``burst_rate_hz: 0`` turns the test off.
-* **Thinning**: at most ``max_events_per_step`` events per step (on average over a group)
+* **Thinning**: at most ``load.max_events_per_step`` events per step (on average over a group)
   enter the flow. Above it the group's events are thinned by cells of 2 x 2 RoIs (squares of
   ``2 * flow.roi_size`` pixels), deterministically and independently of how the events were
   chunked. The cells are taken in one fixed pseudo-random order (a hash of the cell's index):
@@ -21,7 +21,7 @@
   cracker box (`faster`, 8.6 M events/s) a budget of 4000 events per step gave 34.5 cm / 58°
   by single events, 9.2 cm / 13.8° by cells, against 4.35 cm / 6.5° unthinned.
 
-Sampled search (``search_per_roi_window``): of a RoI window with more events than that, the
+Sampled search (``load.search_per_roi_window``): of a RoI window with more events than that, the
 flow searches only a hash sample of about that many for candidates
 (:func:`evtrack.flow.sampled_search`). Every event still enters the search's history,
 so a searched event forms the triplets it would form in the whole stream, and the sample is
@@ -36,7 +36,7 @@ four YCB objects' benchmark set (4 kHz, oracle poses) the full method's RMSE mov
 0.11 deg (64); 32 made the ablation rows worse (``faster`` without the normal-flow constraint
 6.28 -> 10.12 cm), 64 did not (6.45 cm).
 
-Search budget (``max_searched_per_step``): of the events so chosen, at most that many per
+Search budget (``load.max_searched_per_step``): of the events so chosen, at most that many per
 velocity step (over a step group) are searched, by whole RoIs visited in a fixed hash order and
 taken while they fit (``budget`` of :func:`~evtrack.flow.sampling.sampled_search`). Unlike
 thinning (above), the left-out RoIs' events still enter the history: a taken RoI's flow is the

@@ -53,7 +53,7 @@ class PendingPoseCall:
 @dataclass
 class DepthFrame:
     """A sensor depth frame at ``t_us`` (µs): (H, W) metres in the depth source's camera,
-    waiting for the depth fusions (``depth_range``, ``depth_icp``)."""
+    waiting for the depth fusions (``depth_fusion.range``, ``depth_fusion.icp``)."""
 
     t_us: int
     depth: np.ndarray

@@ -1,4 +1,4 @@
-"""Real-time load control (``TrackerConfig.realtime_load``): from the processing time of each
+"""Real-time load control (``TrackerConfig.load.realtime``): from the processing time of each
 step group and its stream time, the search and event budgets per velocity step of the next
 groups. A pure object: it reads no clock and no tracker state."""
 
@@ -74,11 +74,11 @@ class LoadController:
     about as fast as 2000 and 250, 9.5 cm / 16.6 deg, on 2 cores of an AMD EPYC).
 
     Args:
-        target: processing time / stream time aimed at (``realtime_load``; 0: budgets fixed).
+        target: processing time / stream time aimed at (``load.realtime``; 0: budgets fixed).
         max_search, min_search: the search budget's ceiling and floor per step
-            (``max_searched_per_step``, ``min_searched_per_step``).
+            (``load.max_searched_per_step``, ``load.min_searched_per_step``).
         max_events, min_events: the event budget's ceiling (0: none) and floor per step
-            (``max_events_per_step``, ``min_events_per_step``).
+            (``load.max_events_per_step``, ``load.min_events_per_step``).
 
     Attributes:
         budgets: the current :class:`Budgets`.
@@ -98,10 +98,10 @@ class LoadController:
 
     @classmethod
     def from_config(cls, config: TrackerConfig) -> LoadController:
-        """The controller of a tracker's config (``realtime_load`` and the budgets)."""
-        return cls(config.realtime_load, config.max_searched_per_step,
-                   config.min_searched_per_step, config.max_events_per_step,
-                   config.min_events_per_step)
+        """The controller of a tracker's config (``load.realtime`` and the budgets)."""
+        return cls(config.load.realtime, config.load.max_searched_per_step,
+                   config.load.min_searched_per_step, config.load.max_events_per_step,
+                   config.load.min_events_per_step)
 
     def reset(self) -> None:
         """Back to the configured budgets, no history."""

@@ -16,7 +16,7 @@ nearer the filter's pose in rotation. A right pose is kept as long as the filter
 90° of the truth; a half-turned one is turned back. A filter that is itself half a turn off
 (started on such a pose: nothing can resolve the first pose) disagrees with every right pose;
 the tracker re-initialises it when several in a row need the turn
-(``TrackerConfig.pose_half_turn_reinit_after``), and away from those views nothing is turned,
+(``TrackerConfig.pose_gate.half_turn_reinit_after``), and away from those views nothing is turned,
 so the filter's gate and re-initialisation correct it as without the resolver.
 """
 

@@ -1,22 +1,22 @@
 """The pose gate: what becomes of a pose from the pose source before the pose filter fuses it.
 
-* **Ray alignment** (``pose_depth_align``): the pose is moved along its viewing ray onto the
+* **Ray alignment** (``pose_gate.depth_align``): the pose is moved along its viewing ray onto the
   sensor depth of its frame (:mod:`evtrack.tracking.pose_alignment`): an RGB network errs
   mostly in range, which the depth frame measures.
-* **Depth check** (``pose_depth_min_share``): a pose whose frame's sensor depth contradicts it
+* **Depth check** (``pose_gate.depth_min_share``): a pose whose frame's sensor depth contradicts it
   (less than that share of the valid depths inside its silhouette lie in its depth range) is
   dropped: a network's gross errors, which can agree with each other, then never re-initialise
   the filter. Both read the sensor depth frame nearest the pose's own time (within
-  ``max_depth_age_ms``): the maps of the last ``history_ms`` are kept, so a pose that arrives
+  ``depth.max_age_ms``): the maps of the last ``history_ms`` are kept, so a pose that arrives
   late is judged against the depth of its time, not the latest frame's.
-* **Alternatives** (``pose_alternatives``): a dropped pose gives way to the first of its
+* **Alternatives** (``pose_gate.alternatives``): a dropped pose gives way to the first of its
   ``alternatives`` (the detector's other poses of that image, most confident first) that the
   depth confirms.
-* **Half turns** (``pose_half_turn_axes``): a pose whose half turn about a symmetry axis lies
+* **Half turns** (``pose_gate.half_turn_axes``): a pose whose half turn about a symmetry axis lies
   nearer the filter's pose is turned (:mod:`evtrack.tracking.pose_flips`), unless it is the
-  ``pose_half_turn_reinit_after``-th in a row to need it: then the track is deemed half a turn
+  ``pose_gate.half_turn_reinit_after``-th in a row to need it: then the track is deemed half a turn
   off and re-initialises on the pose.
-* **Agreement** (``reinit_on_agreement``): a pose that agrees with the previous, gated one
+* **Agreement** (``pose_gate.reinit_on_agreement``): a pose that agrees with the previous, gated one
   re-initialises the filter (the filter has drifted off, the poses have not).
 """
 
@@ -41,7 +41,7 @@ from evtrack.tracking.stats import TrackerStats, count_reason
 __all__ = ["PoseGate"]
 
 POSE_DEPTH_MIN_PIXELS = 16
-"""Fewest valid depth pixels in a pose's silhouette to judge it (``pose_depth_min_share``)."""
+"""Fewest valid depth pixels in a pose's silhouette to judge it (``pose_gate.depth_min_share``)."""
 
 
 class PoseGate:
@@ -51,8 +51,8 @@ class PoseGate:
         config: the tracker's config (the ``pose_*`` and ``reinit_*`` fields).
         silhouette: the object's silhouette in the camera of the sensor depth frames.
         sensor_depth: whether there are sensor depth frames (no checks without).
-        aligner: the ray aligner (``pose_depth_align``), or ``None``.
-        half_turns: the half-turn resolver (``pose_half_turn_axes``), or ``None``.
+        aligner: the ray aligner (``pose_gate.depth_align``), or ``None``.
+        half_turns: the half-turn resolver (``pose_gate.half_turn_axes``), or ``None``.
         to_depth, from_depth: (4, 4) event camera -> depth camera and back, ``None`` where
             the depth frames are in the event camera.
 
@@ -69,7 +69,7 @@ class PoseGate:
         self.aligner = aligner
         self.half_turns = half_turns
         self.to_depth, self.from_depth = to_depth, from_depth
-        self.checks_depth = sensor_depth and bool(config.pose_depth_min_share
+        self.checks_depth = sensor_depth and bool(config.pose_gate.depth_min_share
                                                   or aligner is not None)
         self.stats = TrackerStats()
         self.depth_frames: dict[int, np.ndarray] = {}
@@ -100,8 +100,8 @@ class PoseGate:
 
     def frame_depth(self, t_us: int) -> np.ndarray | None:
         """The kept sensor depth map nearest in time to a pose at ``t_us`` (the earlier of two
-        as near), within ``max_depth_age_ms`` of it; ``None`` without one."""
-        max_age_us = self.config.max_depth_age_ms * 1e3
+        as near), within ``depth.max_age_ms`` of it; ``None`` without one."""
+        max_age_us = self.config.depth.max_age_ms * 1e3
         fresh = [t for t in self.depth_frames if abs(t_us - t) <= max_age_us]
         if not fresh:
             return None
@@ -138,23 +138,25 @@ class PoseGate:
                 m = dataclasses.replace(m, pose=torch.as_tensor(aligned, dtype=m.pose.dtype))
             else:
                 count_reason(self.stats.pose_alignments_skipped, res.reason)
-        share_min = self.config.pose_depth_min_share
+        share_min = self.config.pose_gate.depth_min_share
         if not share_min:
             return m
         poly = self.silhouette.polygon(pose)
         if poly is None:
             return m
-        share, count = silhouette_depth_share(depth, poly, self.config.pose_depth_tolerance_m)
+        share, count = silhouette_depth_share(depth, poly, self.config.pose_gate.depth_tolerance_m)
         return None if count >= POSE_DEPTH_MIN_PIXELS and share < share_min else m
 
     def plausible_alternative(self, m: PoseMeasurement) -> PoseMeasurement | None:
         """The first of ``m``'s alternatives (most confident first) at or above
-        ``pose_min_confidence`` and ``pose_alternatives_min_confidence`` that passes the depth
-        check, aligned as it checked; ``None`` without one or with ``pose_alternatives`` off."""
+        ``pose_gate.min_confidence`` and ``pose_gate.alternatives_min_confidence`` that passes the
+        depth
+        check, aligned as it checked; ``None`` without one or with ``pose_gate.alternatives``
+        off."""
         c = self.config
-        if not c.pose_alternatives:
+        if not c.pose_gate.alternatives:
             return None
-        least = max(c.pose_min_confidence, c.pose_alternatives_min_confidence)
+        least = max(c.pose_gate.min_confidence, c.pose_gate.alternatives_min_confidence)
         for alt in m.alternatives:
             if alt.confidence < least:
                 continue
@@ -166,10 +168,10 @@ class PoseGate:
 
     def nearer_half_turn(self, m: PoseMeasurement, reference: np.ndarray | None
                          ) -> tuple[PoseMeasurement, bool]:
-        """``m``, or its half turn about one of ``pose_half_turn_axes`` where that lies nearer
+        """``m``, or its half turn about one of ``pose_gate.half_turn_axes`` where that lies nearer
         ``reference`` (4, 4) (the filter's pose at ``m.t_us``; ``None``: none); and whether
         the filter is to re-initialise on ``m`` as it is instead: the pose is the
-        ``pose_half_turn_reinit_after``-th in a row to need the turn, so the track, not the
+        ``pose_gate.half_turn_reinit_after``-th in a row to need the turn, so the track, not the
         network, is deemed half a turn off (it started on a turned pose)."""
         if self.half_turns is None or reference is None:
             return m, False
@@ -179,7 +181,7 @@ class PoseGate:
             self.half_turns_in_row = 0
             return m, False
         self.half_turns_in_row += 1
-        limit = self.config.pose_half_turn_reinit_after
+        limit = self.config.pose_gate.half_turn_reinit_after
         if limit and self.half_turns_in_row >= limit:
             self.half_turns_in_row = 0
             self.stats.half_turn_reinits += 1
@@ -193,14 +195,15 @@ class PoseGate:
         each other but not with the filter mean the filter is off, so the second
         re-initialises it. Random outliers rarely agree with each other."""
         c = self.config
-        if not c.reinit_on_agreement or self.rejected is None:
+        if not c.pose_gate.reinit_on_agreement or self.rejected is None:
             return False
         t0, pose0 = self.rejected
         dt = max(0.0, (t_us - t0) * 1e-6)
         moved = float(position_errors(pose, pose0))
         turned = math.degrees(float(rotation_errors(pose, pose0)))
-        return (moved <= c.reinit_agree_m + c.reinit_agree_m_per_s * dt
-                and turned <= c.reinit_agree_deg + c.reinit_agree_deg_per_s * dt)
+        return (moved <= c.pose_gate.reinit_agree_m + c.pose_gate.reinit_agree_m_per_s * dt
+                and turned <= (c.pose_gate.reinit_agree_deg
+                               + c.pose_gate.reinit_agree_deg_per_s * dt))
 
     def fused(self, m: PoseMeasurement, rejected: bool) -> None:
         """Note the filter's verdict on the fused pose ``m``: gated (``rejected``, and not

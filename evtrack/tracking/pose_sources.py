@@ -86,7 +86,8 @@ class PoseMeasurement:
         alternatives: other poses the detector found for the object in the same image and
             ranked lower (e.g. :attr:`evtrack.models.PoseDetection.alternatives`), most
             confident first; the tracker tries them, in that order, where this pose fails its
-            depth check (``TrackerConfig.pose_alternatives``). Each is a measurement of the same
+            depth check (``TrackerConfig.pose_gate.alternatives``). Each is a measurement of the
+            same
             ``t_us`` without alternatives of its own.
 
     Raises:

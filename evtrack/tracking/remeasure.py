@@ -1,11 +1,11 @@
-"""Measuring again the velocity steps taken before the first pose (``remeasure_on_pose``).
+"""Measuring again the velocity steps taken before the first pose (``remeasure.on_pose``).
 
 Before the first pose the flow runs on all events (no silhouette), so that a late first pose
 is carried to the present by the measured motion. Those steps' RoI flows are kept; once the
 pose is there, they are measured again, each at the pose the filter has at its start (RoIs
 inside the silhouette, depths in its range, the object's centre as the velocity filter's
 pivot), and the pose filter is replayed with these twists. A pose that does not explain the
-kept events (fewer than ``remeasure_min_inside`` of them inside its silhouette) is not used
+kept events (fewer than ``remeasure.min_inside`` of them inside its silhouette) is not used
 for it: measured again at a wrong pose, the steps lose their RoIs and take depths out of the
 object's range, which carries the wrong pose further off than the unposed twists do.
 """
@@ -247,7 +247,7 @@ class Remeasurer:
         return z
 
     def explains_events(self, t_pose: int, kept: dict[int, UnposedStep]) -> bool:
-        """Whether at least ``remeasure_min_inside`` of the kept RoI flows (of at least
+        """Whether at least ``remeasure.min_inside`` of the kept RoI flows (of at least
         ``CHECK_MIN_SUPPORT`` supporting events) of the ``CHECK_US`` after ``t_pose`` lie in
         the silhouette (with the mask margin) at the timeline's pose of their step (carried
         from the pose by the unposed twists; with model depth, held still: only the steps up
@@ -270,4 +270,4 @@ class Remeasurer:
                 inside += int(poly.contains(uv, self.config.mask_margin_px).sum())
         if total < CHECK_MIN_ROIS:
             return True
-        return inside / total >= self.config.remeasure_min_inside
+        return inside / total >= self.config.remeasure.min_inside

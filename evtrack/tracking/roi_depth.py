@@ -2,7 +2,7 @@
 at the predicted pose, with a fallback.
 
 Depth fallback: a RoI without a valid depth (no depth frame yet, a frame older than
-``max_depth_age_ms``, a pushed frame without depth and no earlier one, or only missing or
+``depth.max_age_ms``, a pushed frame without depth and no earlier one, or only missing or
 out-of-range pixels in its patch) takes the predicted depth of the object's origin; each such
 RoI is counted in :attr:`~evtrack.tracking.stats.TrackerStats.depth_fallbacks`.
 """
@@ -70,7 +70,7 @@ class RoiDepth:
         return self.source.t_us + self.max_age_us
 
     def expire(self, t_now: int) -> None:
-        """Drop a sensor depth frame older than ``max_depth_age_ms`` at ``t_now`` (lookups then
+        """Drop a sensor depth frame older than ``depth.max_age_ms`` at ``t_now`` (lookups then
         fall back)."""
         if self.source.t_us is not None and t_now - self.source.t_us > self.max_age_us:
             self.source.map = None

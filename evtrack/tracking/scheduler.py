@@ -104,9 +104,9 @@ class StepScheduler:
             self.buffer = [ev] if len(ev) else []
 
     def _group(self, t0: int, t_end: int, ev: Events) -> None:
-        """:meth:`_group_steps`, timed for ``realtime_load``."""
+        """:meth:`_group_steps`, timed for ``load.realtime``."""
         tr = self.tracker
-        timed = bool(tr.config.realtime_load)
+        timed = bool(tr.config.load.realtime)
         started = tr.clock() if timed else 0.0
         self._group_steps(t0, t_end, ev)
         if timed:

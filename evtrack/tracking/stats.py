@@ -20,10 +20,10 @@ class TrackerStats:
         events_on_object: events inside the predicted silhouette.
         events_in_bursts: of those, events of burst steps (not used); burst_steps: steps
             found to be event bursts (see :mod:`evtrack.tracking.tracker`).
-        events_thinned: events of the cells beyond a group's ``max_events_per_step`` budget
+        events_thinned: events of the cells beyond a group's ``load.max_events_per_step`` budget
             (not used; see :mod:`evtrack.tracking.tracker`).
         events_unsearched: events given to the flow but, beyond a RoI window's
-            ``search_per_roi_window``, not searched for candidates (they still serve the
+            ``load.search_per_roi_window``, not searched for candidates (they still serve the
             searched events' triplets; see :mod:`evtrack.tracking.tracker`).
         roi_flows: RoI flows given to the velocity filter.
         velocity_updates: steps with at least one RoI flow (or GE row).
@@ -31,36 +31,36 @@ class TrackerStats:
         frames: frames pushed; frames_without_depth: of those, without a depth frame.
         pose_calls: pose-source calls; poses: measurements returned; poses_late: dropped
             because older than ``history_ms``; pose_misses: calls that returned nothing or a
-            pose below ``pose_min_confidence``.
+            pose below ``pose_gate.min_confidence``.
         poses_rejected: poses rejected by the gate; reinitialisations: filter re-inits after
             rejections; lost: times the object was declared lost.
         poses_implausible: poses dropped before the filter because the sensor depth of their
-            frame contradicts them (``TrackerConfig.pose_depth_min_share``).
+            frame contradicts them (``TrackerConfig.pose_gate.depth_min_share``).
         poses_from_alternatives: poses that failed that check and were replaced by one of
             their :attr:`~evtrack.tracking.pose_sources.PoseMeasurement.alternatives` that passed it
-            (``TrackerConfig.pose_alternatives``; not counted as implausible).
+            (``TrackerConfig.pose_gate.alternatives``; not counted as implausible).
         poses_half_turned: poses replaced by their half turn about one of
-            ``TrackerConfig.pose_half_turn_axes``, which lay nearer the filter's pose;
+            ``TrackerConfig.pose_gate.half_turn_axes``, which lay nearer the filter's pose;
             half_turn_reinits: poses that re-initialised the filter instead, the
-            ``pose_half_turn_reinit_after``-th in a row to need the turn.
+            ``pose_gate.half_turn_reinit_after``-th in a row to need the turn.
         poses_depth_aligned: poses moved along their viewing ray onto the sensor depth
-            (``TrackerConfig.pose_depth_align``); pose_alignments_skipped: poses that were not,
+            (``TrackerConfig.pose_gate.depth_align``); pose_alignments_skipped: poses that were not,
             by reason (:class:`~evtrack.tracking.pose_alignment.RayAlignment`).
-        search_budget_min: with ``TrackerConfig.realtime_load``, the lowest search budget per
+        search_budget_min: with ``TrackerConfig.load.realtime``, the lowest search budget per
             step it set (0: it never lowered it); event_budget_min: the lowest event budget
             per step it set (0: it never shed events); groups_over_load: step groups whose
-            processing took longer than ``realtime_load`` of their stream time.
+            processing took longer than ``load.realtime`` of their stream time.
         twist_measurements: frame-flow twist measurements fused; twists_replayed: of those,
             measured on kept frame pairs when a late pose started the track.
         steps_remeasured: velocity steps measured again, with RoI flows, once a late pose
-            started the track (``remeasure_on_pose``); remeasures_skipped: late first poses
+            started the track (``remeasure.on_pose``); remeasures_skipped: late first poses
             whose steps were not measured again, the pose not explaining the events
-            (``remeasure_min_inside``).
+            (``remeasure.min_inside``).
         depth_ranges: range measurements from depth frames given to the pose filter
-            (``depth_range``); depth_ranges_skipped: depth frames without one, by reason
+            (``depth_fusion.range``); depth_ranges_skipped: depth frames without one, by reason
             (:class:`~evtrack.tracking.depth_range.RangeResult`).
         depth_alignments: poses aligned with depth frames given to the pose filter
-            (``depth_icp``); depth_alignments_skipped: aligned frames without one, by reason
+            (``depth_fusion.icp``); depth_alignments_skipped: aligned frames without one, by reason
             (``"few depth pixels"``, ``"few fit"``: too few depth pixels fit the mesh,
             ``"correction too large"``).
         time_s: processing time per stage (flow, velocity, pose, frames, other).

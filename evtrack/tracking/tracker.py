@@ -119,7 +119,7 @@ class Tracker:
         T_event_rgb: (4, 4) maps RGB-camera points into the event camera (default identity).
 
     Attributes:
-        clock: ``() -> seconds``, the wall clock ``TrackerConfig.realtime_load`` measures the
+        clock: ``() -> seconds``, the wall clock ``TrackerConfig.load.realtime`` measures the
             processing with (default :func:`time.perf_counter`; replaceable, e.g. in tests).
         stats: :class:`TrackerStats` of the run since the last :meth:`reset`.
         motion: the motion source of ``config.method``
@@ -165,7 +165,7 @@ class Tracker:
             self.silhouette, aligned))
         depth = make_depth_source(cfg, self.motion, self.mesh, self.rgb_camera,
                                   self.T_event_rgb)
-        self.roi_depth = RoiDepth(depth, cfg.max_depth_age_ms)
+        self.roi_depth = RoiDepth(depth, cfg.depth.max_age_ms)
         self.pose_gate = make_pose_gate(cfg, self.motion, self.mesh, vertices, depth,
                                         self.T_event_rgb)
         self.ukf = self.motion.pose_filter()
@@ -178,7 +178,7 @@ class Tracker:
         self.load = LoadController.from_config(cfg)
         self.view = ViewCheck(self.silhouette, cfg.min_visible_fraction, cfg.lost_after_ms,
                               cfg.velocity_step_us)
-        self.pose_calls = PoseCaller(pose_source, cfg.pose_period_us, cfg.pose_min_confidence)
+        self.pose_calls = PoseCaller(pose_source, cfg.pose_period_us, cfg.pose_gate.min_confidence)
         self.scheduler = StepScheduler(self)
         self.fusion = MeasurementFusion(self)
         self.frames = FrameIntake(self)
@@ -359,7 +359,8 @@ class Tracker:
         The frame is processed once the clock reaches it (after the steps ending by ``t_us``);
         a frame older than the clock is processed at once. A depth frame older than the depth
         map in use does not replace it (the RoIs keep the newer one); it still serves the
-        pose checks of its own time and the depth fusions (``depth_range``, ``depth_icp``).
+        pose checks of its own time and the depth fusions (``depth_fusion.range``,
+        ``depth_fusion.icp``).
 
         Args:
             t_us: frame time (µs).
@@ -421,7 +422,7 @@ class Tracker:
             self.fusion.apply_due(self.stream.now)
 
     def _budgets_after_group(self, wall_s: float, stream_s: float) -> None:
-        """``realtime_load``: the load controller's budgets after a step group."""
+        """``load.realtime``: the load controller's budgets after a step group."""
         load = self.load
         load.adapt(wall_s, stream_s)
         st = self.stats

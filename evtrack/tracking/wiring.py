@@ -55,14 +55,14 @@ def make_depth_source(config: TrackerConfig, motion: MotionSource, mesh: Any,
     """The depth of the motion source's sensing camera (the event camera's, the RGB camera's
     for a frame-based one): sensor frames or the mesh rendered at the pose."""
     cam = motion.sensing_camera()
-    if config.depth_source == "model":
-        _needs_mesh(mesh, "depth_source 'model'")
-        return ModelDepth(mesh, cam, config.model_depth_scale, config.model_depth_interval_us,
-                          config.depth_patch_px, config.depth_stride_px)
+    if config.depth.source == "model":
+        _needs_mesh(mesh, "depth.source 'model'")
+        return ModelDepth(mesh, cam, config.depth.model_scale, config.depth.model_interval_us,
+                          config.depth.patch_px, config.depth.stride_px)
     if motion.depth_from_event() is not None:  # the frames are the sensing camera's
-        return SensorDepth(cam, cam, None, config.depth_patch_px, config.depth_stride_px)
-    return SensorDepth(cam, rgb_camera, T_event_rgb, config.depth_patch_px,
-                       config.depth_stride_px)
+        return SensorDepth(cam, cam, None, config.depth.patch_px, config.depth.stride_px)
+    return SensorDepth(cam, rgb_camera, T_event_rgb, config.depth.patch_px,
+                       config.depth.stride_px)
 
 
 def make_pose_gate(config: TrackerConfig, motion: MotionSource, mesh: Any,
@@ -71,14 +71,14 @@ def make_pose_gate(config: TrackerConfig, motion: MotionSource, mesh: Any,
     """The pose gate, with ray alignment where there are a mesh and sensor depth."""
     sensor = isinstance(depth, SensorDepth)
     aligner = None
-    if config.pose_depth_align and mesh is not None and sensor:
+    if config.pose_gate.depth_align and mesh is not None and sensor:
         aligner = PoseRayAligner.from_mesh(mesh, depth.camera,
-                                           max_shift_m=config.pose_depth_align_max_m)
+                                           max_shift_m=config.pose_gate.depth_align_max_m)
     half_turns = None
-    if config.pose_half_turn_axes:
+    if config.pose_gate.half_turn_axes:
         lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-        half_turns = HalfTurnResolver(config.pose_half_turn_axes, (lo + hi) / 2,
-                                      config.pose_half_turn_max_view_deg)
+        half_turns = HalfTurnResolver(config.pose_gate.half_turn_axes, (lo + hi) / 2,
+                                      config.pose_gate.half_turn_max_view_deg)
     to_depth = motion.depth_from_event()
     return PoseGate(config, motion.sensing_silhouette(), sensor, aligner, half_turns,
                     None if to_depth is None else to_depth.numpy(),
@@ -88,14 +88,15 @@ def make_pose_gate(config: TrackerConfig, motion: MotionSource, mesh: Any,
 def make_depth_fusion(config: TrackerConfig, motion: MotionSource, mesh: Any,
                       depth: DepthSource, timeline: PoseTimeline,
                       past_pose: Any) -> DepthFusion | None:
-    """The depth fusions (``depth_range``, ``depth_icp``), or ``None`` without one (or for a
+    """The depth fusions (``depth_fusion.range``, ``depth_fusion.icp``), or ``None`` without one
+    (or for a
     method whose poses only initialise)."""
-    if motion.poses_only_initialise or not (config.depth_range or config.depth_icp):
+    if motion.poses_only_initialise or not (config.depth_fusion.range or config.depth_fusion.icp):
         return None
-    if config.depth_range:
-        _needs_mesh(mesh, "depth_range")
-    if config.depth_icp:
-        _needs_mesh(mesh, "depth_icp")
+    if config.depth_fusion.range:
+        _needs_mesh(mesh, "depth_fusion.range")
+    if config.depth_fusion.icp:
+        _needs_mesh(mesh, "depth_fusion.icp")
     # the depth maps are in the sensing camera, the filter's pose in the event camera
     to_depth = motion.depth_from_event()
     T = torch.eye(4, dtype=torch.float64) if to_depth is None else to_depth

@@ -89,10 +89,10 @@ def test_demo_options_are_checked(tmp_path, capsys):
     assert demo_tracker_config(64).flow.roi_size == 8
     # the mask margin scales with the width from the tracker's default (stated at 640 px)
     assert demo_tracker_config(320).mask_margin_px == TrackerConfig().mask_margin_px / 2
-    assert not demo_tracker_config(320).depth_range
-    assert demo_tracker_config(320, depth_range=True).depth_range
-    assert not demo_tracker_config(320).depth_icp
-    assert demo_tracker_config(320, depth_icp=True).depth_icp
+    assert not demo_tracker_config(320).depth_fusion.range
+    assert demo_tracker_config(320, depth_range=True).depth_fusion.range
+    assert not demo_tracker_config(320).depth_fusion.icp
+    assert demo_tracker_config(320, depth_icp=True).depth_fusion.icp
 
 
 def test_demo_depth_range_reaches_the_tracker(tmp_path, monkeypatch):
@@ -103,8 +103,8 @@ def test_demo_depth_range_reaches_the_tracker(tmp_path, monkeypatch):
     seen = {}
 
     def fake_benchmark(sequences, runs, config, *args, **kwargs):
-        seen["depth_range"] = config.depth_range
-        seen["depth_icp"] = config.depth_icp
+        seen["depth_range"] = config.depth_fusion.range
+        seen["depth_icp"] = config.depth_fusion.icp
         raise RuntimeError("stop after the config")
 
     monkeypatch.setattr(demo_module, "_simulate", lambda opts, folder: None)

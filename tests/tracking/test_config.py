@@ -7,8 +7,14 @@ from pathlib import Path
 import pytest
 import yaml
 
+from evtrack.configs import RenamedKeyWarning
 from evtrack.errors import ConfigError
-from evtrack.tracking.config import TrackerConfig, load_tracker_config
+from evtrack.tracking.config import (
+    DepthConfig,
+    DepthFusionConfig,
+    TrackerConfig,
+    load_tracker_config,
+)
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -38,8 +44,8 @@ def test_defaults_use_the_fast_object_flow_and_the_slow_config_the_generic_one()
 
 def test_rgbd_preset_is_the_defaults_with_both_depth_extensions() -> None:
     rgbd = load_tracker_config(CONFIGS / "tracker_rgbd.yaml")
-    assert rgbd.depth_range and rgbd.depth_icp
-    assert rgbd.replace(depth_range=False, depth_icp=False).to_dict() == TrackerConfig().to_dict()
+    assert rgbd.depth_fusion.range and rgbd.depth_fusion.icp
+    assert rgbd.replace(depth_fusion=DepthFusionConfig()).to_dict() == TrackerConfig().to_dict()
 
 
 def test_round_trip(tmp_path) -> None:
@@ -75,13 +81,13 @@ def test_partial_sections_keep_the_other_defaults() -> None:
     ({"frame_flow": {"algorithm": "raft"}}, "algorithm"),
     ({"ge": {"contrast": -1}}, "contrast"),
     ({"pose_rate_hz": 0}, "pose_rate_hz"),
-    ({"depth_source": "lidar"}, "depth_source"),
+    ({"depth": {"source": "lidar"}}, "depth.source"),
     ({"history_ms": 100}, "history_ms"),
     ({"use_flow_normal_flags": 1}, "use_flow_normal_flags"),
-    ({"search_per_roi_window": -1}, "search_per_roi_window"),
-    ({"search_per_roi_window": 2.5}, "search_per_roi_window"),
-    ({"max_searched_per_step": -1}, "max_searched_per_step"),
-    ({"max_searched_per_step": "all"}, "max_searched_per_step"),
+    ({"load": {"search_per_roi_window": -1}}, "search_per_roi_window"),
+    ({"load": {"search_per_roi_window": 2.5}}, "search_per_roi_window"),
+    ({"load": {"max_searched_per_step": -1}}, "max_searched_per_step"),
+    ({"load": {"max_searched_per_step": "all"}}, "max_searched_per_step"),
 ])
 def test_errors_name_the_field(data, match) -> None:
     with pytest.raises(ConfigError, match=match):
@@ -102,10 +108,12 @@ def test_yaml_errors_name_the_file(tmp_path) -> None:
 
 
 def test_the_constructor_checks_types_as_from_dict_does() -> None:
-    with pytest.raises(ConfigError, match="'depth_icp' must be true or false"):
-        TrackerConfig(depth_icp="false")  # a truthy string must not turn ICP on
-    with pytest.raises(ConfigError, match="'velocity_kf' must be a VelocityKFConfig"):
+    with pytest.raises(ConfigError, match="depth_fusion: icp: expected true or false"):
+        TrackerConfig(depth_fusion={"icp": "false"})  # a truthy string must not turn ICP on
+    with pytest.raises(ConfigError, match="velocity_kf: expected a mapping"):
         TrackerConfig(velocity_kf=5)
+    with pytest.raises(ConfigError, match="pose_gate: must be a PoseGateConfig"):
+        TrackerConfig(pose_gate=DepthConfig())
     cfg = TrackerConfig(velocity_kf={"flow_std": 12}, flow={"roi_size": 16}, pose_rate_hz=10)
     assert cfg.velocity_kf.flow_std == 12.0 and isinstance(cfg.velocity_kf.flow_std, float)
     assert cfg.velocity_kf.q_linear == TrackerConfig().velocity_kf.q_linear
@@ -116,11 +124,11 @@ def test_the_constructor_checks_types_as_from_dict_does() -> None:
 
 
 @pytest.mark.parametrize(("data", "match"), [
-    ({"flow_batch_steps": float("inf")}, "'flow_batch_steps' must be an integer, got inf"),
-    ({"flow_batch_steps": float("nan")}, "'flow_batch_steps' must be an integer"),
+    ({"flow_batch_steps": float("inf")}, "flow_batch_steps: expected an integer, got inf"),
+    ({"flow_batch_steps": float("nan")}, "flow_batch_steps: expected an integer"),
     ({"flow": {"window_us": float("inf")}}, "'window_us' must be an integer"),
-    ({"pose_rate_hz": 3e6}, "'pose_rate_hz'.*one pose per velocity step"),
-    ({"pose_rate_hz": "10"}, "'pose_rate_hz' must be a number, got '10'"),  # quoted: a string
+    ({"pose_rate_hz": 3e6}, "pose_rate_hz: .*one pose per velocity step"),
+    ({"pose_rate_hz": "10"}, "pose_rate_hz: expected a number, got '10'"),  # quoted: a string
 ])
 def test_non_finite_integers_runaway_rates_and_quoted_numbers_are_errors(data, match) -> None:
     with pytest.raises(ConfigError, match=match) as info:
@@ -130,11 +138,11 @@ def test_non_finite_integers_runaway_rates_and_quoted_numbers_are_errors(data, m
 
 def test_scientific_notation_that_yaml_reads_as_a_string_is_a_number(tmp_path) -> None:
     path = tmp_path / "sci.yaml"
-    path.write_text("pose_rate_hz: 1e1\nmax_searched_per_step: 2.5e3\n"
+    path.write_text("pose_rate_hz: 1e1\nload: {max_searched_per_step: 2.5e3}\n"
                     "pose_ukf: {q_translation: 1e-2}\n")
     assert yaml.safe_load(path.read_text())["pose_rate_hz"] == "1e1"  # YAML 1.1's reading
     cfg = TrackerConfig.from_yaml(path)
-    assert cfg.pose_rate_hz == 10.0 and cfg.max_searched_per_step == 2500
+    assert cfg.pose_rate_hz == 10.0 and cfg.load.max_searched_per_step == 2500
     assert cfg.pose_ukf.q_translation == 0.01
 
 
@@ -172,3 +180,35 @@ def test_a_yaml_file_with_several_sections_gives_its_tracker_section(tmp_path) -
     path.write_text("pose_latency_ms: 50.0\ntracker: {pose_rate_hz: 10.0}\n")
     with pytest.raises(ConfigError, match=r"\['pose_latency_ms'\] at the top level beside"):
         TrackerConfig.from_yaml(path)
+
+
+def test_the_flat_keys_of_earlier_versions_load_with_a_warning_naming_the_new_key(tmp_path
+                                                                                  ) -> None:
+    path = tmp_path / "old.yaml"
+    path.write_text("depth_source: model\nrealtime_load: 0.5\npose_depth_min_share: 0.7\n"
+                    "load: {max_searched_per_step: 2000}\n")
+    with pytest.warns(RenamedKeyWarning, match="'depth_source' is renamed 'depth.source'"):
+        cfg = TrackerConfig.from_yaml(path)
+    assert cfg.depth.source == "model" and cfg.load.realtime == 0.5
+    assert cfg.load.max_searched_per_step == 2000  # the section's other keys kept
+    assert cfg.pose_gate.depth_min_share == 0.7
+    assert set(TrackerConfig.RENAMED_KEYS) >= {"depth_icp", "remeasure_on_pose",
+                                                "pose_half_turn_axes", "max_events_per_step"}
+    with pytest.raises(ConfigError, match="depth.source"):  # both the old and the new key
+        TrackerConfig.from_dict({"depth_source": "model", "depth": {"source": "sensor"}})
+
+
+def test_from_dict_lays_changes_over_a_base_section_by_section() -> None:
+    base = TrackerConfig.from_dict({"pose_gate": {"depth_min_share": 0.7},
+                                    "flow": {"roi_size": 16}})
+    cfg = TrackerConfig.from_dict({"pose_gate": {"depth_align": False}}, base=base)
+    assert cfg.pose_gate.depth_min_share == 0.7 and cfg.pose_gate.depth_align is False
+    assert cfg.flow.roi_size == 16 and cfg.flow.window_us == 1000
+    assert TrackerConfig.from_dict(None, base=base) == base
+
+
+def test_every_section_reads_back_its_own_dict() -> None:
+    cfg = TrackerConfig()
+    for section in (cfg.pose_gate, cfg.depth, cfg.depth_fusion, cfg.load, cfg.remeasure,
+                    cfg.frame_flow, cfg.ge):
+        assert type(section).from_dict(section.to_dict()) == section

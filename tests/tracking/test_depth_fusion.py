@@ -87,7 +87,7 @@ def test_tracker_aligns_depth_frames_and_tracks_rotation_better(fast_sequence) -
     seq = fast_sequence
     oracle = {"std_translation": 0.02, "std_rotation": 0.1}
     plain, _ = make_tracker(seq, oracle=oracle)
-    aligned, _ = make_tracker(seq, oracle=oracle, depth_icp=True, depth_icp_rate_hz=100.0)
+    aligned, _ = make_tracker(seq, oracle=oracle, depth_fusion={"icp": True, "icp_rate_hz": 100.0})
     a, b = plain.track(seq), aligned.track(seq)
     assert plain.stats.depth_alignments == 0 and plain.depth_fusion is None
     st = aligned.stats
@@ -102,7 +102,7 @@ def test_tracker_aligns_depth_frames_and_tracks_rotation_better(fast_sequence) -
 
 def test_alignment_rate_is_bounded(fast_sequence) -> None:
     seq = fast_sequence
-    tracker, _ = make_tracker(seq, depth_icp=True, depth_icp_rate_hz=10.0)
+    tracker, _ = make_tracker(seq, depth_fusion={"icp": True, "icp_rate_hz": 10.0})
     tracker.track(seq)
     st = tracker.stats
     tried = st.depth_alignments + sum(st.depth_alignments_skipped.values())
@@ -111,16 +111,17 @@ def test_alignment_rate_is_bounded(fast_sequence) -> None:
 
 
 def test_depth_icp_config_is_checked(fast_sequence) -> None:
-    with pytest.raises(ConfigError, match="depth_source 'sensor'"):
-        TrackerConfig.from_dict({"depth_icp": True, "depth_source": "model"})
-    for name in ("depth_icp_rate_hz", "depth_icp_std_m", "depth_icp_points"):
-        with pytest.raises(ConfigError, match=name):
-            TrackerConfig.from_dict({name: 0})
+    with pytest.raises(ConfigError, match="depth.source 'sensor'"):
+        TrackerConfig.from_dict({"depth_fusion": {"icp": True}, "depth": {"source": "model"}})
+    for name in ("icp_rate_hz", "icp_std_m", "icp_points"):
+        with pytest.raises(ConfigError, match=f"depth_fusion.{name}"):
+            TrackerConfig.from_dict({"depth_fusion": {name: 0}})
     cube = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
     with pytest.raises(ConfigError, match="mesh"):
-        Tracker(TrackerConfig(depth_icp=True), camera=PinholeCamera(160.0, 160.0, 63.5, 47.5,
+        Tracker(TrackerConfig(depth_fusion={"icp": True}), camera=PinholeCamera(160.0, 160.0, 63.5,
+                                                                                47.5,
                                                                     128, 96), mesh=cube)
-    velocity, _ = make_tracker(fast_sequence, method="velocity", depth_icp=True)
+    velocity, _ = make_tracker(fast_sequence, method="velocity", depth_fusion={"icp": True})
     assert velocity.depth_fusion is None
 
 
@@ -133,7 +134,7 @@ def test_every_pose_filter_method_aligns_depth_frames(fast_sequence, method) -> 
     ge 4 of 15 (its track errs more: 5 refused as "few fit", 5 as "correction too large");
     ge fused 5 on other machines. Bounds: 3 fused of at least 10 tried."""
     seq = fast_sequence
-    tracker, _ = make_tracker(seq, method=method, depth_icp=True)
+    tracker, _ = make_tracker(seq, method=method, depth_fusion={"icp": True})
     traj = tracker.track(seq)
     st = tracker.stats
     assert set(st.depth_alignments_skipped) <= {"few depth pixels", "few fit",

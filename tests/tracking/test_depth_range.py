@@ -117,8 +117,9 @@ def test_tracker_fuses_ranges_and_tracks_depth_better(fast_sequence) -> None:
     1.53 cm ranged, 19 frames fused, 11 refused)."""
     seq = fast_sequence
     oracle = {"std_translation": 0.02, "std_rotation": 0.03}
-    plain, _ = make_tracker(seq, oracle=oracle, pose_depth_align=False)
-    ranged, _ = make_tracker(seq, oracle=oracle, depth_range=True, pose_depth_align=False)
+    plain, _ = make_tracker(seq, oracle=oracle, pose_gate={"depth_align": False})
+    ranged, _ = make_tracker(seq, oracle=oracle, depth_fusion={"range": True},
+                             pose_gate={"depth_align": False})
     a, b = plain.track(seq), ranged.track(seq)
     assert plain.stats.depth_ranges == 0
     frames = len(seq.depth_times_us)
@@ -128,15 +129,15 @@ def test_tracker_fuses_ranges_and_tracks_depth_better(fast_sequence) -> None:
 
 
 def test_depth_range_config_is_checked(fast_sequence) -> None:
-    with pytest.raises(ConfigError, match="depth_source 'sensor'"):
-        TrackerConfig.from_dict({"depth_range": True, "depth_source": "model"})
-    with pytest.raises(ConfigError, match="depth_range_std_m"):
-        TrackerConfig.from_dict({"depth_range_std_m": 0.0})
+    with pytest.raises(ConfigError, match="depth.source 'sensor'"):
+        TrackerConfig.from_dict({"depth_fusion": {"range": True}, "depth": {"source": "model"}})
+    with pytest.raises(ConfigError, match="range_std_m"):
+        TrackerConfig.from_dict({"depth_fusion": {"range_std_m": 0.0}})
     cube = np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)])
     with pytest.raises(ConfigError, match="mesh"):
-        Tracker(TrackerConfig(depth_range=True), camera=CAM, mesh=cube)
+        Tracker(TrackerConfig(depth_fusion={"range": True}), camera=CAM, mesh=cube)
     # the velocity baseline takes poses only to initialise: no range there
-    velocity, _ = make_tracker(fast_sequence, method="velocity", depth_range=True)
+    velocity, _ = make_tracker(fast_sequence, method="velocity", depth_fusion={"range": True})
     assert velocity.depth_fusion is None
 
 
@@ -147,7 +148,7 @@ def test_every_pose_filter_method_measures_ranges(fast_sequence, method) -> None
     the first pose is fused or refused with a reason: a prediction far off across the ray
     (``pose`` and ``ge`` lag this fast box by centimetres) is refused, not fused."""
     seq = fast_sequence
-    tracker, _ = make_tracker(seq, method=method, depth_range=True)
+    tracker, _ = make_tracker(seq, method=method, depth_fusion={"range": True})
     traj = tracker.track(seq)
     st = tracker.stats
     known = {"no pose", "too few cells", "too few agreeing", "offset too large"}
@@ -174,10 +175,10 @@ def test_the_range_needs_no_renderer(scene, monkeypatch) -> None:
     box, truth, depth, _, _ = scene
     res = DepthRange(box, CAM).measure(depth, truth)
     assert res.ok and abs(res.distance - float(np.linalg.norm(truth[:3, 3]))) < 0.001
-    tracker = Tracker(TrackerConfig(depth_range=True), camera=CAM, mesh=box)
+    tracker = Tracker(TrackerConfig(depth_fusion={"range": True}), camera=CAM, mesh=box)
     assert tracker.depth_fusion.depth_range is not None
 
 
 def test_the_removed_render_scale_field_says_what_to_do() -> None:
     with pytest.raises(ConfigError, match="'depth_range_scale' was removed: .*delete the field"):
-        TrackerConfig.from_dict({"depth_range": True, "depth_range_scale": 0.5})
+        TrackerConfig.from_dict({"depth_fusion": {"range": True}, "depth_range_scale": 0.5})

@@ -39,23 +39,23 @@ def _controller(**config) -> LoadController:
 
 def test_config_checks() -> None:
     with pytest.raises(ConfigError, match="max_searched_per_step"):
-        TrackerConfig.from_dict({"realtime_load": 0.9, "max_searched_per_step": 0})
+        TrackerConfig.from_dict({"load": {"realtime": 0.9, "max_searched_per_step": 0}})
     with pytest.raises(ConfigError, match="min_searched_per_step"):
-        TrackerConfig.from_dict({"realtime_load": 0.9, "max_searched_per_step": 100,
-                                 "min_searched_per_step": 200})
-    with pytest.raises(ConfigError, match="realtime_load"):
-        TrackerConfig.from_dict({"realtime_load": -1.0})
+        TrackerConfig.from_dict({"load": {"realtime": 0.9, "max_searched_per_step": 100,
+                                          "min_searched_per_step": 200}})
+    with pytest.raises(ConfigError, match="load.realtime"):
+        TrackerConfig.from_dict({"load": {"realtime": -1.0}})
     with pytest.raises(ConfigError, match="min_events_per_step"):
-        TrackerConfig.from_dict({"realtime_load": 0.9, "max_events_per_step": 400,
-                                 "min_events_per_step": 500})
+        TrackerConfig.from_dict({"load": {"realtime": 0.9, "max_events_per_step": 400,
+                                          "min_events_per_step": 500}})
     with pytest.raises(ConfigError, match="min_events_per_step"):
-        TrackerConfig.from_dict({"min_events_per_step": -1})
+        TrackerConfig.from_dict({"load": {"min_events_per_step": -1}})
     # no cap, or no shedding: any floor
-    TrackerConfig.from_dict({"realtime_load": 0.9, "max_events_per_step": 0,
-                             "min_events_per_step": 500})
-    TrackerConfig.from_dict({"realtime_load": 0.9, "max_events_per_step": 400,
-                             "min_events_per_step": 0})
-    assert TrackerConfig().realtime_load == 0.0  # off: deterministic results
+    TrackerConfig.from_dict({"load": {"realtime": 0.9, "max_events_per_step": 0,
+                                      "min_events_per_step": 500}})
+    TrackerConfig.from_dict({"load": {"realtime": 0.9, "max_events_per_step": 400,
+                                      "min_events_per_step": 0}})
+    assert TrackerConfig().load.realtime == 0.0  # off: deterministic results
 
 
 def _overload_then_underload(ctl: LoadController, rate: float
@@ -73,8 +73,8 @@ def _overload_then_underload(ctl: LoadController, rate: float
 
 
 def test_sustained_overload_cuts_to_the_floor_and_underload_raises_back() -> None:
-    ctl = _controller(realtime_load=0.9, max_searched_per_step=2000,
-                            min_searched_per_step=300, min_events_per_step=0)
+    ctl = _controller(load={"realtime": 0.9, "max_searched_per_step": 2000,
+                            "min_searched_per_step": 300, "min_events_per_step": 0})
     over, under = _overload_then_underload(ctl, 5000.0)
     budgets = [b for b, _ in over]
     assert budgets[0] == 2000  # the backlog first builds up (5 groups' worth) ...
@@ -82,7 +82,7 @@ def test_sustained_overload_cuts_to_the_floor_and_underload_raises_back() -> Non
     assert budgets[-1] == 300 and ctl.search_budget_min == 300
     assert ctl.groups_over_load == 60
     # min_events_per_step 0: no events shed, however long the overload
-    assert {e for _, e in over} == {TrackerConfig().max_events_per_step}
+    assert {e for _, e in over} == {TrackerConfig().load.max_events_per_step}
     assert ctl.event_budget_min == 0
     assert ctl.backlog_s == 0.0 and under[-1][0] == 2000  # drained, raised back
     assert ctl.groups_over_load == 60
@@ -94,9 +94,9 @@ def test_overload_cuts_the_events_with_the_search_budget(cap) -> None:
     group's own rate where that is below the cap (or there is none), down to
     ``min_events_per_step``; without a backlog both are raised back, the events to the cap
     (or to no cap)."""
-    ctl = _controller(realtime_load=0.9, max_searched_per_step=2000,
-                            min_searched_per_step=300, max_events_per_step=cap,
-                            min_events_per_step=400)
+    ctl = _controller(load={"realtime": 0.9, "max_searched_per_step": 2000,
+                            "min_searched_per_step": 300, "max_events_per_step": cap,
+                            "min_events_per_step": 400})
     rate = 5000.0
     over, under = _overload_then_underload(ctl, rate)
     searched, events = zip(*over, strict=True)
@@ -118,17 +118,17 @@ def test_overload_cuts_the_events_with_the_search_budget(cap) -> None:
 def test_no_events_are_shed_where_there_are_few() -> None:
     """A group with fewer events per step than ``min_events_per_step`` leaves the event budget:
     thinning could not lower its work."""
-    ctl = _controller(realtime_load=0.9, min_events_per_step=400)
+    ctl = _controller(load={"realtime": 0.9, "min_events_per_step": 400})
     over, _ = _overload_then_underload(ctl, 300.0)
-    assert over[-1][1] == TrackerConfig().max_events_per_step
+    assert over[-1][1] == TrackerConfig().load.max_events_per_step
     assert ctl.event_budget_min == 0 and ctl.search_budget_min > 0
 
 
 def test_events_are_not_shed_without_events() -> None:
     """A method without events (``pose``) has nothing to thin: only the search budget adapts."""
-    ctl = _controller(realtime_load=0.9, min_searched_per_step=300)
+    ctl = _controller(load={"realtime": 0.9, "min_searched_per_step": 300})
     over, _ = _overload_then_underload(ctl, 0.0)
-    assert over[-1] == (300, TrackerConfig().max_events_per_step)
+    assert over[-1] == (300, TrackerConfig().load.max_events_per_step)
     assert ctl.event_budget_min == 0
 
 
@@ -136,7 +136,7 @@ def test_a_single_spike_does_not_cut_the_budget() -> None:
     """A one-off slow group (the first pose's catch-up: 7x the stream time) among groups at
     0.7 of it leaves a backlog that drains, without a cut: the smoothed load counts a group at
     most twice the target."""
-    ctl = _controller(realtime_load=0.9)
+    ctl = _controller(load={"realtime": 0.9})
     for _ in range(20):
         ctl.adapt(0.7 * STREAM_S, STREAM_S)
     ctl.adapt(7.3 * STREAM_S, STREAM_S)
@@ -144,7 +144,7 @@ def test_a_single_spike_does_not_cut_the_budget() -> None:
     for _ in range(40):
         ctl.adapt(0.7 * STREAM_S, STREAM_S)
     assert ctl.search_budget_min == 0
-    assert ctl.budgets.search == TrackerConfig().max_searched_per_step
+    assert ctl.budgets.search == TrackerConfig().load.max_searched_per_step
 
 
 @pytest.mark.parametrize("processing_s, lowered", [(2 * STREAM_S, True), (0.1 * STREAM_S, False)])
@@ -153,9 +153,10 @@ def test_tracking_adapts_the_budget_to_the_clock(fast_sequence, processing_s, lo
     time lowers the budget to the floor; one on which it takes a tenth leaves it."""
     # groups of STREAM_S (10 steps): the 0.6 s sequence then has the ~27 groups the budget
     # needs to build a backlog and be cut from 2000 to 200
-    tracker, _ = make_tracker(fast_sequence, realtime_load=0.9, max_searched_per_step=2000,
-                              min_searched_per_step=200, flow_batch_steps=10,
-                              min_events_per_step=MIN_EVENTS)
+    tracker, _ = make_tracker(fast_sequence, flow_batch_steps=10,
+                              load={"realtime": 0.9, "max_searched_per_step": 2000,
+                                    "min_searched_per_step": 200,
+                                    "min_events_per_step": MIN_EVENTS})
     tracker.clock = _FakeClock(processing_s)
     tracker.track(fast_sequence)
     st = tracker.stats
@@ -198,7 +199,7 @@ def test_a_group_under_the_target_is_not_cut_for_the_smoothed_loads_lag() -> Non
     """After a long overload the smoothed load stays over the target for several groups once
     the groups themselves are under it: those groups cut nothing (the smoothed load's lag
     used to cut on down to the floors)."""
-    ctl = _controller(realtime_load=0.9)
+    ctl = _controller(load={"realtime": 0.9})
     for _ in range(5):  # a backlog over 5 groups and a smoothed load over the target: a cut
         ctl.events_per_step = 5000.0
         ctl.adapt(2 * STREAM_S, STREAM_S)
@@ -216,7 +217,7 @@ def test_budgets_rise_while_a_backlog_drains_well_under_the_target() -> None:
     the backlog is still draining; at just under the target (above 0.8 of it) they hold
     until it has drained."""
     for load, rises in ((0.45, True), (0.85, False)):
-        ctl = _controller(realtime_load=0.9)
+        ctl = _controller(load={"realtime": 0.9})
         _cut_to_the_floors(ctl)
         floors = (ctl.budgets.search, ctl.budgets.events)
         seen = []

@@ -95,7 +95,7 @@ def test_bad_settings_are_refused(axes, view) -> None:
     with pytest.raises(ValueError):
         HalfTurnResolver(axes, CENTER, view)
     with pytest.raises(ConfigError, match="pose_half_turn"):
-        TrackerConfig(pose_half_turn_axes=axes, pose_half_turn_max_view_deg=view)
+        TrackerConfig(pose_gate={"half_turn_axes": axes, "half_turn_max_view_deg": view})
 
 
 class _HalfTurning:

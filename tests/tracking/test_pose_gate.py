@@ -19,7 +19,7 @@ AT_HALF_METRE = rigid_pose([0, 0, 0], [0, 0, 0.5])
 
 
 def _gate(half_turns: HalfTurnResolver | None = None, **config) -> PoseGate:
-    cfg = TrackerConfig.from_dict({"history_ms": 100.0, "max_depth_age_ms": 20.0,
+    cfg = TrackerConfig.from_dict({"history_ms": 100.0, "depth": {"max_age_ms": 20.0},
                                   "pose_latency_ms": 0.0, "pose_rate_hz": 20.0, **config})
     return PoseGate(cfg, Silhouette(CUBE, SMALL_CAM), sensor_depth=True, aligner=None,
                     half_turns=half_turns)
@@ -58,7 +58,7 @@ def test_a_pose_the_depth_contradicts_is_dropped_and_an_alternative_taken() -> N
     taken = gate.checked(_measurement(far, alternatives=alts))
     assert taken is alts[2]  # the first confirmed one above both confidence floors
     assert gate.stats.poses_from_alternatives == 1 and gate.stats.poses_implausible == 1
-    off = _gate(pose_alternatives=False)
+    off = _gate(pose_gate={"alternatives": False})
     off.remember_depth(0, _plane(0.5))
     assert off.checked(_measurement(far, alternatives=alts)) is None
 
@@ -72,7 +72,7 @@ def test_without_a_depth_frame_of_its_time_a_pose_passes() -> None:
 
 def test_half_turns_turn_the_pose_then_reinitialise_after_enough_in_a_row() -> None:
     resolver = HalfTurnResolver("z", np.zeros(3), max_view_deg=30.0)
-    gate = _gate(resolver, pose_half_turn_reinit_after=3)
+    gate = _gate(resolver, pose_gate={"half_turn_reinit_after": 3})
     turned = AT_HALF_METRE @ half_turn(2, np.zeros(3))
     m = _measurement(turned)
     for _ in range(2):
@@ -97,6 +97,6 @@ def test_a_pose_agreeing_with_the_gated_one_reinitialises() -> None:
         rigid_pose([0, 0, 0], [0.5, 0, 0.5])))
     gate.fused(first, rejected=False)
     assert not gate.agrees_with_rejected(100_000, near)
-    off = _gate(reinit_on_agreement=False)
+    off = _gate(pose_gate={"reinit_on_agreement": False})
     off.fused(first, rejected=True)
     assert not off.agrees_with_rejected(100_000, near)

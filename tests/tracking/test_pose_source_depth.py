@@ -97,7 +97,7 @@ def test_the_tracker_hands_depth_frames_to_sources_that_use_them(static_sequence
     seq = static_sequence
     source = _RecordingSource(uses_depth, seq.ground_truth.pose_at)
     cfg = TrackerConfig.from_dict({"method": "pose", "flow": {"roi_size": 16},
-                                   "depth_source": depth_source})
+                                   "depth": {"source": depth_source}})
     Tracker.for_sequence(seq, cfg, source).track(seq)
     assert len(source.seen) >= 2
     times = seq.depth_times_us.tolist()

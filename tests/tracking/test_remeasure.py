@@ -24,7 +24,7 @@ POSE = rigid_pose([0, 0, 0], [0, 0, 0.6])
 def _remeasurer() -> Remeasurer:
     cfg = TrackerConfig()
     filt = PoseUKF(1, cfg.pose_ukf)
-    depth = RoiDepth(SensorDepth(SMALL_CAM, SMALL_CAM, None, 16, 4), cfg.max_depth_age_ms)
+    depth = RoiDepth(SensorDepth(SMALL_CAM, SMALL_CAM, None, 16, 4), cfg.depth.max_age_ms)
     return Remeasurer(cfg, VelocityKF(SMALL_CAM, 1, cfg.velocity_kf),
                       PoseTimeline(filt, 1_000_000), depth, Silhouette(CUBE, SMALL_CAM),
                       segment_pose=lambda: (POSE, None), past_pose=lambda t_us: POSE)

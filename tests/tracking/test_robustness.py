@@ -104,8 +104,8 @@ def robust_runs() -> _Runs:
 # ---------------------------------------------------------------------------- pose outliers
 _DEPTH_HANDLING = {  # config of each variant: the defaults, the check alone, the gate alone
     "aligned-checked": {},
-    "depth-check": {"pose_depth_align": False},
-    "gate-only": {"pose_depth_align": False, "pose_depth_min_share": 0.0},
+    "depth-check": {"pose_gate": {"depth_align": False}},
+    "gate-only": {"pose_gate": {"depth_align": False, "depth_min_share": 0.0}},
 }
 
 
@@ -180,8 +180,9 @@ def test_agreeing_rejected_poses_reinitialise_at_the_second(rest_sequence, agree
     check is off here; ``test_depth_contradicting_poses_are_dropped`` has it on.)"""
     seq = rest_sequence
     shift = np.array([0.0, 0.0, 0.4])
-    tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED, reinit_on_agreement=agreement,
-                                   pose_depth_min_share=0.0)
+    tracker, oracle = make_tracker(seq, seed=OUTLIER_SEED,
+                                   pose_gate={"reinit_on_agreement": agreement,
+                                              "depth_min_share": 0.0})
 
     def shifted(t_us, rgb, depth):
         m = oracle(t_us, rgb, depth)
@@ -368,7 +369,8 @@ def test_event_cap_bounds_the_work_per_step_whatever_the_chunking() -> None:
     events are chunked: one chunk and random chunks give the same output bit for bit."""
     ev = _textured_object_with_burst()
     cap = 200  # about a quarter of the object's events
-    config = TrackerConfig.from_dict({"flow": {"roi_size": 16}, "max_events_per_step": cap,
+    config = TrackerConfig.from_dict({"flow": {"roi_size": 16},
+                                      "load": {"max_events_per_step": cap},
                                       "mask_margin_px": 4.0})
     outputs = []
     for chunks in ("one", "random"):
@@ -413,8 +415,9 @@ def test_sampled_search_is_counted_and_independent_of_the_chunking() -> None:
     stream index, counted per step group) does not depend on how the events were pushed,
     and it changes the RoI flows only where a window's sample is short of the data term."""
     ev = _textured_object_with_burst()
-    base = {"flow": {"roi_size": 16}, "max_events_per_step": 0, "mask_margin_px": 4.0}
-    sampled = TrackerConfig.from_dict({**base, "search_per_roi_window": 6})
+    base = {"flow": {"roi_size": 16}, "load": {"max_events_per_step": 0}, "mask_margin_px": 4.0}
+    sampled = TrackerConfig.from_dict({**base, "load": {**base["load"],
+                                                         "search_per_roi_window": 6}})
     runs_ = [_track_textured_object(sampled, ev, chunks, seed=5) for chunks in ("one", "random")]
     (a, calls_a), (b, calls_b) = runs_
     searched_a, searched_b = (sum(c[3] for c in calls) for calls in (calls_a, calls_b))
@@ -427,7 +430,8 @@ def test_sampled_search_is_counted_and_independent_of_the_chunking() -> None:
     sa.pop("time_s"), sb.pop("time_s")
     assert sa == sb
     whole, calls_whole = _track_textured_object(
-        TrackerConfig.from_dict({**base, "search_per_roi_window": 0}), ev, "one", seed=5)
+        TrackerConfig.from_dict({**base, "load": {**base["load"], "search_per_roi_window": 0}}),
+        ev, "one", seed=5)
     assert whole.stats.events_unsearched == 0 and sum(c[3] for c in calls_whole) == given
     assert whole.stats.roi_flows > 0 and st.roi_flows > 0
     assert not torch.equal(whole.trajectory().twists, a.trajectory().twists)
@@ -438,8 +442,8 @@ def test_sampled_search_keeps_the_error_bounded(fast_sequence, runs) -> None:
     tracks the fast sequence close to the whole search: measured 5.25 cm / 12.27 deg with
     81 % of the flow's events unsearched, against 4.27 / 12.37 (2026-11-27). Bounds: whole
     + 2 cm and + 3 deg."""
-    whole, _ = make_tracker(fast_sequence, method="full", search_per_roi_window=0)
-    sampled, _ = make_tracker(fast_sequence, method="full", search_per_roi_window=4)
+    whole, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 0})
+    sampled, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 4})
     gt = fast_sequence.ground_truth
     ref = tracking_errors(whole.track(fast_sequence), gt)
     err = tracking_errors(sampled.track(fast_sequence), gt)
@@ -458,9 +462,10 @@ def test_search_budget_bounds_the_searched_events_whatever_the_chunking() -> Non
     pushed."""
     ev = _textured_object_with_burst()
     budget = 40
-    config = TrackerConfig.from_dict({"flow": {"roi_size": 16}, "max_events_per_step": 0,
-                                      "mask_margin_px": 4.0, "search_per_roi_window": 0,
-                                      "max_searched_per_step": budget})
+    config = TrackerConfig.from_dict({"flow": {"roi_size": 16}, "mask_margin_px": 4.0,
+                                      "load": {"max_events_per_step": 0,
+                                               "search_per_roi_window": 0,
+                                               "max_searched_per_step": budget}})
     (a, calls_a), (b, calls_b) = (_track_textured_object(config, ev, chunks, seed=7)
                                   for chunks in ("one", "random"))
     st = a.stats
@@ -483,13 +488,13 @@ def test_search_budget_keeps_the_error_bounded(fast_sequence, runs) -> None:
     13.37 deg with 62 % of the flow's events unsearched and 39 % of the RoI flows, against
     4.27 / 12.37 (2026-11-27; with cells of 2 x 2 RoIs 5.81 / 14.67). Bounds: whole + 2.5 cm
     and + 4 deg."""
-    whole, _ = make_tracker(fast_sequence, method="full", search_per_roi_window=0,
-                            max_searched_per_step=0)
+    whole, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 0,
+                                                                "max_searched_per_step": 0})
     gt = fast_sequence.ground_truth
     ref = tracking_errors(whole.track(fast_sequence), gt)
     budget = max(1, int(whole.stats.events_on_object / whole.stats.steps / 2))
-    cut, _ = make_tracker(fast_sequence, method="full", search_per_roi_window=0,
-                          max_searched_per_step=budget)
+    cut, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 0,
+                                                              "max_searched_per_step": budget})
     calls = _record_flow_calls(cut)
     err = tracking_errors(cut.track(fast_sequence), gt)
     given = sum(c[0] for c in calls)
@@ -516,7 +521,7 @@ def test_thinned_tracking_keeps_the_error_bounded(fast_sequence, runs) -> None:
     8.72 / 14.80 with 41 % thinned on this sparse scene, but 34.5 cm / 58 deg on the dense
     cracker box `faster` with a budget of 4000 events per step (9.24 / 13.8 by cells, 4.35 /
     6.5 unthinned; see the next test for why). Bounds: clean + 6 cm and + 3 deg."""
-    tracker, _ = make_tracker(fast_sequence, method="full", max_events_per_step=60)
+    tracker, _ = make_tracker(fast_sequence, method="full", load={"max_events_per_step": 60})
     traj = tracker.track(fast_sequence)
     clean, _, _ = runs.get("full")
     st = tracker.stats
@@ -597,9 +602,9 @@ def test_leaving_and_reentering_the_view(exit_sequence, box, setting) -> None:
     oracle = OraclePoseSource.from_sequence(seq, seed=0, **ORACLE_NOISE)
     source = VisibleOnlySource(oracle, np.asarray(box.vertices), seq.meta.event_camera, 0.3)
     tracker = Tracker.for_sequence(
-        seq, TrackerConfig.from_dict({**TEST_TRACKER, "depth_icp": depth_icp,
-                                      "depth_source": "model" if setting == "model"
-                                      else "sensor"}), source)
+        seq, TrackerConfig.from_dict({**TEST_TRACKER, "depth_fusion": {"icp": depth_icp},
+                                      "depth": {"source": "model" if setting == "model"
+                                      else "sensor"}}), source)
     traj = tracker.track(seq)
     st = tracker.stats
     assert (st.depth_alignments > 10) == depth_icp
@@ -736,7 +741,7 @@ def test_low_confidence_detections_are_misses_and_lose_the_object() -> None:
     def source(t_us, rgb, depth):
         return PoseMeasurement(t_us, _pose(), confidence=confidence["value"])
 
-    config = TrackerConfig.from_dict({"method": "pose", "pose_min_confidence": 0.5,
+    config = TrackerConfig.from_dict({"method": "pose", "pose_gate": {"min_confidence": 0.5},
                                       "pose_rate_hz": 10.0, "pose_latency_ms": 0.0,
                                       "lost_after_misses": 2,
                                       "flow_batch_steps": 5})  # advance() closes 5 ms groups
@@ -842,8 +847,8 @@ def test_a_dropped_pose_gives_way_to_an_alternative_the_depth_confirms(rest_sequ
     ``pose_min_confidence`` or ``pose_alternatives_min_confidence`` (0.3), the pose is
     dropped and the filter stays uninitialised."""
     seq = rest_sequence
-    settings = {"off": {"pose_alternatives": False},
-                "below-confidence": {"pose_min_confidence": 0.5}}.get(case, {})
+    settings = {"off": {"pose_gate": {"alternatives": False}},
+                "below-confidence": {"pose_gate": {"min_confidence": 0.5}}}.get(case, {})
     tracker, _ = make_tracker(seq, **settings)
     tracker.pose_source = None
     t_pose = int(seq.depth_times_us[-5])
@@ -877,9 +882,9 @@ def test_pose_measurement_alternatives_are_validated() -> None:
     pose = torch.eye(4, dtype=torch.float64)
     pose[2, 3] = 1.0
     alt = PoseMeasurement(10, pose)
-    assert PoseMeasurement(10, pose, alternatives=[alt]).alternatives == (alt,)
+    assert PoseMeasurement(10, pose, alternatives=[alt]).alternatives == (alt)
     for bad in ([PoseMeasurement(11, pose)], [pose],
-                [PoseMeasurement(10, pose, alternatives=(alt,))]):
+                [PoseMeasurement(10, pose, alternatives=(alt))]):
         with pytest.raises(ValueError, match="alternative"):
             PoseMeasurement(10, pose, alternatives=bad)
 
@@ -892,7 +897,7 @@ def test_a_pose_off_in_range_is_moved_onto_the_depth(rest_sequence, align) -> No
     truth (measured: 1.5 mm); without, 5 cm off (the depth check passes it: its 6 cm
     tolerance). The true pose itself is moved by under 5 mm."""
     seq = rest_sequence
-    tracker, _ = make_tracker(seq, pose_depth_align=align)
+    tracker, _ = make_tracker(seq, pose_gate={"depth_align": align})
     tracker.pose_source = None
     t_pose = int(seq.depth_times_us[-5])
     stream(tracker, seq, t_end_us=t_pose + 1)
@@ -910,7 +915,8 @@ def test_a_pose_off_in_range_is_moved_onto_the_depth(rest_sequence, align) -> No
         assert error < 0.01
     else:
         assert error > 0.045
-    aligner = tracker.pose_gate.aligner or Tracker.for_sequence(seq, TrackerConfig()).pose_gate.aligner
+    aligner = tracker.pose_gate.aligner or Tracker.for_sequence(seq,
+                                                                TrackerConfig()).pose_gate.aligner
     res = aligner.align(seq.depth(len(seq.depth_times_us) - 5), exact.pose)
     assert res.ok and abs(res.shift) < 0.005
 
@@ -972,7 +978,7 @@ def test_step_runs_equal_steps_when_a_late_first_pose_measures_again(fast_sequen
     times = seq.rgb_times_us.numpy()
     dropped = (times >= 20_000) & (times < 90_000)
     tracker, _ = _same_runs(
-        lambda: make_tracker(seq, method="full", depth_source=depth_source)[0],
+        lambda: make_tracker(seq, method="full", depth={"source": depth_source})[0],
         lambda tr: stream(tr, seq, np.random.default_rng(2), keep_frame=lambda i: not dropped[i]))
     assert tracker.stats.steps_remeasured > 50
 

@@ -92,7 +92,7 @@ def test_pose_source_in_a_worker_gives_the_same_track(fast_sequence, method) -> 
     out = {}
     for pose_async in (False, True):
         tracker, source = make_tracker(fast_sequence, oracle=oracle, method=method,
-                                       pose_async=pose_async, pose_min_confidence=0.5,
+                                       pose_async=pose_async, pose_gate={"min_confidence": 0.5},
                                        pose_rate_hz=30.0)
         inner = source.__call__
         threads: set[str] = set()
@@ -223,7 +223,7 @@ def test_the_pose_source_gets_the_tracks_pose_as_its_prior(fast_sequence, pose_a
     for run_async in (False, pose_async):
         tracker, source = make_tracker(fast_sequence, method="full", pose_prior=True,
                                        pose_async=run_async, pose_rate_hz=30.0,
-                                       pose_min_confidence=0.5)
+                                       pose_gate={"min_confidence": 0.5})
         recorder = _PriorRecorder(source, None if run_async else tracker)
         tracker.pose_source = recorder
         tracker.track(fast_sequence)

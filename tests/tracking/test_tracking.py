@@ -163,7 +163,7 @@ def test_event_flow_measures_again_the_steps_a_late_first_pose_missed(fast_seque
     timeline's poses (RoIs in the silhouette, depths in its range, the object as pivot)."""
     traj, tracker, _ = runs.get("full")
     assert tracker.stats.steps_remeasured > 50  # measured: 80 of the 100 steps
-    plain, _ = make_tracker(fast_sequence, method="full", remeasure_on_pose=False)
+    plain, _ = make_tracker(fast_sequence, method="full", remeasure={"on_pose": False})
     traj_plain = plain.track(fast_sequence)
     assert plain.stats.steps_remeasured == 0
     again, without = _first_100_ms_errors(traj, traj_plain, fast_sequence)
@@ -195,16 +195,16 @@ def test_a_first_pose_that_misses_the_events_is_not_used_to_measure_again(fast_s
     outside its silhouette: the kept steps keep their unposed twists (remeasure_min_inside),
     and the run equals one with remeasure_on_pose off. With model depth the check looks at a
     shorter span (the unposed steps hold the pose still), and still finds it off."""
-    tracker, source = make_tracker(fast_sequence, method="full", depth_source=depth_source)
+    tracker, source = make_tracker(fast_sequence, method="full", depth={"source": depth_source})
     tracker.pose_source = _first_pose_shifted(source, 0.06)
     traj = tracker.track(fast_sequence)
     assert tracker.stats.remeasures_skipped == 1 and tracker.stats.steps_remeasured == 0
-    plain, plain_source = make_tracker(fast_sequence, method="full", remeasure_on_pose=False,
-                                       depth_source=depth_source)
+    plain, plain_source = make_tracker(fast_sequence, method="full", remeasure={"on_pose": False},
+                                       depth={"source": depth_source})
     plain.pose_source = _first_pose_shifted(plain_source, 0.06)
     _same(traj, plain.track(fast_sequence))
     with pytest.raises(ConfigError, match="remeasure_min_inside"):
-        TrackerConfig(remeasure_min_inside=1.5)
+        TrackerConfig(remeasure={"min_inside": 1.5})
 
 
 def test_velocity_noise_pivots_about_the_tracked_object(fast_sequence, runs) -> None:
@@ -226,7 +226,7 @@ def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
     """Depth rendered from the mesh at the predicted pose instead of the sensor's. Before the
     first pose there is no model depth: the steps only keep their RoI flows, measured once
     the late first pose is there (remeasure_on_pose), so compare after 0.3 s."""
-    tracker, _ = make_tracker(fast_sequence, method="full", depth_source="model")
+    tracker, _ = make_tracker(fast_sequence, method="full", depth={"source": "model"})
     traj = tracker.track(fast_sequence)
     gt = fast_sequence.ground_truth
     err = tracking_errors(traj, gt, t_start_us=300_000)
@@ -249,11 +249,11 @@ def test_model_depth_measures_the_steps_a_late_first_pose_missed(fast_sequence) 
     """With model depth the steps before the first pose (100 ms late) keep their RoI flows
     and are measured once that pose is there, with the mesh rendered at the timeline's poses
     (the filter holds the pose still over them otherwise)."""
-    tracker, _ = make_tracker(fast_sequence, method="full", depth_source="model")
+    tracker, _ = make_tracker(fast_sequence, method="full", depth={"source": "model"})
     traj = tracker.track(fast_sequence)
     assert tracker.stats.steps_remeasured > 50
-    plain, _ = make_tracker(fast_sequence, method="full", depth_source="model",
-                            remeasure_on_pose=False)
+    plain, _ = make_tracker(fast_sequence, method="full", depth={"source": "model"},
+                            remeasure={"on_pose": False})
     traj_plain = plain.track(fast_sequence)
     assert plain.stats.steps_remeasured == 0
     assert plain.stats.roi_flows < tracker.stats.roi_flows

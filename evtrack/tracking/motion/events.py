@@ -34,10 +34,10 @@ __all__ = ["EventMotion", "VelocityOnlyMotion"]
 class EventMotion(MotionSource):
     """Event flow + velocity filter, poses fused by the pose filter (``method: full``).
 
-    Before the first pose the flow runs on all events (``velocity_before_pose``), so that a
+    Before the first pose the flow runs on all events (``remeasure.before_pose``), so that a
     late first pose is carried to the present by the measured motion (with sensor depth also
     measured then; model depth needs the pose), and those steps are measured again once that
-    pose is there (``remeasure_on_pose``, :mod:`evtrack.tracking.remeasure`).
+    pose is there (``remeasure.on_pose``, :mod:`evtrack.tracking.remeasure`).
 
     Attributes:
         flow: the event optical flow.
@@ -52,7 +52,7 @@ class EventMotion(MotionSource):
         camera = context.camera
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
-        self.events_before_pose = cfg.velocity_before_pose
+        self.events_before_pose = cfg.remeasure.before_pose
         self.remeasurer: Remeasurer | None = None
         self.flows: StepFlows | None = None
         self._resync: tuple[int, int] | None = None
@@ -60,7 +60,7 @@ class EventMotion(MotionSource):
 
     def bind(self, services: MotionServices) -> None:
         super().bind(services)
-        if self.events_before_pose and self.config.remeasure_on_pose:
+        if self.events_before_pose and self.config.remeasure.on_pose:
             self.remeasurer = Remeasurer(self.config, self.vkf, services.timeline,
                                          services.depth, self.context.silhouette,
                                          services.segment_pose, services.past_pose)
@@ -105,7 +105,7 @@ class EventMotion(MotionSource):
             # every window of the group is over, one registration reports all
             fc = self.flow.config
             search = self.services.gate.search_sample(ev, self.flow.events_seen,
-                                                      cfg.search_per_roi_window, search_budget,
+                                                      cfg.load.search_per_roi_window, search_budget,
                                                       fc.window_us)
             self.flows = StepFlows(self._flow_update(ev, t_end, search), t0, step,
                                    (t_end - t0) // step, self.vkf.twist.dtype, self.device)
