@@ -242,14 +242,18 @@ def measure(job: dict) -> dict:
     source, source_name = _pose_source(seq, job["pose"], threads)
     tracker = Tracker.for_sequence(seq, cfg, source)
     groups: list[float] = []
-    inner = getattr(tracker, "_group", None)
+    # the step group's processing: the scheduler's (evtrack.tracking.scheduler) or, in a tree
+    # from before the tracker's parts, the tracker's own method
+    owner, name = ((tracker.scheduler, "run_group") if hasattr(tracker, "scheduler")
+                   else (tracker, "_group"))
+    inner = getattr(owner, name, None)
     if inner is not None:
         def timed_group(*args):
             t = time.perf_counter()
             inner(*args)
             groups.append(time.perf_counter() - t)
 
-        tracker._group = timed_group
+        setattr(owner, name, timed_group)
     t0 = time.perf_counter()
     traj = tracker.track(seq)
     wall = time.perf_counter() - t0

@@ -96,15 +96,16 @@ class StepScheduler:
             for g_start, g_end in group_spans(tr.stream.now, end, group):
                 k = int(torch.searchsorted(ev.t, torch.tensor([g_end]))[0]) if len(ev) else 0
                 group_ev, ev = ev[:k], ev[k:]
-                self._group(g_start, g_end, group_ev)
+                self.run_group(g_start, g_end, group_ev)
         finally:
             # also when a step raised (e.g. a frame read lazily that failed its checks): the
             # interrupted group's events are spent, so the stream goes on from the next group
             # (the rest of that group gets no flow) instead of failing on every later call
             self.buffer = [ev] if len(ev) else []
 
-    def _group(self, t0: int, t_end: int, ev: Events) -> None:
-        """:meth:`_group_steps`, timed for ``load.realtime``."""
+    def run_group(self, t0: int, t_end: int, ev: Events) -> None:
+        """The step group ``[t0, t_end)`` (µs) with its events ``ev``: every step through the
+        filters, its processing time given to the load controller (``load.realtime``)."""
         tr = self.tracker
         timed = bool(tr.config.load.realtime)
         started = tr.clock() if timed else 0.0
