@@ -26,7 +26,7 @@ import numpy as np
 from scipy.linalg.lapack import dposv as _posv
 
 from evtrack.filters.backend_base import FilterBackend, PoseUpdate, RoiRows, VelocityModel
-from evtrack.filters.scalar_lie import (  # noqa: F401  (re-exported: the backend's algebra)
+from evtrack.filters.scalar_lie import (
     Quat,
     Vec3,
     cross,
@@ -149,7 +149,7 @@ def velocity_update(
         np.multiply(flow.T, 1.0 / np.where(moving, mag, 1.0), out=roi[3:5])
         roi[3, ~moving] = 1.0
 
-    # Rows (see VelocityKF._measurement_rows): along n for every RoI, then across n⊥ for the
+    # Rows (see velocity_model.measurement_rows): along n for every RoI, then across n⊥ for the
     # full flows (every RoI without the normal-flow constraint); a row with unit direction e
     # has a = e_u fx, b = e_v fy, its RoI's x, y, 1/Z, and the value z = |F| along, 0 across.
     full = np.flatnonzero(~normal) if cfg.normal_flow else None
