@@ -11,12 +11,12 @@ The main table puts the paths side by side for each case and batch size:
   update), without the stateful bookkeeping and input checks (the path before the fast path);
 * ``torch call``: the stateful call users run (``kf.update(...)``; ``ukf(twist, dt, t, q)``)
   with ``fast_path=False``;
-* ``fast call``: the same stateful call with the single-track fast path
-  (:mod:`evtrack.filters.fast_path`; its velocity update compiled with numba,
-  :mod:`evtrack.filters.fast_compiled`), what a tracker runs at B = 1; it applies to B = 1
-  only (at B > 1 the call is the torch call);
-* ``fast NumPy``: the fast call with the velocity update in NumPy (``fast_path.COMPILED``
-  off), the form before the compiled kernel;
+* ``fast call``: the same stateful call on the default single-track backend (``"numba"``,
+  :mod:`evtrack.filters.fast_compiled`: the NumPy backend with its velocity update and pose
+  predict compiled), what a tracker runs at B = 1; it applies to B = 1 only (at B > 1 the
+  call is the torch call);
+* ``fast NumPy``: the fast call on the NumPy backend (``backend="numpy"``,
+  :mod:`evtrack.filters.fast_path`), the form before the compiled kernel;
 * ``compiled step``: the pure step after ``compile_steps()`` (torch.compile, inductor),
   checked against eager first;
 * ``filterpy``: filterpy's KalmanFilter / UnscentedKalmanFilter on the same models; it has no
@@ -74,7 +74,6 @@ from evtrack.filters import (  # noqa: E402
     PoseUKF,
     PoseUKFConfig,
     VelocityKF,
-    fast_path,
     interaction_matrix,
 )
 from evtrack.filters.onnx_export import export_step, step_inputs  # noqa: E402
@@ -138,22 +137,17 @@ def bench_velocity(B: int, repeats: int, compiled: bool = False, rois: int = ROI
 def bench_velocity_call(B: int, repeats: int, fast: bool, rois: int = ROIS,
                         numpy_update: bool = False) -> Timing:
     """The stateful ``kf.update`` (fast path on or off), after checking both give the same;
-    ``numpy_update``: the fast path's update in NumPy instead of its compiled kernel."""
+    ``numpy_update``: on the NumPy backend instead of the default (compiled) one."""
     twist, uv, depth, flow, normal, _ = _velocity_inputs(B, rois=rois)
-    kf = VelocityKF(CAM, B, fast_path=fast)
-    compiled_before = fast_path.COMPILED
-    fast_path.COMPILED = not numpy_update
-    try:
-        if fast:
-            ref = VelocityKF(CAM, B, fast_path=False)
-            for f in (kf, ref):
-                f.reset(twist=twist)
-                f.update(uv, depth, flow, normal)
-            _same(kf.twist, ref.twist, "VelocityKF twist")
-            _same(kf.cov, ref.cov, "VelocityKF cov")
-        return _time(lambda: kf.update(uv, depth, flow, normal), repeats)
-    finally:
-        fast_path.COMPILED = compiled_before
+    kf = VelocityKF(CAM, B, fast_path=fast, backend="numpy" if numpy_update else "auto")
+    if fast:
+        ref = VelocityKF(CAM, B, fast_path=False)
+        for f in (kf, ref):
+            f.reset(twist=twist)
+            f.update(uv, depth, flow, normal)
+        _same(kf.twist, ref.twist, "VelocityKF twist")
+        _same(kf.cov, ref.cov, "VelocityKF cov")
+    return _time(lambda: kf.update(uv, depth, flow, normal), repeats)
 
 
 def bench_pose_call(B: int, repeats: int, fast: bool) -> Timing:

@@ -10,8 +10,8 @@ for each backend (``torch``: batched tensor code, with each ``--lookups`` way of
 event's predecessors in its chunk, ``passes`` or ``sorted``; ``compiled``: on CPU the numba
 kernels of ``evtrack.flow.compiled`` and ``registration_compiled``, on CUDA the tensor search
 with the Triton registration of ``evtrack.flow.registration_triton``, rows ``cuda
-triton-reg``) on CPU with each of ``--threads`` thread counts (default 2) and on CUDA when
-available, next to the
+triton-reg``; each as :func:`evtrack.flow.backends.resolve` chooses it) on CPU with each of
+``--threads`` thread counts (default 2) and on CUDA when available, next to the
 sequential per-event reference of ``tests/flow/flow_reference.py`` run in the same process
 on a prefix of the same events (it is far slower, so it sees fewer events). A calibration
 line (int32 add throughput) helps compare runs on busy machines.
@@ -49,8 +49,14 @@ import evtrack  # noqa: F401  # isort: skip
 import torch
 
 from evtrack.events import Events
-from evtrack.flow import CandidateSearch, FlowConfig, TripletFlow, registration_triton
-from evtrack.flow.compiled import CompiledSearch
+from evtrack.flow import (
+    CandidateSearch,
+    FlowConfig,
+    TripletFlow,
+    numba_support,
+    registration_triton,
+)
+from evtrack.flow.backends import resolve
 from evtrack.flow.scenes import translating_texture
 from evtrack.runtime.openmp_wait import wait_policy
 
@@ -221,8 +227,7 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
             # update() splits a chunk into pieces of the config's chunk_size, as for a user
             c = cfg.replace(device=str(dev), backend=backend,
                             **({"lookup": lookup} if lookup != "-" else {}))
-            make_search = (CompiledSearch if backend == "compiled" and dev.type == "cpu"
-                           else CandidateSearch)
+            make_search = resolve(c, dev).search
 
             def search(c=c, evd=evd, dev=dev, make_search=make_search, chunk=chunk):
                 s = make_search(c, dev)
@@ -243,9 +248,7 @@ def _measure(name: str, ev: Events, args, thread_counts: list[int], base: FlowCo
 
 
 def _cpu_backends() -> list[str]:
-    from evtrack.flow import compiled
-
-    return ["torch", "compiled"] if compiled.available() else ["torch"]
+    return ["torch", "compiled"] if numba_support.available() else ["torch"]
 
 
 def _count_onsets(cfg: FlowConfig, ev: Events) -> int:

@@ -34,7 +34,7 @@ OpenBLAS's
   default): each call's fixed cost (Python, small kernels, thread wake-ups) is paid a quarter
   as often. All twelve changes, the tracker as it ships.
 
-The variants before ``kf`` run the NumPy steps (``fast_path.COMPILED`` off). Not a variant:
+The variants before ``kf`` run the NumPy steps (``set_default_backend("numpy")``). Not a variant:
 the tracker's per-step bookkeeping (the pose as a matrix, the recorded outputs, one pivot per
 step group, the view test on the bounding box, the timeline's shared snapshot copies, one
 pass of checks per velocity predict + update) was made cheaper along the way and is in every
@@ -88,9 +88,9 @@ def _child(sequence: Path, variant: str, method: str, threads: int, frames: str)
 
     level = VARIANTS.index(variant)
     if level < VARIANTS.index("kf"):
-        from evtrack.filters import fast_path
+        from evtrack.filters.backends import set_default_backend
 
-        fast_path.COMPILED = False
+        set_default_backend("numpy")
     if level < VARIANTS.index("strips"):
         CompiledSearch.parallel_min_events = 1 << 62
     if level < VARIANTS.index("mask"):

@@ -1,18 +1,17 @@
-"""Compiled (numba) forms of the single-track velocity update and pose predict of
-:mod:`fast_path`.
+"""The compiled (numba) backend: the velocity update and the pose predict of :mod:`fast_path`
+compiled, and runs of many steps in one call.
 
 :func:`evtrack.filters.fast_path.velocity_update` in NumPy spends most of its ~200 µs (16 RoIs)
 in the dispatch of ~80 tiny array operations and three LAPACK calls, not in arithmetic. The
 kernel here runs the same update in one compiled loop nest: the RoI selection, the measurement
 rows, the Laplacian weighting passes and the information-form posterior, with the 6x6 algebra
 by an unpivoted Cholesky factorisation written out (the matrices are symmetric positive
-definite, as LAPACK ``posv`` assumes too). Same formulas and row order as the NumPy path; the
-results agree with it and with the torch path to rounding (``tests/filters/test_fast_path.py``
-runs all three). Where numba is missing (:func:`available`), the caller takes the NumPy
-path. Per call with 16 RoIs (a tracker's step): 63 µs against 197 µs
-for the NumPy form, 400 RoIs: 107 against 265 µs (``benchmarks/bench_filters.py``, columns
-``fast call`` and ``fast NumPy``); the kernel itself takes ~12 µs of the 63, the rest is the
-filter's input checks and conversions.
+definite, as LAPACK ``posv`` assumes too). Same formulas and row order as the NumPy form; the
+results agree with it and with the torch steps to rounding
+(``tests/filters/test_backend_parity.py`` runs every backend). Per call with 16 RoIs (a
+tracker's step): 63 µs against 197 µs for the NumPy form, 400 RoIs: 107 against 265 µs
+(``benchmarks/bench_filters.py``, columns ``fast call`` and ``fast NumPy``); the kernel itself
+takes ~12 µs of the 63, the rest is the filter's input checks and conversions.
 
 The pose predict (:func:`pose_predict`) is the closed-form unscented predict of
 :func:`evtrack.filters.fast_path.pose_predict` on the filter's arrays, with the quaternion and
@@ -24,10 +23,12 @@ advance: :func:`velocity_run` does them in one call (the decaying predict and th
 each step, in order, stopping before a step whose matrix is not positive definite), so the
 ~50 µs of per-call checks and conversions are paid once per run, not per step;
 :func:`pose_predict_run` does the same for the pose predicts. Their results equal the
-step-by-step calls bit for bit (``tests/filters/test_fast_path.py``).
+step-by-step calls bit for bit (``tests/filters/test_backend_parity.py``).
 
-The first use compiles the kernels (10-15 s); numba caches them on disk (``__pycache__`` beside
-this file, or ``NUMBA_CACHE_DIR``), so later processes load it in a fraction of a second.
+:class:`NumbaBackend` (registered as ``"numba"`` in :mod:`backends`) takes the NumPy backend's
+other steps. Where numba is missing (:func:`available`) the NumPy backend runs instead. The
+first use compiles the kernels (10-15 s); numba caches them on disk (``__pycache__`` beside
+this file, or ``NUMBA_CACHE_DIR``), so later processes load them in a fraction of a second.
 
 Shapes drop the batch dimension, as in :mod:`fast_path`.
 """
@@ -35,15 +36,24 @@ Shapes drop the batch dimension, as in :mod:`fast_path`.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
-from evtrack.filters.config import VelocityKFConfig
+from evtrack.filters.backend_base import RoiRows, VelocityModel
+from evtrack.filters.fast_path import NumpyBackend
 from evtrack.filters.scalar_lie import normalized, quat_mul, quat_rotate, rotation_matrix, se3_exp
 from evtrack.runtime.jit import available as _numba_available
 from evtrack.runtime.jit import njit as _njit
 
-__all__ = ["available", "pose_predict", "pose_predict_run", "velocity_update", "velocity_run"]
+__all__ = [
+    "NumbaBackend",
+    "available",
+    "pose_predict",
+    "pose_predict_run",
+    "velocity_run",
+    "velocity_update",
+]
 
 _TINY = float(np.finfo(np.float64).tiny)
 _NOT_PD = -1  # status of a factorisation that met a non-positive pivot
@@ -52,6 +62,17 @@ _NOT_PD = -1  # status of a factorisation that met a non-positive pivot
 def available() -> bool:
     """Whether the compiled kernels can run (numba is installed)."""
     return _numba_available()
+
+
+def _inlined(fn: Callable) -> Callable:
+    """``fn`` compiled into each kernel that calls it (numba's ``inline="always"``: the
+    kernels split into such helpers run as fast as written in one piece), or ``fn`` itself
+    where numba is missing."""
+    if not _numba_available():
+        return fn
+    import numba
+
+    return numba.njit(inline="always", cache=True, nogil=True)(fn)
 
 
 @_njit
@@ -140,15 +161,15 @@ def _laplacian_weights(residual, M, fixed_scale, scale, scale_min, floor, previo
         rho[m] = max(math.exp(rho[m] / -b), low)
 
 
-@_njit
-def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_scale, flow_info,
-                   normal_info, scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference,
-                   uv, depth, flow, normal, mask):
-    N = depth.shape[0]
+@_inlined
+def _usable_rows(normal_flow, uv, depth, flow, normal, mask, usable):
+    """Mark in ``usable`` (N,) the RoIs that enter an update: unmasked, with a depth in
+    (0, inf), a finite pixel and flow and, under the normal-flow constraint, a direction (a
+    non-zero flow where it is normal-only). Returns the counts of RoIs unmasked and of those
+    with a usable depth."""
     n_mask = 0
     n_depth = 0
-    usable = np.zeros(N, np.bool_)
-    for i in range(N):
+    for i in range(depth.shape[0]):
         if not mask[i]:
             continue
         n_mask += 1
@@ -161,18 +182,43 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
             # a zero normal flow has no direction (dropped under the constraint)
             mag = math.sqrt(flow[i, 0] * flow[i, 0] + flow[i, 1] * flow[i, 1])
             usable[i] = mag > 0.0 or not (normal_flow and normal[i])
-    rows = np.flatnonzero(usable)
+    return n_mask, n_depth
+
+
+@_inlined
+def _row_count(normal_flow, normal, rows):
+    """The number of measurement rows of the RoIs ``rows``: one along each flow, one across
+    each full flow."""
     n_valid = rows.shape[0]
     n_across = 0
     for r in range(n_valid):
         if not normal_flow or not normal[rows[r]]:
             n_across += 1
-    M = n_valid + n_across
-    # measurement rows: along n for every RoI, then across n⊥ for the full flows; a row with
-    # unit direction e has a = e_u fx, b = e_v fy and the value |F| along, 0 across
-    HT = np.empty((6, M))
-    zval = np.zeros(M)
-    row_info = np.full(M, flow_info)  # R⁻¹ per row: the normal-only rows' own
+    return n_valid + n_across
+
+
+@_inlined
+def _write_row(HT, m, a, b, x, y, iz):
+    """Column ``m`` of ``Hᵀ``: the row ``[a/Z, b/Z, −p/Z, −(y p + b), a + x p, b x − a y]``,
+    ``p = a x + b y``, of a flow direction ``e`` with ``a = e_u fx``, ``b = e_v fy`` at the
+    normalised pixel ``(x, y)`` with ``iz = 1/Z``."""
+    p = a * x + b * y
+    HT[0, m] = a * iz
+    HT[1, m] = b * iz
+    HT[2, m] = -(p * iz)
+    HT[3, m] = -(y * p + b)
+    HT[4, m] = x * p + a
+    HT[5, m] = b * x - a * y
+
+
+@_inlined
+def _measurement_rows(normal_flow, normal_info, fx, fy, cx, cy, uv, depth, flow, normal, rows,
+                      HT, zval, row_info):
+    """Fill ``Hᵀ`` (6, M), the row values ``zval`` (M,) (zeros before) and the rows'
+    information ``row_info`` (M,) (a full flow's ``R⁻¹`` before) of the RoIs ``rows``: along
+    ``n = F/|F|`` for every RoI (value ``|F|``), then across ``n⊥`` for the full flows (value
+    0); a zero full flow takes the image axes."""
+    n_valid = rows.shape[0]
     across = n_valid
     for r in range(n_valid):
         i = rows[r]
@@ -187,23 +233,86 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
             nx = 1.0
             ny = 0.0
         zval[r] = mag
-        full = not normal_flow or not normal[i]
-        if not full:
+        _write_row(HT, r, nx * fx, ny * fy, x, y, iz)  # along n
+        if normal_flow and normal[i]:
             row_info[r] = normal_info
-        for side in range(2 if full else 1):
-            if side == 0:  # along n
-                m, a, b = r, nx * fx, ny * fy
-            else:  # across: n⊥ = (-ny, nx)
-                m, a, b = across, -ny * fx, nx * fy
-            p = a * x + b * y
-            HT[0, m] = a * iz
-            HT[1, m] = b * iz
-            HT[2, m] = -(p * iz)
-            HT[3, m] = -(y * p + b)
-            HT[4, m] = x * p + a
-            HT[5, m] = b * x - a * y
-        if full:
+        else:  # across: n⊥ = (-ny, nx)
+            _write_row(HT, across, -ny * fx, nx * fy, x, y, iz)
             across += 1
+
+
+@_inlined
+def _innovations(twist, reference, HT, zval, against_reference, innovation, residual):
+    """Fill the innovations ``z − H V`` (M,) and the first weighting pass's residuals: against
+    the ``reference`` twist if ``against_reference``, else the innovations again."""
+    for m in range(zval.shape[0]):
+        h_twist = 0.0
+        h_ref = 0.0
+        for k in range(6):
+            h_twist += twist[k] * HT[k, m]
+            h_ref += reference[k] * HT[k, m]
+        innovation[m] = zval[m] - h_twist
+        residual[m] = zval[m] - (h_ref if against_reference else h_twist)
+
+
+@_inlined
+def _information(HT, row_info, rho, innovation, prior_info, info, gain):
+    """``info = Hᵀ W H + P⁻¹`` (6, 6) and ``gain = Hᵀ W ν`` (6,) with ``W = R⁻¹ ρ``."""
+    M = innovation.shape[0]
+    for j in range(6):
+        g = 0.0
+        for m in range(M):
+            g += HT[j, m] * row_info[m] * rho[m] * innovation[m]
+        gain[j] = g
+        for k in range(j + 1):
+            s = 0.0
+            for m in range(M):
+                s += HT[j, m] * row_info[m] * rho[m] * HT[k, m]
+            info[j, k] = s + prior_info[j, k]
+            info[k, j] = info[j, k]
+
+
+@_inlined
+def _next_residuals(L, gain, twist, HT, zval, post_twist, step, residual):
+    """A weighting pass before the last: the twist ``V + Λ⁻¹ Hᵀ W ν`` (``L``: the Cholesky
+    factor of ``Λ``) into ``post_twist``, and the next pass's residuals ``z − H V⁺``."""
+    _solve_into(L, gain, step)
+    for k in range(6):
+        post_twist[k] = twist[k] + step[k]
+    for m in range(zval.shape[0]):
+        h = 0.0
+        for k in range(6):
+            h += post_twist[k] * HT[k, m]
+        residual[m] = zval[m] - h
+
+
+@_inlined
+def _posterior(L, gain, twist, post_twist, post_cov):
+    """The last pass: ``P⁺ = Λ⁻¹`` (exactly symmetric) and ``V⁺ = V + P⁺ Hᵀ W ν``."""
+    _inverse_into(L, post_cov)
+    for j in range(6):
+        s = 0.0
+        for k in range(6):
+            s += post_cov[j, k] * gain[k]
+        post_twist[j] = twist[j] + s
+
+
+@_njit
+def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_scale, flow_info,
+                   normal_info, scale, scale_min, floor, fx, fy, cx, cy, twist, cov, reference,
+                   uv, depth, flow, normal, mask):
+    """The update of :func:`velocity_update` on contiguous arrays; returns the posterior and
+    the skip counts, or the prior and ``(-1, 0)`` where a 6x6 is not positive definite."""
+    usable = np.zeros(depth.shape[0], np.bool_)
+    n_mask, n_depth = _usable_rows(normal_flow, uv, depth, flow, normal, mask, usable)
+    rows = np.flatnonzero(usable)
+    # measurement rows: along n for every RoI, then across n⊥ for the full flows
+    M = _row_count(normal_flow, normal, rows)
+    HT = np.empty((6, M))
+    zval = np.zeros(M)
+    row_info = np.full(M, flow_info)  # R⁻¹ per row: the normal-only rows' own
+    _measurement_rows(normal_flow, normal_info, fx, fy, cx, cy, uv, depth, flow, normal, rows,
+                      HT, zval, row_info)
     L = np.empty((6, 6))
     prior_info = np.empty((6, 6))
     if _cholesky(cov, L):
@@ -211,14 +320,8 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
     _inverse_into(L, prior_info)
     innovation = np.empty(M)
     residual = np.empty(M)
-    for m in range(M):
-        h_twist = 0.0
-        h_ref = 0.0
-        for k in range(6):
-            h_twist += twist[k] * HT[k, m]
-            h_ref += reference[k] * HT[k, m]
-        innovation[m] = zval[m] - h_twist
-        residual[m] = zval[m] - (h_ref if (weighting and reference_previous) else h_twist)
+    _innovations(twist, reference, HT, zval, weighting and reference_previous, innovation,
+                 residual)
     rho = np.ones(M)
     previous = np.ones(M)
     info = np.empty((6, 6))
@@ -232,43 +335,20 @@ def _update_kernel(normal_flow, weighting, reference_previous, passes, fixed_sca
             previous[:] = rho
             _laplacian_weights(residual, M, fixed_scale, scale, scale_min, floor, previous,
                                it > 0, rho)
-        # info = Hᵀ W H + P⁻¹ and gain = Hᵀ W ν, with W = R⁻¹ ρ
-        for j in range(6):
-            g = 0.0
-            for m in range(M):
-                g += HT[j, m] * row_info[m] * rho[m] * innovation[m]
-            gain[j] = g
-            for k in range(j + 1):
-                s = 0.0
-                for m in range(M):
-                    s += HT[j, m] * row_info[m] * rho[m] * HT[k, m]
-                info[j, k] = s + prior_info[j, k]
-                info[k, j] = info[j, k]
+        _information(HT, row_info, rho, innovation, prior_info, info, gain)
         if _cholesky(info, L):
             return twist, cov, -1, 0
         if it + 1 < n_passes:  # only the twist: the next pass's residuals
-            _solve_into(L, gain, step)
-            for k in range(6):
-                post_twist[k] = twist[k] + step[k]
-            for m in range(M):
-                h = 0.0
-                for k in range(6):
-                    h += post_twist[k] * HT[k, m]
-                residual[m] = zval[m] - h
+            _next_residuals(L, gain, twist, HT, zval, post_twist, step, residual)
         else:
-            _inverse_into(L, post_cov)
-            for j in range(6):
-                s = 0.0
-                for k in range(6):
-                    s += post_cov[j, k] * gain[k]
-                post_twist[j] = twist[j] + s
-    return post_twist, post_cov, n_mask - n_depth, n_depth - n_valid
+            _posterior(L, gain, twist, post_twist, post_cov)
+    return post_twist, post_cov, n_mask - n_depth, n_depth - rows.shape[0]
 
 
-def _update_settings(cfg: VelocityKFConfig, consts: list[float], focal: np.ndarray,
-                     principal: np.ndarray) -> tuple[bool | int | float, ...]:
+def _settings(model: VelocityModel) -> tuple[bool | int | float, ...]:
     """The scalar leading arguments of :func:`_update_kernel` (and of the run kernel): the
     config's switches, the ``consts`` noises and weighting scales, the intrinsics."""
+    cfg, consts, focal, principal = model
     _, flow_info, scale, scale_min, floor, normal_info = consts
     return (bool(cfg.normal_flow), bool(cfg.weighting), cfg.weighting_reference == "previous",
             int(cfg.weighting_iterations), cfg.laplace_scale is not None, float(flow_info),
@@ -276,19 +356,22 @@ def _update_settings(cfg: VelocityKFConfig, consts: list[float], focal: np.ndarr
             float(focal[1]), float(principal[0]), float(principal[1]))
 
 
+def _roi_arrays(model: VelocityModel, rois: RoiRows) -> tuple[np.ndarray, ...]:
+    """The RoI inputs as the kernels take them: contiguous float64 ``uv`` (N,2), ``depth``
+    (N,), ``flow`` (N,2), and bool ``normal`` (N,) (``assume_normal`` where not given) and
+    ``mask`` (N,) (all True where not given)."""
+    f64 = np.float64
+    uv, depth, flow, normal_only, mask = rois
+    N = depth.shape[0]
+    normal = np.full(N, model.config.assume_normal) if normal_only is None else normal_only
+    return (np.ascontiguousarray(uv, f64).reshape(-1, 2), np.ascontiguousarray(depth, f64),
+            np.ascontiguousarray(flow, f64).reshape(-1, 2), np.ascontiguousarray(normal, np.bool_),
+            np.ones(N, np.bool_) if mask is None else np.ascontiguousarray(mask, np.bool_))
+
+
 def velocity_update(
-    cfg: VelocityKFConfig,
-    consts: list[float],
-    focal: np.ndarray,
-    principal: np.ndarray,
-    twist: np.ndarray,
-    cov: np.ndarray,
-    reference: np.ndarray,
-    uv: np.ndarray,
-    depth: np.ndarray,
-    flow: np.ndarray,
-    normal_only: np.ndarray | None,
-    mask: np.ndarray | None,
+    model: VelocityModel, twist: np.ndarray, cov: np.ndarray, reference: np.ndarray,
+    rois: RoiRows,
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
     """:func:`evtrack.filters.fast_path.velocity_update` compiled (same arguments and
     results); needs numba (:func:`available`).
@@ -296,14 +379,10 @@ def velocity_update(
     Raises:
         numpy.linalg.LinAlgError: if a 6x6 matrix is not positive definite.
     """
-    N = depth.shape[0]
-    normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
+    f64 = np.float64
     post_twist, post_cov, skipped_depth, skipped_flow = _update_kernel(
-        *_update_settings(cfg, consts, focal, principal), np.ascontiguousarray(twist, np.float64),
-        np.ascontiguousarray(cov, np.float64), np.ascontiguousarray(reference, np.float64),
-        np.ascontiguousarray(uv, np.float64), np.ascontiguousarray(depth, np.float64),
-        np.ascontiguousarray(flow, np.float64), np.ascontiguousarray(normal, np.bool_),
-        np.ones(N, np.bool_) if mask is None else np.ascontiguousarray(mask, np.bool_))
+        *_settings(model), np.ascontiguousarray(twist, f64), np.ascontiguousarray(cov, f64),
+        np.ascontiguousarray(reference, f64), *_roi_arrays(model, rois))
     if skipped_depth < 0:
         raise np.linalg.LinAlgError("a 6x6 information matrix is not positive definite")
     return post_twist, post_cov, skipped_depth, skipped_flow
@@ -346,47 +425,41 @@ def _velocity_run_kernel(normal_flow, weighting, reference_previous, passes, fix
 
 
 def velocity_run(
-    cfg: VelocityKFConfig,
-    consts: list[float],
-    focal: np.ndarray,
-    principal: np.ndarray,
-    q_matrix: np.ndarray,
-    twist: np.ndarray,
-    cov: np.ndarray,
-    reference: np.ndarray,
-    dts: np.ndarray,
-    bounds: np.ndarray,
-    uv: np.ndarray,
-    depth: np.ndarray,
-    flow: np.ndarray,
-    normal_only: np.ndarray | None,
+    model: VelocityModel, q_matrix: np.ndarray, twist: np.ndarray, cov: np.ndarray,
+    reference: np.ndarray, dts: np.ndarray, bounds: np.ndarray, rois: RoiRows,
 ) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``n`` steps of :func:`evtrack.filters.fast_path.velocity_predict` then
-    :func:`velocity_update` in one call, with the same arithmetic.
-
-    Args:
-        cfg, consts, focal, principal: as for :func:`velocity_update`. q_matrix: (6,6)
-            process-noise density. twist (6,), cov (6,6), reference (6,): the state before the
-            first step. dts: (n,) seconds. bounds: (n+1,) non-decreasing row offsets; step
-            ``k`` updates with rows ``bounds[k]:bounds[k+1]`` (none: predict only).
-        uv (N,2) px, depth (N,) m, flow (N,2) px/s, normal_only (N,) bool or ``None``
-            (``cfg.assume_normal`` everywhere).
-
-    Returns:
-        ``(done, twists (n,6), covs (n,6,6), references (n,6), skipped (n,2))``: the states
-        after each of the first ``done`` steps; ``done < n`` when the update of step ``done``
-        met a 6x6 matrix that is not positive definite (nothing of it is kept).
-    """
+    :func:`velocity_update` in one call, with the same arithmetic (arguments and results as
+    :meth:`FilterBackend.velocity_run`)."""
     f64 = np.float64
-    N = depth.shape[0]
-    normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
+    uv, depth, flow, normal, _ = _roi_arrays(model, rois)
     return _velocity_run_kernel(
-        *_update_settings(cfg, consts, focal, principal), float(consts[0]),
-        np.ascontiguousarray(q_matrix, f64), np.ascontiguousarray(twist, f64),
-        np.ascontiguousarray(cov, f64), np.ascontiguousarray(reference, f64),
-        np.ascontiguousarray(dts, f64).reshape(-1), np.ascontiguousarray(bounds, np.int64),
-        np.ascontiguousarray(uv, f64).reshape(-1, 2), np.ascontiguousarray(depth, f64),
-        np.ascontiguousarray(flow, f64).reshape(-1, 2), np.ascontiguousarray(normal, np.bool_))
+        *_settings(model), float(model.consts[0]), np.ascontiguousarray(q_matrix, f64),
+        np.ascontiguousarray(twist, f64), np.ascontiguousarray(cov, f64),
+        np.ascontiguousarray(reference, f64), np.ascontiguousarray(dts, f64).reshape(-1),
+        np.ascontiguousarray(bounds, np.int64), uv, depth, flow, normal)
+
+
+@_inlined
+def _times_transition(M, rot, db, out, transposed):
+    """``A M`` for an (n, n) ``M`` and the pose predict's transition ``A = diag(R, R)`` (n = 6)
+    or, with a velocity bias, ``[[R, 0, db I], [0, R, 0], [0, 0, I]]`` (n = 9): each 3-row
+    block of the pose rotated by ``rot`` (3, 3), ``db`` times the bias rows added to the
+    position's. Into ``out`` (n, n), or its transpose where ``transposed``."""
+    n = M.shape[0]
+    for i in range(n):
+        b, k = (i // 3) * 3, i % 3
+        for j in range(n):
+            if i >= 6:
+                v = M[i, j]
+            else:
+                v = rot[k, 0] * M[b, j] + rot[k, 1] * M[b + 1, j] + rot[k, 2] * M[b + 2, j]
+                if n > 6 and i < 3:
+                    v += db * M[6 + i, j]
+            if transposed:
+                out[j, i] = v
+            else:
+                out[i, j] = v
 
 
 @_njit
@@ -415,35 +488,16 @@ def _pose_predict_kernel(t, q, cov, twist, dt, q_matrix, bias):
     rot = np.empty((3, 3))
     for i in range(3):
         rot[i, 0], rot[i, 1], rot[i, 2] = rows[i]
-    # A P Aᵀ with A = diag(R, R) (and, with a bias, A = [[R, 0, db I], [0, R, 0], [0, 0, I]]),
-    # block by block: R P_ab Rᵀ plus the bias terms
-    p = cov[0]
-    half = np.empty((n, n))  # A P
-    for i in range(n):
-        if i >= 6:
-            for j in range(n):
-                half[i, j] = p[i, j]
-            continue
-        b, k = (i // 3) * 3, i % 3
-        for j in range(n):
-            half[i, j] = rot[k, 0] * p[b, j] + rot[k, 1] * p[b + 1, j] + rot[k, 2] * p[b + 2, j]
-            if n > 6 and i < 3:
-                half[i, j] += db * p[6 + i, j]
-    full = np.empty((n, n))  # (A P) Aᵀ
-    for i in range(n):
-        for j in range(n):
-            if j >= 6:
-                full[i, j] = half[i, j]
-                continue
-            b, k = (j // 3) * 3, j % 3
-            full[i, j] = (half[i, b] * rot[k, 0] + half[i, b + 1] * rot[k, 1]
-                          + half[i, b + 2] * rot[k, 2])
-            if n > 6 and j < 3:
-                full[i, j] += db * half[i, 6 + j]
+    # A P Aᵀ with A = diag(R, R) (and, with a bias, A = [[R, 0, db I], [0, R, 0], [0, 0, I]]):
+    # (A P)ᵀ, then ((A P) Aᵀ)ᵀ = A (A P)ᵀ
+    half_t = np.empty((n, n))
+    _times_transition(cov[0], rot, db, half_t, True)
+    full_t = np.empty((n, n))
+    _times_transition(half_t, rot, db, full_t, False)
     cov_out = np.empty((1, n, n))
     for i in range(n):
         for j in range(n):
-            cov_out[0, i, j] = 0.5 * (full[i, j] + full[j, i]) + dt * q_matrix[i, j]
+            cov_out[0, i, j] = 0.5 * (full_t[j, i] + full_t[i, j]) + dt * q_matrix[i, j]
     return t_out, q_out, cov_out
 
 
@@ -487,13 +541,25 @@ def pose_predict_run(t: np.ndarray, q: np.ndarray, cov: np.ndarray, twists: np.n
 def pose_predict(t: np.ndarray, q: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt: float,
                  q_matrix: np.ndarray, bias: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`evtrack.filters.fast_path.pose_predict` compiled, on one track's arrays with
-    their batch dimension: ``t`` (1,3) m, ``q`` (1,4) wxyz, ``cov`` (1,n,n), ``twist`` (1,6)
-    ``[v_o (m/s), ω (rad/s)]``, ``dt`` s, ``q_matrix`` (n,n) process-noise density, ``bias``
-    (1,3): the velocity bias (m/s per m/s) of a filter with one (n = 9), else ``None`` (n = 6);
-    returns
-    new float64 arrays ``(t (1,3), q (1,4), cov (1,n,n))``. Needs numba (:func:`available`)."""
+    """:func:`evtrack.filters.fast_path.pose_predict` compiled (arguments and results as
+    :meth:`FilterBackend.pose_predict`). Needs numba (:func:`available`)."""
     f64 = np.float64
     return _pose_predict_kernel(np.ascontiguousarray(t, f64), np.ascontiguousarray(q, f64),
                                 np.ascontiguousarray(cov, f64), np.ascontiguousarray(twist, f64),
                                 float(dt), np.ascontiguousarray(q_matrix, f64), _bias_array(bias))
+
+
+class NumbaBackend(NumpyBackend):
+    """The NumPy backend with its velocity update and pose predict compiled by numba, and runs
+    of many steps per call (registered as ``"numba"``)."""
+
+    name = "numba"
+    runs = True
+    velocity_update = staticmethod(velocity_update)
+    velocity_run = staticmethod(velocity_run)
+    pose_predict = staticmethod(pose_predict)
+    pose_predict_run = staticmethod(pose_predict_run)
+
+    def available(self) -> bool:
+        """Whether numba is installed."""
+        return available()

@@ -1,43 +1,32 @@
-"""The single-track fast path: one track's float64 steps on CPU in NumPy and Python floats.
+"""The NumPy backend: one track's float64 steps in NumPy and Python floats.
 
 A tracker steps its filters once per ~1 ms velocity step with one track (B = 1). The torch
-steps then cost the dispatch of ~150 tiny ops (a few µs each) rather than arithmetic. The
-stateful methods of :class:`~evtrack.filters.VelocityKF` and :class:`~evtrack.filters.PoseUKF`
-(and the pose update of :class:`~evtrack.filters.PoseTwistUKF`) therefore run these kernels
-when :func:`applies` says so: the same model as the torch steps, written for one track —
-quaternion and SE(3) algebra on Python floats, per-RoI work on the usable RoIs only
-(gathered once, so no masks) as rows of (k, N) arrays, 6x6 algebra through LAPACK (SciPy's
-``posv``). The velocity update, the costliest of them, runs compiled (:mod:`fast_compiled`,
-numba) when :data:`COMPILED` is set (the default), the NumPy code otherwise; so does the
-pose predict of :class:`~evtrack.filters.PoseUKF` (its call site picks the form). The scalar
-algebra lives in :mod:`scalar_lie`, shared with the compiled kernels. Results equal
-the torch path to rounding (``tests/filters/test_fast_path.py``: 1e-12, in the covariance's
-metric for the velocity filter, both forms of the update; a steep fixed Laplacian scale
-makes the weights amplify rounding, as much in the torch path itself). Batches, CUDA,
-float32, autograd, ``compile_steps`` and ONNX export keep the torch steps. A 6x6 that is not
-positive definite raises ``numpy.linalg.LinAlgError``, on which the filters rerun the step in
-torch (which returns its NaNs instead of raising).
+steps then cost the dispatch of ~150 tiny ops (a few µs each) rather than arithmetic. This
+backend (:class:`NumpyBackend`, registered as ``"numpy"`` in :mod:`backends`) runs the same
+model written for one track: quaternion and SE(3) algebra on Python floats (:mod:`scalar_lie`),
+per-RoI work on the usable RoIs only (gathered once, so no masks) as rows of (k, N) arrays, 6x6
+algebra through LAPACK (SciPy's ``posv``). The compiled backend (:mod:`fast_compiled`, numba)
+replaces its velocity update and pose predict and adds runs of many steps per call. Results
+equal the torch steps to rounding (``tests/filters/test_backend_parity.py``: 1e-12, in the
+covariance's metric for the velocity filter; a steep fixed Laplacian scale makes the weights
+amplify rounding, as much in the torch steps themselves). A 6x6 that is not positive definite
+raises ``numpy.linalg.LinAlgError``, on which the filters rerun the step in torch.
 
-The formulas are those of :mod:`velocity_kf`, :mod:`pose_ukf`, :mod:`lie` and
-:mod:`weighting`; see there for the derivations and units. Shapes here drop the batch
-dimension: a twist is (6,), a covariance (n, n), RoI inputs (N, 2) and (N,).
+The formulas are those of :mod:`velocity_kf`, :mod:`velocity_model`, :mod:`pose_motion`,
+:mod:`pose_measurements`, :mod:`lie` and :mod:`weighting`; see there for the derivations and
+units. Shapes drop the batch dimension: a twist is (6,), a covariance (n, n), RoI inputs
+(N, 2) and (N,).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
-from typing import NamedTuple
 
 import numpy as np
-import torch
 from scipy.linalg.lapack import dposv as _posv
-from torch import Tensor
 
-from evtrack.filters import fast_compiled as _compiled
-from evtrack.filters.config import VelocityKFConfig
-from evtrack.filters.linalg import use_portable
-from evtrack.filters.scalar_lie import (  # noqa: F401  (re-exported: the fast path's algebra)
+from evtrack.filters.backend_base import FilterBackend, PoseUpdate, RoiRows, VelocityModel
+from evtrack.filters.scalar_lie import (
     Quat,
     Vec3,
     cross,
@@ -51,9 +40,7 @@ from evtrack.filters.scalar_lie import (  # noqa: F401  (re-exported: the fast p
 )
 
 __all__ = [
-    "applies",
-    "as_array",
-    "as_bool_array",
+    "NumpyBackend",
     "PoseUpdate",
     "pivot_noise",
     "pose_predict",
@@ -66,55 +53,6 @@ __all__ = [
 _EYE6 = np.eye(6)
 _ACROSS = np.array([-1.0, 1.0])  # n⊥ = (-ny, nx) scales (ny, nx) by these
 _TINY = float(np.finfo(np.float64).tiny)
-
-
-def applies(state: Tensor, others: Iterable[object]) -> bool:
-    """Whether a stateful call of a filter (that allows the fast path) may take it.
-
-    Args:
-        state: the filter's first state tensor (B, ...).
-        others: its other state tensors and the call's inputs.
-
-    Returns:
-        True when ``state`` is one track (B = 1) of float64 on CPU, every other entry is a
-        tensor, a number or ``None`` (anything else goes to the torch path, which reports it),
-        none needs gradients, and nothing is being exported, traced or compiled.
-    """
-    if state.shape[0] != 1 or state.dtype is not torch.float64 or not state.is_cpu:
-        return False
-    if use_portable() or torch.compiler.is_compiling():
-        return False
-    grad = torch.is_grad_enabled()
-    if grad and state.requires_grad:
-        return False
-    for x in others:
-        if isinstance(x, Tensor):
-            if grad and x.requires_grad:
-                return False
-        elif x is not None and not isinstance(x, float | int):
-            return False
-    return True
-
-
-def check_dt(d: Tensor) -> None:
-    """Raise ``ValueError`` unless the time step ``d`` (seconds, a scalar or (B,) tensor) is
-    finite and >= 0; only on CPU (on a GPU the check would wait for the device)."""
-    if d.is_cpu and d.numel() and not bool((torch.isfinite(d) & (d >= 0)).all()):
-        raise ValueError(f"dt must be finite seconds >= 0, got {d.tolist()}")
-
-
-def as_array(x: Tensor) -> np.ndarray:
-    """A CPU float64 NumPy view (or copy, for another dtype or device) of a tensor."""
-    if x.dtype is not torch.float64 or not x.is_cpu:
-        x = x.to(dtype=torch.float64, device="cpu")
-    return (x.detach() if x.requires_grad else x).numpy()
-
-
-def as_bool_array(x: Tensor) -> np.ndarray:
-    """A CPU NumPy view (or copy) of a bool tensor."""
-    if not x.is_cpu:
-        x = x.cpu()
-    return (x.detach() if x.requires_grad else x).numpy()
 
 
 # ---------------------------------------------------------------------------- VelocityKF
@@ -155,47 +93,21 @@ def pivot_noise(q_density: np.ndarray, pivot: np.ndarray) -> np.ndarray:
     return out
 
 
-#: Run :func:`velocity_update` (and :meth:`PoseUKF.predict`) through the compiled kernels of
-#: :mod:`fast_compiled` (numba) when numba is there; False keeps the NumPy code below (the
-#: tests run both).
-COMPILED = True
-
-
 def velocity_update(
-    cfg: VelocityKFConfig,
-    consts: list[float],
-    focal: np.ndarray,
-    principal: np.ndarray,
+    model: VelocityModel,
     twist: np.ndarray,
     cov: np.ndarray,
     reference: np.ndarray,
-    uv: np.ndarray,
-    depth: np.ndarray,
-    flow: np.ndarray,
-    normal_only: np.ndarray | None,
-    mask: np.ndarray | None,
+    rois: RoiRows,
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """One track's weighted information-form update from RoI flows (see :mod:`velocity_kf`).
-
-    Args:
-        cfg: the filter's config. consts: the filter's ``consts`` buffer as floats
-            ``[ln(alpha)/alpha_dt, 1/σ_F², b or 0, b_min, floor, 1/σ_N²]`` (``σ_N``: the
-            normal-only rows' noise). focal: (2,) ``[fx, fy]``;
-            principal: (2,) ``[cx, cy]`` (px).
-        twist (6,), cov (6,6): the prior. reference (6,): the last posterior twist.
-        uv (N,2) ideal pinhole px, depth (N,) m, flow (N,2) px/s; normal_only (N,) bool or
-        ``None`` (``cfg.assume_normal`` everywhere); mask (N,) bool or ``None`` (all True).
-
-    Returns:
-        ``(twist, cov, skipped_depth, skipped_flow)``: the posterior and this update's counts
-        of RoIs skipped for a bad depth and for a bad flow or pixel.
+    """One track's weighted information-form update from RoI flows (see :mod:`velocity_kf`);
+    arguments and results as :meth:`FilterBackend.velocity_update`.
 
     Raises:
         numpy.linalg.LinAlgError: if a 6x6 information matrix is not positive definite.
     """
-    if COMPILED and _compiled.available():  # same update, ~10x less time per call
-        return _compiled.velocity_update(cfg, consts, focal, principal, twist, cov, reference,
-                                         uv, depth, flow, normal_only, mask)
+    cfg, consts, focal, principal = model
+    uv, depth, flow, normal_only, mask = rois
     _, flow_info, scale, scale_min, floor, normal_info = consts
     N = depth.shape[0]
     normal = np.full(N, cfg.assume_normal) if normal_only is None else normal_only
@@ -237,7 +149,7 @@ def velocity_update(
         np.multiply(flow.T, 1.0 / np.where(moving, mag, 1.0), out=roi[3:5])
         roi[3, ~moving] = 1.0
 
-    # Rows (see VelocityKF._measurement_rows): along n for every RoI, then across n⊥ for the
+    # Rows (see velocity_model.measurement_rows): along n for every RoI, then across n⊥ for the
     # full flows (every RoI without the normal-flow constraint); a row with unit direction e
     # has a = e_u fx, b = e_v fy, its RoI's x, y, 1/Z, and the value z = |F| along, 0 across.
     full = np.flatnonzero(~normal) if cfg.normal_flow else None
@@ -357,17 +269,31 @@ def spd_inverse(A: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- PoseUKF
 def pose_predict(
-    t: Vec3, q: Quat, cov: np.ndarray, twist: list[float], dt: float, q_matrix: np.ndarray,
-    bias: Sequence[float] | None = None,
-) -> tuple[Vec3, Quat, np.ndarray]:
-    """The closed-form unscented predict of :meth:`PoseUKF.predict_state`.
+    t: np.ndarray, q: np.ndarray, cov: np.ndarray, twist: np.ndarray, dt: float,
+    q_matrix: np.ndarray, bias: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The closed-form unscented predict of :meth:`PoseUKF.predict_state` (arguments and
+    results as :meth:`FilterBackend.pose_predict`), on Python floats and NumPy.
 
     ``t' = R_Δ t + p_Δ``, ``q' = q_Δ ⊗ q`` (normalised), ``P' = A P Aᵀ + Q dt`` with
     ``A = diag(R_Δ, R_Δ)``, made exactly symmetric before ``Q dt`` is added. With a velocity
-    ``bias`` (3 floats, m/s per m/s of the object's speed; ``cov`` 9x9): ``t' = R_Δ t + p_Δ +
-    b s dt`` with ``s = |v_o + ω × t|`` (the prior ``t``), and
+    ``bias`` (m/s per m/s of the object's speed; ``cov`` 9x9): ``t' = R_Δ t + p_Δ + b s dt``
+    with ``s = |v_o + ω × t|`` (the prior ``t``), and
     ``A = [[R_Δ, 0, s dt I], [0, R_Δ, 0], [0, 0, I]]``.
     """
+    t_new, q_new, cov_new = _pose_predict(
+        tuple(t[0].tolist()), tuple(q[0].tolist()), cov[0], twist[0].tolist(), dt, q_matrix,
+        None if bias is None else bias[0].tolist(),
+    )
+    return np.array([t_new]), np.array([q_new]), cov_new[None]
+
+
+def _pose_predict(
+    t: Vec3, q: Quat, cov: np.ndarray, twist: list[float], dt: float, q_matrix: np.ndarray,
+    bias: list[float] | None,
+) -> tuple[Vec3, Quat, np.ndarray]:
+    """:func:`pose_predict` on one track's floats: ``t`` (m), ``q`` (wxyz), ``cov`` (n, n),
+    ``twist`` 6 floats, ``bias`` 3 floats or ``None``."""
     rho = (twist[0] * dt, twist[1] * dt, twist[2] * dt)
     phi = (twist[3] * dt, twist[4] * dt, twist[5] * dt)
     qd, pd = se3_exp(rho, phi)
@@ -389,20 +315,6 @@ def pose_predict(
     return t, q, 0.5 * (rotated + rotated.T) + dt * q_matrix
 
 
-class PoseUpdate(NamedTuple):
-    """The result of :func:`pose_update` (one track)."""
-
-    t: Vec3
-    q: Quat
-    extra: np.ndarray  # (k,) further state (the twist of PoseTwistUKF), or (0,)
-    cov: np.ndarray  # (n, n)
-    initialized: bool
-    rejected_run: int
-    used: bool
-    rejected: int
-    reinitialised: int
-
-
 def pose_update(
     t: Vec3,
     q: Quat,
@@ -417,7 +329,8 @@ def pose_update(
     gate: float,
     reinit_after: int,
 ) -> PoseUpdate:
-    """The gated closed-form pose update of :meth:`_PoseFilter.update_pose_state`.
+    """The gated closed-form pose update of :meth:`PoseUKF.update_pose_state` (arguments as
+    :meth:`FilterBackend.pose_update`).
 
     ``h(x) = pose``: ``S = P_pp + R``, ``Pxz = P[:, :6]``, ``ν = (t_m, q_m) ⊟ (t, q)``;
     accepted when the track is fresh (``take`` the pose) or ``νᵀ S⁻¹ ν <= gate`` (fuse);
@@ -478,3 +391,14 @@ def pose_update(
         int(rejected),
         int(reinit),
     )
+
+
+class NumpyBackend(FilterBackend):
+    """The single-track steps in NumPy and Python floats (registered as ``"numpy"``)."""
+
+    name = "numpy"
+    velocity_predict = staticmethod(velocity_predict)
+    velocity_update = staticmethod(velocity_update)
+    pivot_noise = staticmethod(pivot_noise)
+    pose_predict = staticmethod(pose_predict)
+    pose_update = staticmethod(pose_update)

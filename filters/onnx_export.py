@@ -47,61 +47,21 @@ __all__ = [
 
 DEFAULT_OPSET = 18
 
+# A pose filter's measurement inputs and its outputs after the state's.
+_POSE_MEAS = ("t_meas", "q_meas", "cov_meas", "valid")
+_POSE_FLAGS = ("initialized_out", "rejected_run_out", "used", "rejected", "reinitialised")
 _NAMES: dict[type, tuple[tuple[str, ...], tuple[str, ...]]] = {
     VelocityKF: (
         ("twist", "cov", "reference", "dt", "uv", "depth", "flow", "normal_only", "mask"),
         ("twist_out", "cov_out", "skipped"),
     ),
     PoseUKF: (
-        (
-            "t",
-            "q",
-            "cov",
-            "initialized",
-            "rejected_run",
-            "twist",
-            "dt",
-            "t_meas",
-            "q_meas",
-            "cov_meas",
-            "valid",
-        ),
-        (
-            "t_out",
-            "q_out",
-            "cov_out",
-            "initialized_out",
-            "rejected_run_out",
-            "used",
-            "rejected",
-            "reinitialised",
-        ),
+        ("t", "q", "cov", "initialized", "rejected_run", "twist", "dt", *_POSE_MEAS),
+        ("t_out", "q_out", "cov_out", *_POSE_FLAGS),
     ),
     PoseTwistUKF: (
-        (
-            "t",
-            "q",
-            "twist",
-            "cov",
-            "initialized",
-            "rejected_run",
-            "dt",
-            "t_meas",
-            "q_meas",
-            "cov_meas",
-            "valid",
-        ),
-        (
-            "t_out",
-            "q_out",
-            "twist_out",
-            "cov_out",
-            "initialized_out",
-            "rejected_run_out",
-            "used",
-            "rejected",
-            "reinitialised",
-        ),
+        ("t", "q", "twist", "cov", "initialized", "rejected_run", "dt", *_POSE_MEAS),
+        ("t_out", "q_out", "twist_out", "cov_out", *_POSE_FLAGS),
     ),
 }
 # Inputs whose second dimension is the number of RoIs (VelocityKF only).

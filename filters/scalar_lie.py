@@ -1,11 +1,12 @@
-"""Quaternion and SE(3) algebra of one track on Python floats (tuples), for the fast path.
+"""Quaternion and SE(3) algebra of one track on Python floats (tuples): the float64 form of
+:mod:`lie`, for the single-track backends and the tracker.
 
 The same formulas as the batched tensor forms of :mod:`lie` (units: radians, metres;
 quaternions ``wxyz``, unit norm), written for one track on tuples of floats: a call costs a
-microsecond, not the dispatch of tensor ops. Each function runs as plain Python in
-:mod:`fast_path` and, unchanged, inside the compiled kernels of :mod:`fast_compiled` (numba
-``register_jitable``: numba compiles it where a kernel calls it; without numba it is plain
-Python only).
+microsecond, not the dispatch of tensor ops. Each function runs as plain Python in the NumPy
+backend (:mod:`fast_path`) and, unchanged, inside the compiled kernels of :mod:`fast_compiled`
+(numba ``register_jitable``: numba compiles it where a kernel calls it; without numba it is
+plain Python only).
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ covariances agree with ``⊞``/``⊟``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -20,7 +21,14 @@ from torch import Tensor
 from evtrack.filters.lie import quat_conj, quat_exp, quat_log, quat_mul
 from evtrack.filters.linalg import cholesky
 
-__all__ = ["SigmaWeights", "merwe_weights", "sigma_offsets", "quat_mean", "weighted_cov"]
+__all__ = [
+    "SigmaWeights",
+    "UnscentedParams",
+    "merwe_weights",
+    "quat_mean",
+    "sigma_offsets",
+    "weighted_cov",
+]
 
 
 @dataclass(frozen=True)
@@ -36,6 +44,22 @@ class SigmaWeights:
     mean: tuple[float, ...]
     cov: tuple[float, ...]
     gamma: float
+
+
+class UnscentedParams(NamedTuple):
+    """A filter's sigma-point parameters as tensors of its dtype (exported graphs keep them at
+    full precision).
+
+    Attributes:
+        gamma: () the spread of the points, in standard deviations.
+        w_mean: (2n+1,) weights of the mean. w_cov: (2n+1,) weights of the covariance.
+        mean_iterations: Gauss–Newton steps of the quaternion mean (:func:`quat_mean`).
+    """
+
+    gamma: Tensor
+    w_mean: Tensor
+    w_cov: Tensor
+    mean_iterations: int
 
 
 def merwe_weights(n: int, alpha: float, beta: float, kappa: float) -> SigmaWeights:

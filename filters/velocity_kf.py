@@ -26,8 +26,9 @@ The weights' residuals are taken against a reference twist (by default the last 
 see :class:`VelocityKFConfig.weighting_reference`) and refined over
 ``weighting_iterations`` passes, each against the previous pass's posterior.
 
-One track (B = 1) of float64 on CPU runs the stateful methods through :mod:`fast_path`
-(NumPy; equal to the torch steps to rounding), unless ``fast_path=False``.
+One track (B = 1) of float64 on CPU runs the stateful methods on a single-track backend
+(:mod:`backends`: numba, or NumPy; equal to the torch steps to rounding), unless
+``fast_path=False`` (or ``backend="torch"``).
 
 Tracks with different numbers of RoIs share a batch through padding and a ``mask``. A RoI
 whose depth is missing, zero, negative or NaN is skipped and counted in ``skipped_depth``; one
@@ -43,22 +44,21 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from evtrack.camera import PinholeCamera
-from evtrack.filters import fast_compiled as _compiled
-from evtrack.filters import fast_path as fp
-from evtrack.filters.compiled import CompilableSteps
+from evtrack.filters.backend_base import FilterBackend, RoiRows, VelocityModel
+from evtrack.filters.backends import as_array, as_bool_array
+from evtrack.filters.base import TrackFilter, checked
 from evtrack.filters.config import VelocityKFConfig
 from evtrack.filters.interaction import undistort_flow
 from evtrack.filters.lie import pivot_map
-from evtrack.filters.linalg import spd_inverse
-from evtrack.filters.weighting import laplacian_weights
+from evtrack.filters.velocity_model import measurement_rows, weighted_update
 
 __all__ = ["VelocityKF"]
 
 
-class VelocityKF(CompilableSteps, nn.Module):
+class VelocityKF(TrackFilter):
     """Batched 6-DoF velocity Kalman filter from event optical flow (paper III-B).
 
     Args:
@@ -70,10 +70,14 @@ class VelocityKF(CompilableSteps, nn.Module):
         dtype: float64 by default. A float32 filter keeps its state and the per-RoI work in
             float32 but sums the information and does the 6x6 algebra in float64.
         device: where the state lives (``.to(device)`` moves it later too).
-        fast_path: let :meth:`predict`, :meth:`update` and :meth:`forward` run one float64 CPU
-            track through :mod:`fast_path` (NumPy, equal to the torch steps to rounding, several
-            times faster at B = 1); also settable later as the attribute ``fast_path``. Batches,
-            other dtypes and devices, gradients and compiled steps always run torch.
+        fast_path: let :meth:`predict`, :meth:`update`, :meth:`forward` and
+            :meth:`forward_run` run one float64 CPU track on a single-track backend (equal to
+            the torch steps to rounding, several times faster at B = 1); also settable later as
+            the attribute ``fast_path``. Batches, other dtypes and devices, gradients and
+            compiled steps always run torch.
+        backend: the preferred backend where ``fast_path`` holds (:mod:`backends`:
+            ``"auto"``, ``"numba"``, ``"numpy"`` or ``"torch"``); also the attribute
+            ``backend``.
 
     Buffers (all in ``state_dict``): the state ``twist`` (B,6), ``cov`` (B,6,6) and
     ``reference`` (B,6) (the last posterior twist, which the weighting compares flows with);
@@ -92,6 +96,7 @@ class VelocityKF(CompilableSteps, nn.Module):
     """
 
     _STEP_NAMES = ("predict_state", "update_state", "step")
+    _STATE = ("twist", "cov", "reference")
 
     twist: Tensor
     cov: Tensor
@@ -113,11 +118,12 @@ class VelocityKF(CompilableSteps, nn.Module):
         dtype: torch.dtype = torch.float64,
         device: str | torch.device | None = None,
         fast_path: bool = True,
+        backend: str = "auto",
     ) -> None:
         super().__init__()
         self.config = config if config is not None else VelocityKFConfig()
         self.camera = camera
-        self.fast_path = fast_path
+        self._init_backend(backend, fast_path)
         cfg = self.config
         kw: dict[str, Any] = {"dtype": dtype, "device": device}
         self.register_buffer("focal", torch.tensor([camera.fx, camera.fy], **kw))
@@ -152,11 +158,6 @@ class VelocityKF(CompilableSteps, nn.Module):
         self.reset(batch_size)
 
     # ------------------------------------------------------------------ state
-    @property
-    def batch_size(self) -> int:
-        """Number of tracks B."""
-        return self.twist.shape[0]
-
     def reset(
         self, batch_size: int | None = None, twist: Tensor | None = None, cov: Tensor | None = None
     ) -> None:
@@ -165,12 +166,12 @@ class VelocityKF(CompilableSteps, nn.Module):
         B = self.batch_size if batch_size is None else int(batch_size)
         kw = {"dtype": self.init_var.dtype, "device": self.init_var.device}
         self.twist = (
-            torch.zeros(B, 6, **kw) if twist is None else _checked(twist, (B, 6), "twist", kw)
+            torch.zeros(B, 6, **kw) if twist is None else checked(twist, (B, 6), "twist", kw)
         )
         if cov is None:
             self.cov = torch.diag_embed(self.init_var).expand(B, 6, 6).clone()
         else:
-            self.cov = _checked(cov, (B, 6, 6), "cov", kw)
+            self.cov = checked(cov, (B, 6, 6), "cov", kw)
         self.reference = self.twist.clone()
         self.skipped_depth = torch.zeros(B, dtype=torch.int64, device=kw["device"])
         self.skipped_flow = torch.zeros(B, dtype=torch.int64, device=kw["device"])
@@ -185,9 +186,10 @@ class VelocityKF(CompilableSteps, nn.Module):
         about itself no longer has to be explained by a velocity of the camera-origin point.
         ``None`` restores the diagonal noise of the config. One pivot for all tracks.
         """
-        if pivot is not None and self._fast((pivot,)):  # the tracker's call at every step
-            self._buffers["q_matrix"] = torch.from_numpy(fp.pivot_noise(
-                self._buffers["q_density"].numpy(), fp.as_array(pivot).reshape(3)))
+        backend = None if pivot is None else self._single_track((pivot,))
+        if backend is not None:  # the tracker's call at every step
+            self._buffers["q_matrix"] = torch.from_numpy(backend.pivot_noise(
+                self._buffers["q_density"].numpy(), as_array(pivot).reshape(3)))
             return
         Q = torch.diag(self.q_density)
         if pivot is not None:
@@ -196,22 +198,15 @@ class VelocityKF(CompilableSteps, nn.Module):
             Q = 0.5 * (Q + Q.T)
         self.q_matrix = Q
 
-    def _load_from_state_dict(
-        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
-    ):  # noqa: ANN001 - torch's signature
-        # A saved filter may hold another number of tracks: take the saved batch size.
-        key = prefix + "twist"
-        if key in state_dict and state_dict[key].shape[0] != self.batch_size:
-            self.reset(state_dict[key].shape[0])
-        super()._load_from_state_dict(
-            state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
-        )
-
     # ------------------------------------------------------------------ stateful steps
     def predict(self, dt: float | Tensor) -> Tensor:
         """Decay the twist over ``dt`` seconds (float or (B,)); returns the prediction (B,6)."""
-        if self._fast((dt,)):
-            return self._predict_fast(dt)
+        backend = self._single_track((dt,))
+        if backend is not None:
+            twist, cov = self._predicted(backend, dt)
+            V = torch.from_numpy(twist[None])
+            self._buffers.update(twist=V, cov=torch.from_numpy(cov[None]))
+            return V
         self.twist, self.cov = self.step_function("predict_state")(
             self.twist, self.cov, self._dt(dt)
         )
@@ -235,9 +230,10 @@ class VelocityKF(CompilableSteps, nn.Module):
                 (aperture problem); default: ``config.assume_normal`` for every RoI.
             mask: (B,N) bool, False on padding; default all True.
         """
-        if self._fast((uv, depth, flow, normal_only, mask)):
+        backend = self._single_track((uv, depth, flow, normal_only, mask))
+        if backend is not None:
             try:
-                return self._update_fast(uv, depth, flow, normal_only, mask)
+                return self._update_single(backend, uv, depth, flow, normal_only, mask)
             except np.linalg.LinAlgError:  # a 6x6 not positive definite: torch gives its NaNs
                 pass
         return self._update_torch(uv, depth, flow, normal_only, mask)
@@ -272,13 +268,15 @@ class VelocityKF(CompilableSteps, nn.Module):
         mask: Tensor | None = None,
     ) -> Tensor:
         """One predict over ``dt`` seconds then one update (arguments as in :meth:`update`)."""
-        if self._fast((dt, uv, depth, flow, normal_only, mask)):
+        backend = self._single_track((dt, uv, depth, flow, normal_only, mask))
+        if backend is not None:
             # one track: the predicted state goes to the update as arrays, not through the
             # buffers (same arithmetic as predict() then update(); a bad input raises in
-            # _update_fast before the state changes)
-            twist, cov = self._predicted(dt)
+            # _update_single before the state changes)
+            twist, cov = self._predicted(backend, dt)
             try:
-                return self._update_fast(uv, depth, flow, normal_only, mask, (twist, cov))
+                return self._update_single(backend, uv, depth, flow, normal_only, mask,
+                                           (twist, cov))
             except np.linalg.LinAlgError:  # the torch update from the predicted state
                 self._buffers.update(twist=torch.from_numpy(twist[None]),
                                      cov=torch.from_numpy(cov[None]))
@@ -330,73 +328,48 @@ class VelocityKF(CompilableSteps, nn.Module):
         b = np.asarray(bounds, dtype=np.int64)
         if n and (b[0] < 0 or b[-1] > N or (np.diff(b) < 0).any()):
             raise ValueError(f"forward_run: row bounds must rise within [0, {N}], got {b}")
-        if not (n and fp.COMPILED and _compiled.available() and self.camera.dist is None
-                and self._fast((uv, depth, flow, normal_only, *(float(dt) for dt in dts)))):
+        backend = (self._single_track((uv, depth, flow, normal_only, *(float(dt) for dt in dts)))
+                   if n and self.camera.dist is None else None)
+        if backend is None or not backend.runs:
             return None
         buf = self._buffers
-        done, twists, covs, refs, skipped = _compiled.velocity_run(
-            self.config,
-            buf["consts"].tolist(),
-            buf["focal"].numpy(),
-            buf["principal"].numpy(),
-            buf["q_matrix"].numpy(),
-            buf["twist"].numpy()[0],
-            buf["cov"].numpy()[0],
-            buf["reference"].numpy()[0],
-            np.array([float(dt) for dt in dts], dtype=np.float64),
-            b,
-            fp.as_array(uv),
-            fp.as_array(depth),
-            fp.as_array(flow),
-            None if normal_only is None else fp.as_bool_array(normal_only),
+        rois = RoiRows(as_array(uv), as_array(depth), as_array(flow),
+                       None if normal_only is None else as_bool_array(normal_only), None)
+        done, twists, covs, refs, skipped = backend.velocity_run(
+            self._model(), buf["q_matrix"].numpy(), buf["twist"].numpy()[0],
+            buf["cov"].numpy()[0], buf["reference"].numpy()[0],
+            np.array([float(dt) for dt in dts], dtype=np.float64), b, rois,
         )
         if done:
             last = done - 1
-            buf.update(twist=torch.from_numpy(twists[last:done].copy()),
-                       cov=torch.from_numpy(covs[last:done].copy()),
-                       reference=torch.from_numpy(refs[last:done].copy()))
-            skipped_depth, skipped_flow = (int(v) for v in skipped[:done].sum(0))
-            if skipped_depth or skipped_flow:
-                buf.update(skipped_depth=buf["skipped_depth"] + skipped_depth,
-                           skipped_flow=buf["skipped_flow"] + skipped_flow)
+            self._store(twists[last:done].copy(), covs[last:done].copy(), refs[last:done].copy(),
+                        *(int(v) for v in skipped[:done].sum(0)))
         return torch.from_numpy(twists[:done]).unsqueeze(1)
 
-    # ------------------------------------------------------------------ fast path (B = 1)
+    # ------------------------------------------------------------------ single track (B = 1)
     # Buffers are read from and written to ``_buffers`` directly: nn.Module's attribute
     # access and assignment cost ~1 and ~3 µs per buffer, as much as the arithmetic here.
-    def _fast(self, inputs: tuple[object, ...]) -> bool:
-        if not self.fast_path or self.__dict__.get("_compiled_steps"):
-            return False
+    def _model(self) -> VelocityModel:
+        """The constants of the update as a backend takes them."""
         buf = self._buffers
-        return fp.applies(buf["twist"], (buf["cov"], buf["reference"], *inputs))
+        return VelocityModel(self.config, buf["consts"].tolist(), buf["focal"].numpy(),
+                             buf["principal"].numpy())
 
-    def _fast_dt(self, dt: float | Tensor) -> float:
-        if isinstance(dt, Tensor) and dt.ndim > 0:
-            self._dt(dt)  # raises unless (B,)
-        value = float(dt)
-        if not (math.isfinite(value) and value >= 0):
-            raise ValueError(f"dt must be a finite number of seconds >= 0, got {value}")
-        return value
-
-    def _predicted(self, dt: float | Tensor) -> tuple[np.ndarray, np.ndarray]:
+    def _predicted(self, backend: FilterBackend, dt: float | Tensor
+                   ) -> tuple[np.ndarray, np.ndarray]:
         """The one track's predicted (6,) twist and (6,6) covariance (buffers unchanged)."""
         buf = self._buffers
-        return fp.velocity_predict(
+        return backend.velocity_predict(
             buf["twist"].numpy()[0],
             buf["cov"].numpy()[0],
-            self._fast_dt(dt),
+            self._single_dt(dt),
             buf["consts"].tolist()[0],
             buf["q_matrix"].numpy(),
         )
 
-    def _predict_fast(self, dt: float | Tensor) -> Tensor:
-        twist, cov = self._predicted(dt)
-        V = torch.from_numpy(twist[None])
-        self._buffers.update(twist=V, cov=torch.from_numpy(cov[None]))
-        return V
-
-    def _update_fast(
+    def _update_single(
         self,
+        backend: FilterBackend,
         uv: Tensor,
         depth: Tensor,
         flow: Tensor,
@@ -404,8 +377,8 @@ class VelocityKF(CompilableSteps, nn.Module):
         mask: Tensor | None,
         prior: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> Tensor:
-        """:meth:`update` of one float64 CPU track; ``prior``: the (6,) twist and (6,6)
-        covariance to update instead of the buffers' (a predict not yet stored)."""
+        """:meth:`update` of one float64 CPU track on ``backend``; ``prior``: the (6,) twist
+        and (6,6) covariance to update instead of the buffers' (a predict not yet stored)."""
         self._check_inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
             uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
@@ -413,28 +386,33 @@ class VelocityKF(CompilableSteps, nn.Module):
         buf = self._buffers
         twist, cov = prior if prior is not None else (buf["twist"].numpy()[0],
                                                        buf["cov"].numpy()[0])
-        twist, cov, skipped_depth, skipped_flow = fp.velocity_update(
-            self.config,
-            buf["consts"].tolist(),
-            buf["focal"].numpy(),
-            buf["principal"].numpy(),
-            twist,
-            cov,
-            buf["reference"].numpy()[0],
-            fp.as_array(uv)[0],
-            fp.as_array(depth)[0],
-            fp.as_array(flow)[0],
-            None if normal_only is None else fp.as_bool_array(normal_only)[0],
-            None if mask is None else fp.as_bool_array(mask)[0],
+        rois = RoiRows(
+            as_array(uv)[0],
+            as_array(depth)[0],
+            as_array(flow)[0],
+            None if normal_only is None else as_bool_array(normal_only)[0],
+            None if mask is None else as_bool_array(mask)[0],
         )
-        V = torch.from_numpy(twist[None])
-        buf.update(twist=V, cov=torch.from_numpy(cov[None]), reference=V)
+        twist, cov, skipped_depth, skipped_flow = backend.velocity_update(
+            self._model(), twist, cov, buf["reference"].numpy()[0], rois
+        )
+        V = twist[None]
+        self._store(V, cov[None], V, skipped_depth, skipped_flow)
+        return buf["twist"]
+
+    def _store(self, twist: np.ndarray, cov: np.ndarray, reference: np.ndarray,
+               skipped_depth: int, skipped_flow: int) -> None:
+        """Store one track's posterior, twist (1,6), cov (1,6,6), reference (1,6) (the same
+        array as ``twist`` gives the same tensor), and add to the skip counters."""
+        buf = self._buffers
+        V = torch.from_numpy(twist)
+        buf.update(twist=V, cov=torch.from_numpy(cov),
+                   reference=V if reference is twist else torch.from_numpy(reference))
         if skipped_depth or skipped_flow:
             buf.update(
                 skipped_depth=buf["skipped_depth"] + skipped_depth,
                 skipped_flow=buf["skipped_flow"] + skipped_flow,
             )
-        return V
 
     @property
     def skipped_measurements(self) -> Tensor:
@@ -478,52 +456,12 @@ class VelocityKF(CompilableSteps, nn.Module):
             ``(twist, cov, skipped (B,2))``, ``skipped`` counting this update's RoIs skipped
             for a bad depth (column 0) and for a bad flow or pixel (column 1).
         """
-        cfg = self.config
-        H, z, rows_ok, skipped = self._measurement_rows(uv, depth, flow, normal_only, mask)
-        out_dtype = twist.dtype
-        if out_dtype != torch.float64:
-            # Information sums over hundreds of RoIs and the 6x6 algebra lose about four
-            # digits to the conditioning in float32; in float64 they cost nothing extra.
-            H, z, twist, cov, reference = (x.double() for x in (H, z, twist, cov, reference))
-        consts = self.consts if out_dtype == torch.float64 else self.consts.double()
-        _, flow_info, scale, scale_min, floor, normal_info = consts.unbind()
-        if cfg.normal_flow and cfg.normal_flow_std is not None:
-            # the along row of a normal-only RoI has its own noise; the across rows R_F
-            along_normal = torch.stack([normal_only, torch.zeros_like(normal_only)], dim=-1)
-            flow_info = torch.where(along_normal.reshape(z.shape), normal_info, flow_info)
-        HT = H.transpose(-1, -2)
-        innovation = z - (H @ twist.unsqueeze(-1)).squeeze(-1)  # (B, 2N)
-        innovation_col = innovation.unsqueeze(-1)
-        prior_info = spd_inverse(cov)
-        if cfg.weighting and cfg.weighting_reference == "previous":
-            residual = z - (H @ reference.unsqueeze(-1)).squeeze(-1)
-        else:
-            residual = innovation
-        passes = cfg.weighting_iterations if cfg.weighting else 1
-        rho: Tensor | None = None
-        post_twist, post_cov = twist, cov
-        for i in range(passes):
-            if cfg.weighting:
-                rho = laplacian_weights(
-                    residual,
-                    rows_ok,
-                    None if cfg.laplace_scale is None else scale,
-                    scale_min,
-                    floor,
-                    rho,
-                )
-                info = rho * flow_info
-            else:
-                info = rows_ok * flow_info
-            HTw = HT * info.unsqueeze(-2)  # Hᵀ W, (B, 6, 2N)
-            # Λ = P⁻¹ + Hᵀ W H;  P⁺ = Λ⁻¹;  V⁺ = V + P⁺ Hᵀ W (z − H V)
-            post_cov = spd_inverse(torch.baddbmm(prior_info, HTw, H))
-            post_twist = torch.baddbmm(twist.unsqueeze(-1), post_cov, HTw @ innovation_col).squeeze(
-                -1
-            )
-            if i + 1 < passes:
-                residual = z - (H @ post_twist.unsqueeze(-1)).squeeze(-1)
-        return post_twist.to(out_dtype), post_cov.to(out_dtype), skipped
+        H, z, rows_ok, skipped = measurement_rows(
+            uv, depth, flow, normal_only, mask, self.focal, self.principal, self.config.normal_flow
+        )
+        V, P = weighted_update(self.config, self.consts, twist, cov, reference, H, z, rows_ok,
+                               normal_only)
+        return V, P, skipped
 
     def step(
         self,
@@ -544,61 +482,7 @@ class VelocityKF(CompilableSteps, nn.Module):
         twist, cov = self.predict_state(twist, cov, dt)
         return self.update_state(twist, cov, reference, uv, depth, flow, normal_only, mask)
 
-    def _measurement_rows(
-        self, uv: Tensor, depth: Tensor, flow: Tensor, normal_only: Tensor, mask: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Rows ``H`` (B,2N,6), values ``z`` (B,2N), row validity (B,2N), skip counts (B,2).
-
-        A row ``(a, b)·J`` of the interaction matrix (``J`` in interaction.py), with
-        ``a = e_u fx``, ``b = e_v fy`` for a unit direction ``e`` and ``p = a x + b y``, is
-        ``[a/Z, b/Z, −p/Z, −(y p + b), a + x p, b x − a y]``: a few elementwise ops per RoI,
-        for the along (``e = n``) and across (``e = n⊥``) rows at once.
-        """
-        B, N = depth.shape
-        depth_ok = mask & (depth > 0) & (depth < torch.inf)  # False for NaN too
-        both = uv + flow
-        finite = torch.isfinite(both[..., 0] + both[..., 1])
-        flow0 = torch.where(finite.unsqueeze(-1), flow, 0.0)
-        fu, fv = flow0.unbind(-1)
-        mag = torch.sqrt(fu * fu + fv * fv)
-        moving = mag > 0
-        if self.config.normal_flow:  # a zero normal flow has no direction
-            valid = depth_ok & finite & (moving | ~normal_only)
-        else:
-            valid = depth_ok & finite
-        counts = torch.stack([mask, depth_ok, valid], dim=-1).sum(-2)
-        skipped = counts[:, :2] - counts[:, 1:]
-
-        principal = self.principal
-        xy = (torch.where(valid.unsqueeze(-1), uv, principal) - principal) / self.focal
-        x, y = xy.unsqueeze(-2).unbind(-1)  # (B,N,1) each
-        iz = (1.0 / torch.where(valid, depth, 1.0)).unsqueeze(-1)
-        # Flow-aligned frame: along n = F/|F|, across n⊥; the image axes for a zero full flow.
-        inv_mag = 1.0 / torch.where(moving, mag, 1.0)
-        nx = torch.where(moving, fu * inv_mag, 1.0)
-        ny = fv * inv_mag
-        fx, fy = self.focal.unbind()
-        a = torch.stack([nx, -ny], dim=-1) * fx  # (B,N,2): along, across
-        b = torch.stack([ny, nx], dim=-1) * fy
-        p = a * x + b * y
-        H = torch.stack([a * iz, b * iz, -(p * iz), -(y * p + b), a + x * p, b * x - a * y], -1)
-        z = torch.stack([torch.where(valid, mag, 0.0), torch.zeros_like(mag)], dim=-1)
-        across_ok = valid & ~normal_only if self.config.normal_flow else valid
-        rows_ok = torch.stack([valid, across_ok], dim=-1)
-        return H.reshape(B, 2 * N, 6), z.reshape(B, 2 * N), rows_ok.reshape(B, 2 * N), skipped
-
     # ------------------------------------------------------------------ input handling
-    def _dt(self, dt: float | Tensor) -> Tensor:
-        d = torch.as_tensor(dt, dtype=self.twist.dtype, device=self.twist.device)
-        fp.check_dt(d)
-        if d.ndim == 0:
-            return d.expand(self.batch_size)
-        if tuple(d.shape) != (self.batch_size,):
-            raise ValueError(
-                f"VelocityKF: dt must be a float or ({self.batch_size},), got {tuple(d.shape)}"
-            )
-        return d
-
     def _check_inputs(
         self,
         uv: Tensor,
@@ -646,8 +530,3 @@ class VelocityKF(CompilableSteps, nn.Module):
             mask = torch.ones(B, N, dtype=torch.bool, device=dev)
         return uv.to(**kw), depth.to(**kw), flow.to(**kw), normal_only.to(dev), mask.to(dev)
 
-
-def _checked(t: Tensor, shape: tuple[int, ...], name: str, kw: dict[str, Any]) -> Tensor:
-    if tuple(t.shape) != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
-    return t.to(**kw).clone()

@@ -37,8 +37,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.flow.config import US_PER_S, FlowConfig, dt_bounds_us, search_offsets
-from evtrack.flow.history import MAX_SPAN_US, EventHistory, SortedChunk
+from evtrack.flow.config import FlowConfig, dt_bounds_us, search_offsets
+from evtrack.flow.constants import MAX_SPAN_US, US_PER_S
+from evtrack.flow.history import EventHistory, SortedChunk
 
 __all__ = ["Candidates", "CandidateSearch", "pass_bounds", "pass_starts", "NEVER_US"]
 
@@ -148,12 +149,17 @@ def pass_bounds(next_end: Tensor) -> list[tuple[int, int]]:
 
 
 class CandidateSearch:
-    """The batched candidate search over a persistent :class:`EventHistory`.
+    """The batched candidate search over a persistent :class:`EventHistory` (the torch
+    backend's search; any device).
 
     Args:
         config: the flow parameters (sensor size must be set).
         device: torch device.
     """
+
+    runs_ahead: bool = False
+    """The search holds the GIL: a caller gains nothing by searching the next batch in a
+    worker thread (see :class:`~evtrack.flow.backends.CandidateSearchBackend`)."""
 
     def __init__(self, config: FlowConfig, device: str | torch.device = "cpu") -> None:
         if config.sensor_size is None:
@@ -207,10 +213,26 @@ class CandidateSearch:
     def continue_bursts(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor) -> None:
         """Make each given event the continuation of a burst: its pixel's latest event
         becomes one of the same polarity 1 µs before it (see :meth:`TripletFlow.continue_bursts
-        <evtrack.flow.TripletFlow.continue_bursts>`). One event per pixel."""
+        <evtrack.flow.TripletFlow.continue_bursts>`).
+
+        Args:
+            x, y: (n,) integer pixel coordinates, one event per pixel.
+            t: (n,) int64 timestamps in µs, not before the events seen.
+            p: (n,) polarity (+1 / -1).
+        """
         pix = (y.long() * self.width + x.long()).to(self.device)
         self.last_t.index_copy_(0, pix, t.to(device=self.device, dtype=torch.int64) - 1)
         self.last_p.index_copy_(0, pix, p.to(device=self.device, dtype=torch.int8))
+
+    def moved(self, config: FlowConfig, device: torch.device) -> CandidateSearch:
+        """This search with its history on ``device`` (``config``: the flow's parameters
+        there); this search is left as it was."""
+        new = CandidateSearch(config, device)
+        new.history.load_state_dict(self.history.state_dict())
+        new.next_seq = self.next_seq
+        new.last_t = self.last_t.to(device)
+        new.last_p = self.last_p.to(device)
+        return new
 
     # ------------------------------------------------------------------ driver
     def __call__(self, x: Tensor, y: Tensor, t: Tensor, p: Tensor,

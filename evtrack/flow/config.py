@@ -39,20 +39,14 @@ import yaml
 
 from evtrack.config_values import checked_scalar, unknown_fields
 from evtrack.errors import ConfigError
+from evtrack.flow.constants import MAX_DT_US, US_PER_S
 
-__all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "US_PER_S", "BACKENDS", "LOOKUPS"]
+__all__ = ["FlowConfig", "search_offsets", "dt_bounds_us", "BACKENDS", "LOOKUPS"]
 
 BACKENDS = ("auto", "torch", "compiled")
 """Values of :attr:`FlowConfig.backend`."""
 LOOKUPS = ("auto", "passes", "sorted")
 """Values of :attr:`FlowConfig.lookup`."""
-
-US_PER_S = 1_000_000
-"""Microseconds per second (timestamps are µs, flows px/s)."""
-
-_MAX_DT_US = 1 << 27
-"""Largest time difference (µs, ~134 s) the integer ring buffer resolves; speed bounds must
-keep every candidate's ``t_k - t_i`` below it."""
 
 
 @dataclass(frozen=True)
@@ -151,7 +145,8 @@ class FlowConfig:
             numba on CPU, without Triton on CUDA). All give the same candidates, the same
             RoIs with the same Eq. 3 solutions, costs and inlier counts, bit for bit; the
             refined flows agree to float rounding. On 2 CPU cores the kernels were 4-11x
-            faster (``benchmarks/bench_flow_speed.py``).
+            faster (``benchmarks/bench_flow_speed.py``). The choice is made by
+            :func:`evtrack.flow.backends.resolve`.
     """
 
     sensor_size: tuple[int, int] | None = None
@@ -223,9 +218,9 @@ class FlowConfig:
         need(0.0 <= float(self.aperture_ratio) <= 1.0, "aperture_ratio",
              f"expected a value in [0, 1], got {self.aperture_ratio}")
         longest = 2.0 * math.hypot(self.radius, self.radius) * US_PER_S / float(self.min_speed)
-        need(longest < _MAX_DT_US, "min_speed",
+        need(longest < MAX_DT_US, "min_speed",
              f"{self.min_speed} px/s allows triplets spanning {longest / 1e6:.0f} s; the "
-             f"history resolves at most {_MAX_DT_US / 1e6:.0f} s")
+             f"history resolves at most {MAX_DT_US / 1e6:.0f} s")
 
     # ------------------------------------------------------------------ derived values
     @property
@@ -250,35 +245,6 @@ class FlowConfig:
         if self.lookup != "auto":
             return self.lookup
         return "sorted" if device_type == "cuda" else "passes"
-
-    def use_compiled(self, device_type: str) -> bool:
-        """Whether the compiled CPU kernels (numba) run for a flow on ``device_type`` (see
-        :attr:`backend`); raises :class:`ConfigError` when ``"compiled"`` cannot run."""
-        from evtrack.flow import compiled
-
-        if self.backend == "compiled" and device_type not in ("cpu", "cuda"):
-            raise ConfigError(f"flow config field 'backend': 'compiled' runs on CPU (numba) "
-                              f"and CUDA (Triton), not {device_type}; use 'auto' or 'torch'")
-        if self.backend == "torch" or device_type != "cpu":
-            return False
-        if self.backend == "compiled" and not compiled.available():
-            raise ConfigError("flow config field 'backend': 'compiled' needs numba "
-                              "(pip install numba); use 'auto' or 'torch'")
-        return compiled.available()
-
-    def use_triton(self, device_type: str) -> bool:
-        """Whether the registration's per-group solve runs as a Triton kernel for a flow on
-        ``device_type`` (CUDA; see :attr:`backend`); raises :class:`ConfigError` when
-        ``"compiled"`` asks for it and Triton is missing."""
-        if self.backend == "torch" or device_type != "cuda":
-            return False
-        from evtrack.flow import registration_triton
-
-        ok = registration_triton.available(device_type)
-        if self.backend == "compiled" and not ok:
-            raise ConfigError("flow config field 'backend': 'compiled' on CUDA needs triton "
-                              "(it comes with PyTorch's CUDA builds); use 'auto' or 'torch'")
-        return ok
 
     def replace(self, **changes: Any) -> FlowConfig:
         """A copy with some fields changed (validated again)."""

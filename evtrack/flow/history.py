@@ -36,24 +36,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["EventHistory", "SortedChunk", "EMPTY_T", "T_LIMIT", "MAX_SPAN_US", "UNUSED",
-           "NO_PASS_T"]
+from evtrack.flow.constants import EMPTY_T, MAX_SPAN_US, T_KEEP, T_LIMIT
 
-T_LIMIT = 1 << 29
-"""Relative timestamps stay below this (µs); the base moves forward before they reach it."""
-T_KEEP = 1 << 28
-"""After a rebase, entries at most this old (µs) keep their value (older ones are emptied:
-they are beyond any speed bound, see ``FlowConfig``)."""
-MAX_SPAN_US = 1 << 27
-"""Longest time span (µs) of the events of one chunk (the search splits longer chunks)."""
+__all__ = ["EventHistory", "SortedChunk", "UNUSED", "NO_PASS_T"]
+
 UNUSED = (1 << 31) - 1
 """``pass_pos`` of a slot without a pass event: after every chunk position."""
 NO_PASS_T = (1 << 31) - 1
 """``pass_t`` of a cell without a pass event: after every relative time (``t - NO_PASS_T < 0``
 without overflow for ``0 <= t < T_LIMIT``)."""
-EMPTY_T = -(1 << 30)
-"""Relative timestamp of an empty slot: ``t - EMPTY_T`` exceeds every speed bound and still
-fits int32 for ``0 <= t < T_LIMIT``."""
 
 
 class EventHistory:

@@ -1,4 +1,5 @@
-"""Triton form of the registration's per-group solve, for CUDA.
+"""The registration's Triton backend (CUDA): :class:`TritonRegistration`, the per-group
+solve as one Triton kernel.
 
 The tensor registration (:func:`evtrack.flow.registration.register_groups`) evaluates Eq. 3 in
 batches of groups padded to dense ``(groups, hypotheses, candidates)`` blocks, then finds the
@@ -35,13 +36,17 @@ import os
 import torch
 from torch import Tensor
 
+from evtrack.flow.constants import COST_SCALE, IRLS_DELTA, PARALLEL_EPS, Q_MAX, RANK_BITS
+from evtrack.flow.registration_tensor import Arrangement, TensorRegistration, arrange
+from evtrack.flow.solution import GroupSolution
+
 try:  # optional: present with PyTorch's CUDA builds
     import triton
     import triton.language as tl
 except ImportError:  # pragma: no cover - exercised where triton is missing
     triton = None
 
-__all__ = ["available", "fits", "solve_groups", "MAX_CAP"]
+__all__ = ["TritonRegistration", "available", "fits", "solve_groups", "MAX_CAP"]
 
 _INT64_MAX = (1 << 63) - 1
 MAX_CAP = 256
@@ -304,3 +309,51 @@ def solve_groups(c_flow: Tensor, ev_ptr: Tensor, ev_start: Tensor, ev_per_group:
         BLOCK_H=block_h, BLOCK_C=16, BLOCK_E=block_e, RANK_BITS=rank_bits,
         **({} if os.environ.get("TRITON_INTERPRET") == "1" else {"enable_fp_fusion": False}))
     return out
+
+
+class TritonRegistration:
+    """The registration's per-group solve by the Triton kernel (CUDA; any device under
+    Triton's interpreter): the tensor code's caps
+    (:func:`~evtrack.flow.registration_tensor.arrange`), then one program per group, without
+    host synchronisation. Caps above :data:`MAX_CAP` run the tensor solve instead."""
+
+    reports_rows: bool = False
+    """No compiled report of the rows (see
+    :class:`~evtrack.flow.backends.RegistrationBackend`)."""
+
+    def solve(self, group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, g_count: int,
+              max_events: int, max_hypotheses: int, pair_budget: int, line_gate: float,
+              refine_iters: int, n_ordinals: int) -> GroupSolution:
+        """Args: as :func:`evtrack.flow.registration.register_groups` (``pair_budget``: for
+        the tensor solve of caps above :data:`MAX_CAP`)."""
+        if not fits(max_events, max_hypotheses):
+            return TensorRegistration().solve(group, seq, ordinal, flow, g_count, max_events,
+                                              max_hypotheses, pair_budget, line_gate,
+                                              refine_iters, n_ordinals)
+        arr = arrange(group, seq, ordinal, flow, g_count, max_events, max_hypotheses,
+                      n_ordinals)
+        return _solve_arranged(arr, g_count, max_events, max_hypotheses, line_gate,
+                               refine_iters)
+
+
+def _solve_arranged(arr: Arrangement, g_count: int, max_events: int, max_hypotheses: int,
+                    line_gate: float, refine_iters: int) -> GroupSolution:
+    """The solve of the capped, arranged candidates by the kernel (:func:`solve_groups`)."""
+    c_flow = arr.c_flow
+    dev = c_flow.device
+    h_count = torch.bincount(arr.h_group, minlength=g_count)
+    h_first = torch.cumsum(h_count, 0) - h_count
+    ev_ptr = torch.cat([arr.ev_first, torch.full((1,), c_flow.shape[0], dtype=torch.int64,
+                                                 device=dev)])
+    res = solve_groups(c_flow, ev_ptr, arr.ev_start, arr.ev_per_group, arr.h_idx, h_first,
+                       h_count, max_events, max_hypotheses, COST_SCALE, Q_MAX, PARALLEL_EPS,
+                       line_gate, IRLS_DELTA, refine_iters, RANK_BITS)
+    has = h_count > 0
+    nan2 = torch.full((g_count, 2), float("nan"), dtype=torch.float32, device=dev)
+    full = torch.where(has[:, None], c_flow[res["chosen"].clamp(0, c_flow.shape[0] - 1)],
+                       nan2)
+    return GroupSolution(has=has, full=full, best_cost=res["best_cost"],
+                         used_events=arr.ev_per_group, inliers=res["inliers"],
+                         lines=res["lines"], fit_flow=res["fit_flow"].to(torch.float32),
+                         ratio=res["ratio"], major=res["major"].to(torch.float32),
+                         normal_speed=res["normal_speed"].to(torch.float32))

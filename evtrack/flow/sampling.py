@@ -1,7 +1,7 @@
 """Which events the flow searches: a hash sample of each dense RoI window.
 
 The registration uses at most ``FlowConfig.max_events_per_roi`` events of a RoI window in its
-data term: the candidate-bearing events with the smallest :func:`~evtrack.flow.registration.hash32`
+data term: the candidate-bearing events with the smallest :func:`~evtrack.flow.hashing.hash32`
 of their stream index (:mod:`evtrack.flow.registration`). On a densely textured object a
 window holds hundreds of events, and the candidate search, the dominant cost of the flow, is
 spent mostly on events the registration then leaves out.
@@ -41,14 +41,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from evtrack.flow.registration import hash32
-from evtrack.flow.registration_compiled import _hash32
+from evtrack.flow.constants import HASH_RANGE
+from evtrack.flow.hashing import hash32, hash32_kernel
 from evtrack.runtime.jit import available as jit_available
 from evtrack.runtime.jit import njit
 
 __all__ = ["sampled_search"]
-
-_HASH_RANGE = 1 << 32
 
 
 def sampled_search(x: Tensor, y: Tensor, t: Tensor, first_seq: int, *, roi_size: int,
@@ -168,54 +166,92 @@ def _sample_torch(x: Tensor, y: Tensor, t: Tensor, first_seq: int, roi_size: int
     count = torch.bincount(key, minlength=n_windows * rows * cols)[key]
     seq = torch.arange(first_seq, first_seq + n, dtype=torch.int64, device=t.device)
     # hash < per_window / count * 2^32, in exact integers (hash < 2^32, count < 2^31)
-    return (count <= per_window) | (hash32(seq) * count < per_window * _HASH_RANGE)
+    return (count <= per_window) | (hash32(seq) * count < per_window * HASH_RANGE)
 
 
 @njit
-def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, rows, per_window, budget,
-                     roi_rank):
-    """:func:`sampled_search` in passes over NumPy arrays: the RoI of each event by lookup
-    tables and its window by the time-sorted order (a division only where a window starts)
-    with the windows' counts; the per-window test with the budget's counts per cell; then,
-    over budget, the first fit and the cut."""
-    n = t.shape[0]
-    w0 = t[0] // window_us
-    n_windows = t[n - 1] // window_us - w0 + 1
-    per = rows * cols
+def _roi_lookup(rows, cols, roi_size):
+    """``(row_base, col_of)``: per pixel row the first RoI index of its RoI row
+    (``(y // roi_size) * cols``), per pixel column its RoI column (``x // roi_size``)."""
     row_base = np.empty(rows * roi_size, np.int64)
     for v in range(rows * roi_size):
         row_base[v] = (v // roi_size) * cols
     col_of = np.empty(cols * roi_size, np.int64)
     for v in range(cols * roi_size):
         col_of[v] = v // roi_size
+    return row_base, col_of
+
+
+@njit
+def _window_sample(x, y, t, first_seq, window_us, row_base, col_of, n_roi, per_window,
+                   with_budget, roi, keep, by_rank, roi_rank):
+    """The per-window test into ``keep`` (events of windows of at most ``per_window`` events,
+    else those of hash below ``per_window / count * 2^32``): the RoI of each event by the
+    lookup tables (into ``roi`` with a budget) and its window by the time-sorted order (a
+    division only where a window starts), then the test, counting the kept events per cell
+    rank into ``by_rank`` (with a budget). Returns the kept events' count."""
+    n = t.shape[0]
+    w0 = t[0] // window_us
+    key = np.empty(n, np.int64)
+    count = np.zeros((t[n - 1] // window_us - w0 + 1) * n_roi, np.int64)
+    base = np.int64(0)
+    next_start = (w0 + 1) * window_us
+    for i in range(n):
+        if t[i] >= next_start:
+            w = t[i] // window_us
+            base = (w - w0) * n_roi
+            next_start = (w + 1) * window_us
+        r = row_base[y[i]] + col_of[x[i]]
+        if with_budget:
+            roi[i] = r
+        key[i] = base + r
+        count[base + r] += 1
+    bound = np.int64(per_window) << 32
+    total = 0
+    for i in range(n):
+        c = count[key[i]]
+        kept = (c <= per_window) | (hash32_kernel(first_seq + i) * c < bound)
+        keep[i] = kept
+        if with_budget:  # branch-free in the event: the sample is random
+            by_rank[roi_rank[roi[i]]] += kept
+            total += kept
+    return total
+
+
+@njit
+def _cut_to_budget(keep, roi, by_rank, roi_rank, budget):
+    """First fit in the cells' order (``by_rank``: kept events per cell rank, below the RoIs'
+    count): the cells whose events still fit in ``budget`` are taken, the events of the
+    others dropped from ``keep``."""
+    taken = np.zeros(by_rank.shape[0], np.bool_)
+    used = 0
+    for r in range(by_rank.shape[0]):
+        if by_rank[r] and used + by_rank[r] <= budget:
+            used += by_rank[r]
+            taken[r] = True
+    taken_roi = np.empty(roi_rank.shape[0], np.bool_)
+    for r in range(roi_rank.shape[0]):
+        taken_roi[r] = taken[roi_rank[r]]
+    for i in range(keep.shape[0]):
+        keep[i] = keep[i] & taken_roi[roi[i]]
+
+
+@njit
+def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, rows, per_window, budget,
+                     roi_rank):
+    """:func:`sampled_search` in passes over NumPy arrays: the per-window test with the
+    budget's counts per cell (:func:`_window_sample`), then, over budget, the first fit and
+    the cut (:func:`_cut_to_budget`)."""
+    n = t.shape[0]
+    row_base, col_of = _roi_lookup(rows, cols, roi_size)
     with_budget = budget > 0
     roi = np.empty(n if with_budget else 0, np.int64)
     keep = np.ones(n, np.bool_)
     by_rank = np.zeros(roi_rank.shape[0] if with_budget else 0, np.int64)
     total = 0
     if per_window > 0:
-        key = np.empty(n, np.int64)
-        count = np.zeros(n_windows * per, np.int64)
-        base = np.int64(0)
-        next_start = (w0 + 1) * window_us
-        for i in range(n):
-            if t[i] >= next_start:
-                w = t[i] // window_us
-                base = (w - w0) * per
-                next_start = (w + 1) * window_us
-            r = row_base[y[i]] + col_of[x[i]]
-            if with_budget:
-                roi[i] = r
-            key[i] = base + r
-            count[base + r] += 1
-        bound = np.int64(per_window) << 32
-        for i in range(n):
-            c = count[key[i]]
-            kept = (c <= per_window) | (_hash32(first_seq + i) * c < bound)
-            keep[i] = kept
-            if with_budget:  # branch-free in the event: the sample is random
-                by_rank[roi_rank[roi[i]]] += kept
-                total += kept
+        total = _window_sample(x, y, t, first_seq, window_us, row_base, col_of, rows * cols,
+                               per_window, with_budget, roi, keep, by_rank, roi_rank)
     elif with_budget:
         for i in range(n):
             r = row_base[y[i]] + col_of[x[i]]
@@ -223,16 +259,5 @@ def _sample_compiled(x, y, t, first_seq, roi_size, window_us, cols, rows, per_wi
             by_rank[roi_rank[r]] += 1
         total = n
     if with_budget and total > budget:
-        # by_rank is indexed by cell rank (< the RoIs' count); first fit, in the cells' order
-        taken = np.zeros(by_rank.shape[0], np.bool_)
-        used = 0
-        for r in range(by_rank.shape[0]):
-            if by_rank[r] and used + by_rank[r] <= budget:
-                used += by_rank[r]
-                taken[r] = True
-        taken_roi = np.empty(roi_rank.shape[0], np.bool_)
-        for r in range(roi_rank.shape[0]):
-            taken_roi[r] = taken[roi_rank[r]]
-        for i in range(n):
-            keep[i] = keep[i] & taken_roi[roi[i]]
+        _cut_to_budget(keep, roi, by_rank, roi_rank, budget)
     return keep

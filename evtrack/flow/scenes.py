@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from evtrack.events import Events
-from evtrack.flow.config import US_PER_S
+from evtrack.flow.constants import US_PER_S
 
 __all__ = ["render_events", "translating_texture", "moving_stripes", "texture_waves"]
 

@@ -87,8 +87,7 @@ def _check_against_the_reference(name, make, seed, n, refractory, history, cut_s
     search = make(cfg)
     got = _rows(search(x[:cut], y[:cut], t[:cut], p[:cut])) if cut else []
     first = torch.from_numpy(cut + _first_per_pixel(x[cut:], y[cut:]))
-    search.continue_bursts(*(v.index_select(0, first).numpy() if name == "compiled"
-                             else v.index_select(0, first) for v in (x, y, t, p)))
+    search.continue_bursts(*(v.index_select(0, first) for v in (x, y, t, p)))
     got += _rows(search(x[cut:], y[cut:], t[cut:], p[cut:]))
     ref = _reference_rows(x.tolist(), y.tolist(), t.tolist(), p.tolist(), cfg, cut)
     assert got == ref

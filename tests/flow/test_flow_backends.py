@@ -14,12 +14,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from evtrack.errors import ConfigError, EvtrackError
-from evtrack.flow import FlowConfig, FlowResult, TripletFlow
-from evtrack.flow.registration import COST_SCALE, register_groups, rounded_distance
+from evtrack.flow import FlowConfig, FlowResult, TripletFlow, compiled, numba_support
+from evtrack.flow import arrange_kernels as ak
+from evtrack.flow import solve_kernels as sk
+from evtrack.flow.backends import resolve
+from evtrack.flow.constants import COST_SCALE
+from evtrack.flow.registration import register_groups
+from evtrack.flow.registration_compiled import CompiledRegistration
+from evtrack.flow.registration_tensor import rounded_distance
 from evtrack.flow.scenes import translating_texture
 
-compiled = pytest.importorskip("evtrack.flow.compiled")
-if not compiled.available():
+if not numba_support.available():
     pytest.skip("numba is not installed: the compiled backend cannot run", allow_module_level=True)
 
 FIELDS = ("event", "offset", "age_j", "age_i", "seq_j", "seq_i", "dt_us")
@@ -85,7 +90,7 @@ def test_long_streams_move_the_time_base_without_changing_the_result(strips, cut
     (2^29 µs), a jump longer than the history keeps, and one call spanning more than
     ``MAX_SPAN_US`` (searched in pieces) keep the candidates of the sequential reference,
     with the refractory period at work across the moves."""
-    from evtrack.flow.history import MAX_SPAN_US, T_LIMIT
+    from evtrack.flow.constants import MAX_SPAN_US, T_LIMIT
 
     ev, _ = translating_texture((40, 30), velocity=(900.0, -400.0), duration_us=12_000, seed=3)
     ev = ev[:2100]
@@ -167,7 +172,7 @@ def test_strips_are_chosen_by_thread_count_and_balanced():
         lo, hi, own = search._strip_rows(y)
     finally:
         torch.set_num_threads(threads)
-    expected = min(3, compiled.numba.config.NUMBA_NUM_THREADS)  # numba's pool caps it
+    expected = min(3, numba_support.numba.config.NUMBA_NUM_THREADS)  # numba's pool caps it
     assert len(lo) == expected and lo[0] == 0 and hi[-1] == 48 and (lo[1:] == hi[:-1]).all()
     assert own.sum() == len(y) and own.tolist() == [int(((y >= a) & (y < b)).sum())
                                                     for a, b in zip(lo, hi, strict=True)]
@@ -206,7 +211,9 @@ def test_compiled_strip_cuts_equal_numpy():
              np.full(n, rng.integers(0, height)))
         y = np.sort(y.astype(np.int64)) if trial % 2 else y.astype(np.int64)
         count = int(rng.integers(2, 9))
-        got = compiled._strip_cuts(y, height, count)
+        from evtrack.flow.search_kernels import strip_cuts
+
+        got = strip_cuts(y, height, count)
         for a, b in zip(got, _numpy_strip_cuts(y, height, count), strict=True):
             assert a.tolist() == b.tolist(), (trial, height, count)
 
@@ -297,7 +304,7 @@ def test_compiled_registration_equals_the_tensor_registration(seed):
     args = (group, seq, ordinal, flow, n_groups, 12, 9, 0.05, 10_000)
     kw = {"refine": True, "line_gate": 0.35, "refine_iters": 5, "n_ordinals": 1024}
     a = register_groups(*args, **kw)
-    b = register_groups(*args, compiled=True, **kw)
+    b = register_groups(*args, backend=CompiledRegistration(), **kw)
     assert int((a.used_events == 12).sum()) >= 1, "a group should exceed the event cap"
     assert int(a.normal.sum()) >= 1 and int((~a.normal & (a.lines >= 2)).sum()) >= 1
     for name in ("full_flow", "cost", "used_events", "inliers", "lines"):
@@ -334,7 +341,7 @@ def test_compiled_registration_breaks_cost_ties_by_rank_after_the_median_start()
         args = (torch.tensor(group), torch.tensor(sq), torch.tensor(ordinal),
                 torch.tensor(flow, dtype=torch.float32), 1, 64, 48, 0.05, 10_000)
         a = register_groups(*args, n_ordinals=8)
-        b = register_groups(*args, n_ordinals=8, compiled=True)
+        b = register_groups(*args, n_ordinals=8, backend=CompiledRegistration())
         assert torch.equal(a.full_flow, b.full_flow) and torch.equal(a.cost, b.cost), trial
         winners.add(float(a.full_flow[0, 0]))
     assert winners == {10.0, 13.0}  # both ranks orders occurred
@@ -387,22 +394,20 @@ def test_rounded_distance_is_exact_in_both_backends():
                          [0.0, 1e-30, np.inf, 1e30]]).astype(np.float32)
     expected = np.array([_exact_rounded(float(v)) for v in d2])
     assert np.array_equal(rounded_distance(torch.from_numpy(d2)).numpy(), expected)
-    got = [compiled._rounded_distance(np.float32(v), COST_SCALE, float(1 << 25)) for v in d2]
+    got = [sk.rounded_distance(np.float32(v), COST_SCALE, float(1 << 25)) for v in d2]
     assert np.array_equal(np.array(got), expected)
 
 
 def test_lane_rounding_equals_the_scalar_rounding():
     """The branch-free rounding of the registration's lanes is the exact scalar rule: ties
     between two integers, zero, tiny, capped and infinite distances."""
-    from evtrack.flow import registration_compiled as rc
-
     rng = np.random.default_rng(4)
     ties = (rng.integers(0, 4000, 300) + 0.5) ** 2 / COST_SCALE ** 2
     d2 = np.concatenate([rng.random(2000) * 1e8, ties, rng.random(300) * 10,
                          [0.0, 1e-30, np.inf, 1e30, float(1 << 25) ** 2 / 256]]
                         ).astype(np.float32)
     out = np.empty(d2.shape[0], np.int64)
-    rc._rounded_lanes(d2, out, d2.shape[0], COST_SCALE, float(1 << 25))
+    sk._rounded_lanes(d2, out, d2.shape[0], COST_SCALE, float(1 << 25))
     assert np.array_equal(out, [_exact_rounded(float(v)) for v in d2])
 
 
@@ -411,8 +416,6 @@ def test_lane_rounding_equals_the_scalar_rounding():
 def test_insertion_selection_keeps_the_smallest_keys_sorted(order, cap):
     """The registration's selections (the data-term cap, the hypotheses) keep the ``cap``
     smallest distinct keys, ascending, as sorting all and taking the first ``cap`` would."""
-    from evtrack.flow import registration_compiled as rc
-
     rng = np.random.default_rng(cap)
     for n in (0, 1, cap - 1, cap, cap + 1, 200):
         keys = rng.choice(1 << 40, size=max(n, 0), replace=False).astype(np.int64)
@@ -421,7 +424,7 @@ def test_insertion_selection_keeps_the_smallest_keys_sorted(order, cap):
         buf = np.full(cap, -7, np.int64)
         filled = 0
         for key in keys:
-            filled = rc._insert_smallest(buf, filled, cap, key)
+            filled = ak.insert_smallest(buf, filled, cap, key)
         assert filled == min(n, cap)
         assert np.array_equal(buf[:filled], np.sort(keys)[:cap])
 
@@ -431,14 +434,12 @@ def test_small_median_equals_numpy_median(n):
     """The registration's allocation-free median of the hypotheses (which one it evaluates
     first) is NumPy's, float64 of the float32 values, even counts the mean of the middle
     two; ties and repeated values included."""
-    from evtrack.flow import registration_compiled as rc
-
     rng = np.random.default_rng(n)
     scratch = np.full(n, np.float32(1e30), np.float32)
     for values in (rng.normal(0, 300, n), rng.integers(-3, 3, n), np.full(n, 7.25)):
         values = np.asarray(values, np.float32)
         before = values.copy()
-        got = rc._median_small(values, n, scratch)
+        got = sk._median_small(values, n, scratch)
         want = np.median(values.astype(np.float64)) if n % 2 else np.float64(
             np.float32(np.sort(values)[n // 2 - 1] + np.sort(values)[n // 2])) / 2
         assert got == want and np.array_equal(values, before)
@@ -451,8 +452,8 @@ def _first_nearest(cx, cy, fx, fy, allowed):
         if not allowed[i]:
             continue
         dx, dy = np.float32(cx[i] - fx), np.float32(cy[i] - fy)
-        q = compiled._rounded_distance(np.float32(dx * dx) + np.float32(dy * dy),
-                                       COST_SCALE, float(1 << 25))
+        q = sk.rounded_distance(np.float32(dx * dx) + np.float32(dy * dy),
+                                COST_SCALE, float(1 << 25))
         if best is None or q < best:
             best, arg = q, i
     return arg
@@ -463,8 +464,6 @@ def test_nearest_candidate_is_the_first_of_the_smallest_rounded_distance(seed):
     """The registration's nearest candidate to F (smallest float32 distance first, then only
     the candidates that round alike) equals rounding every candidate; ties of the rounded
     distance with different float distances go to the earlier candidate."""
-    from evtrack.flow import registration_compiled as rc
-
     rng = np.random.default_rng(seed)
     n = int(rng.integers(1, 12))
     fx, fy = np.float32(rng.normal(0, 300)), np.float32(rng.normal(0, 300))
@@ -477,7 +476,7 @@ def test_nearest_candidate_is_the_first_of_the_smallest_rounded_distance(seed):
     if seed % 5 == 0:  # exact repeats and a parallel pair
         cx[-1], cy[-1] = cx[0], cy[0]
         cx[n // 2], cy[n // 2] = cx[0] * np.float32(2), cy[0] * np.float32(2)
-    i1, d2 = rc._nearest(cx, cy, 0, n, fx, fy, COST_SCALE, float(1 << 25))
+    i1, d2 = sk._nearest(cx, cy, 0, n, fx, fy, COST_SCALE, float(1 << 25))
     assert i1 == _first_nearest(cx, cy, fx, fy, np.ones(n, bool))
     dx, dy = cx[i1] - fx, cy[i1] - fy
     assert d2 == np.float32(dx * dx) + np.float32(dy * dy)
@@ -485,7 +484,7 @@ def test_nearest_candidate_is_the_first_of_the_smallest_rounded_distance(seed):
     eps2 = 1e-3 * 1e-3
     bx, by = cx.astype(np.float64), cy.astype(np.float64)
     nonpar = (bx * ay - by * ax) ** 2 > eps2 * (bx * bx + by * by) * (ax * ax + ay * ay)
-    i2, _ = rc._nearest(cx, cy, 0, n, fx, fy, COST_SCALE, float(1 << 25), True, ax, ay, eps2)
+    i2, _ = sk._nearest(cx, cy, 0, n, fx, fy, COST_SCALE, float(1 << 25), True, ax, ay, eps2)
     assert i2 == _first_nearest(cx, cy, fx, fy, nonpar)
 
 
@@ -493,8 +492,6 @@ def test_nearest_candidate_is_the_first_of_the_smallest_rounded_distance(seed):
 def test_lane_costs_equal_the_one_by_one_costs(lanes):
     """Hypotheses evaluated side by side give each lane's exact cost, or a partial sum at or
     above the lane's bound: a lane is dropped once it reaches its bound, the others go on."""
-    from evtrack.flow import registration_compiled as rc
-
     rng = np.random.default_rng(lanes)
     n_ev = 30
     sizes = rng.integers(1, 9, n_ev)
@@ -504,19 +501,19 @@ def test_lane_costs_equal_the_one_by_one_costs(lanes):
     c_y = rng.normal(0, 200, ev_ptr[-1]).astype(np.float32)
     pick = rng.integers(0, ev_ptr[-1], lanes)
     hx, hy = c_x[pick].copy(), c_y[pick].copy()
-    exact = np.array([rc._hypothesis_cost(hx[k], hy[k], c_x, c_y, c_event, 0, ev_ptr[-1],
-                                          rc._NO_BOUND, COST_SCALE, float(1 << 25))
+    exact = np.array([sk._hypothesis_cost(hx[k], hy[k], c_x, c_y, c_event, 0, ev_ptr[-1],
+                                          sk.NO_BOUND, COST_SCALE, float(1 << 25))
                       for k in range(lanes)])
     total, mins, q = (np.empty(lanes, np.int64), np.empty(lanes, np.float32),
                       np.empty(lanes, np.int64))
 
     def lane_costs(bound):  # into ``total``, with fresh scratch
-        rc._lane_costs(hx, hy, lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
+        sk._lane_costs(hx, hy, lanes, c_x, c_y, ev_ptr, n_ev, bound, total, mins, q,
                        COST_SCALE, float(1 << 25), np.empty(lanes, np.int64),
                        np.empty(lanes, np.float32), np.empty(lanes, np.float32),
                        np.empty(lanes, np.int64), np.empty(lanes, np.int64))
 
-    no_bound = np.full(lanes, rc._NO_BOUND, np.int64)
+    no_bound = np.full(lanes, sk.NO_BOUND, np.int64)
     lane_costs(no_bound)
     assert np.array_equal(total, exact)
     bound = np.full(lanes, int(np.median(exact)), np.int64)  # some lanes above, some below
@@ -533,15 +530,14 @@ def test_lane_costs_equal_the_one_by_one_costs(lanes):
 
 
 def test_backend_choice_and_errors():
-    assert FlowConfig(backend="auto").use_compiled("cpu")
-    assert not FlowConfig(backend="auto").use_compiled("cuda")
-    assert not FlowConfig(backend="torch").use_compiled("cpu")
+    assert resolve(FlowConfig(backend="auto"), "cpu").name == "compiled"
+    assert resolve(FlowConfig(backend="torch"), "cpu").name == "torch"
+    assert resolve(FlowConfig(backend="compiled"), "cpu").search is compiled.CompiledSearch
+    assert resolve(FlowConfig(backend="auto"), "meta").name == "torch"
     with pytest.raises(ConfigError, match="'backend'"):
         FlowConfig(backend="fast")
-    # on CUDA "compiled" means the Triton registration (the search is the tensor code)
-    assert not FlowConfig(backend="compiled").use_compiled("cuda")
     with pytest.raises(ConfigError, match="runs on CPU .* and CUDA"):
-        FlowConfig(backend="compiled").use_compiled("mps")
+        resolve(FlowConfig(backend="compiled"), "mps")
     flow = TripletFlow(FlowConfig(sensor_size=(32, 24), backend="compiled"))
     ev, _ = translating_texture((32, 24), velocity=(500.0, 0.0), duration_us=5_000, seed=1)
     flow.update(ev)
@@ -552,13 +548,24 @@ def test_backend_choice_and_errors():
     assert fresh.config.device == "meta"
 
 
+def test_backends_without_numba(monkeypatch):
+    """Without numba ``auto`` runs the tensor code on CPU and ``compiled`` is an error."""
+    monkeypatch.setattr(numba_support, "numba", None)
+    assert resolve(FlowConfig(backend="auto"), "cpu").name == "torch"
+    with pytest.raises(ConfigError, match="needs numba"):
+        resolve(FlowConfig(backend="compiled"), "cpu")
+    with pytest.raises(ConfigError, match="needs numba"):
+        TripletFlow(FlowConfig(sensor_size=(32, 24), backend="compiled"))
+
+
 def test_triton_backend_choice_and_errors(monkeypatch):
     from evtrack.flow import registration_triton
 
-    assert not FlowConfig(backend="auto").use_triton("cpu")
-    assert not FlowConfig(backend="torch").use_triton("cuda")
-    assert FlowConfig(backend="auto").use_triton("cuda") == (registration_triton.triton
-                                                             is not None)
+    cuda = torch.device("cuda")  # resolve only looks at the type: no GPU needed
+    assert resolve(FlowConfig(backend="torch"), cuda).name == "torch"
+    assert resolve(FlowConfig(backend="auto"), cuda).name == (
+        "triton" if registration_triton.triton is not None else "torch")
+    assert resolve(FlowConfig(backend="auto"), cuda).search is not compiled.CompiledSearch
     # caps beyond one program's registers run the tensor registration
     assert registration_triton.fits(64, 48) and not registration_triton.fits(1000, 48)
     group, seq, ordinal, flow, n_groups = _random_registration_input(0)
@@ -569,43 +576,46 @@ def test_triton_backend_choice_and_errors(monkeypatch):
     monkeypatch.setattr(registration_triton, "solve_groups", refuse)
     big = registration_triton.MAX_CAP + 1
     a = register_groups(group, seq, ordinal, flow, n_groups, big, 9, 0.05, 10_000)
-    b = register_groups(group, seq, ordinal, flow, n_groups, big, 9, 0.05, 10_000, triton=True)
+    b = register_groups(group, seq, ordinal, flow, n_groups, big, 9, 0.05, 10_000,
+                        backend=registration_triton.TritonRegistration())
     assert torch.equal(torch.nan_to_num(a.full_flow, 1e30), torch.nan_to_num(b.full_flow, 1e30))
     monkeypatch.setattr(registration_triton, "triton", None)
-    assert not FlowConfig(backend="auto").use_triton("cuda")  # falls back to the tensor code
+    assert resolve(FlowConfig(backend="auto"), cuda).name == "torch"  # the tensor code
     with pytest.raises(ConfigError, match="needs triton"):
-        FlowConfig(backend="compiled").use_triton("cuda")
+        resolve(FlowConfig(backend="compiled"), cuda)
+    monkeypatch.setattr(registration_triton, "available", lambda device_type: True)
+    assert resolve(FlowConfig(backend="compiled"), cuda).name == "triton"
+    assert resolve(FlowConfig(backend="auto"), "cpu").name == "compiled"  # never on CPU
 
 
 @pytest.mark.parametrize("numpy_on_cpu", [True, False])
 @pytest.mark.parametrize("spread", [50, 10**12])  # dense table / sort and binary search
 def test_group_key_helpers_equal_torch(spread, numpy_on_cpu, monkeypatch):
-    from evtrack.flow import triplet
-    from evtrack.flow.triplet import _positions, _unique_inverse
+    from evtrack.flow import pending
+    from evtrack.flow.pending import positions, unique_inverse
 
-    monkeypatch.setattr(triplet, "_NUMPY_ON_CPU", numpy_on_cpu)
+    monkeypatch.setattr(pending, "NUMPY_ON_CPU", numpy_on_cpu)
 
     rng = np.random.default_rng(spread % 97)
     for n in (0, 1, 7, 5000):
         values = torch.as_tensor(rng.integers(3, 3 + spread, n), dtype=torch.int64)
-        keys, inv = _unique_inverse(values)
+        keys, inv = unique_inverse(values)
         ref_keys, ref_inv = torch.unique(values, return_inverse=True)
         assert torch.equal(keys, ref_keys) and torch.equal(inv, ref_inv)
         picked = values[torch.as_tensor(rng.integers(0, max(n, 1), 3 * n if n else 0))]
-        assert torch.equal(_positions(keys, picked), torch.searchsorted(keys, picked))
+        assert torch.equal(positions(keys, picked), torch.searchsorted(keys, picked))
 
 
 @pytest.mark.parametrize("spread", [40, 10**9])
 def test_compiled_group_positions_equal_searchsorted(spread):
     """The registration's compiled group positions (a dense table over a small key range,
     binary search over a wide one) equal ``torch.searchsorted``."""
-    from evtrack.flow.registration_compiled import _group_positions
 
     rng = np.random.default_rng(spread % 89)
     for n in (0, 1, 7, 5000):
         keys = np.unique(rng.integers(-spread, spread, max(n // 3, 1)))
         values = keys[rng.integers(0, keys.shape[0], n)]
-        got = _group_positions(keys, values, 8, 0 if spread > 100 else 65_536)
+        got = ak.group_positions(keys, values, 8, 0 if spread > 100 else 65_536)
         assert got.tolist() == torch.searchsorted(torch.from_numpy(keys),
                                                   torch.from_numpy(values)).tolist()
 
@@ -614,7 +624,7 @@ def test_compiled_group_keys_equal_the_torch_formula():
     """The compiled group keys divide with the floor, as torch's ``rounding_mode="floor"``
     (negative timestamps included), and the candidates' keys, ordinals and supported groups
     follow their events."""
-    from evtrack.flow import triplet
+    from evtrack.flow import pending
 
     rng = np.random.default_rng(11)
     n, cols, rows, s, w_us = 500, 7, 5, 16, 2_000
@@ -625,7 +635,7 @@ def test_compiled_group_keys_equal_the_torch_formula():
     # sorted (windows change between events, gaps of several windows), then in any order
     for t in (np.sort(rng.integers(-50_000, 50_000, n)), rng.integers(-50_000, 50_000, n)):
         out = np.empty(n, np.int64)
-        triplet._event_group_keys(x, y, t, w_us, roi_of_x, roi_of_y, cols * rows, out)
+        pending.event_group_keys(x, y, t, w_us, roi_of_x, roi_of_y, cols * rows, out)
         tx, ty, tt = (torch.from_numpy(v) for v in (x, y, t))
         expected = (torch.div(tt, w_us, rounding_mode="floor") * (cols * rows)
                     + torch.div(ty, s, rounding_mode="floor") * cols
@@ -635,8 +645,8 @@ def test_compiled_group_keys_equal_the_torch_formula():
     event = np.sort(rng.integers(seq0, seq0 + n, 2000))
     offset, aj, ai = rng.integers(0, 48, 2000), rng.integers(0, k, 2000), rng.integers(0, k, 2000)
     c_g, ordinal, supported = (np.empty(2000, np.int64) for _ in range(3))
-    n_sup = triplet._candidate_group_keys(event, offset, aj, ai, seq0, out, k, c_g, ordinal,
-                                          supported)
+    n_sup = pending.candidate_group_keys(event, offset, aj, ai, seq0, out, k, c_g, ordinal,
+                                         supported)
     assert np.array_equal(c_g, out[event - seq0])
     assert np.array_equal(ordinal, (offset * k + aj) * k + ai)
     first = np.concatenate([[True], event[1:] != event[:-1]])
@@ -647,7 +657,7 @@ def test_compiled_group_keys_equal_the_torch_formula():
 def test_compiled_group_count_merge_equals_the_torch_merge(spread):
     """The pending groups' union and counts (compiled, through a table over the keys'
     range) equal the sort-based torch form; a range too wide for a table gives None."""
-    from evtrack.flow import triplet
+    from evtrack.flow import pending
 
     rng = np.random.default_rng(spread % 13)
     tables = 0
@@ -657,10 +667,11 @@ def test_compiled_group_count_merge_equals_the_torch_merge(spread):
         old_support = rng.integers(0, 5, old.shape[0]).astype(np.int64)
         new = rng.integers(0, spread, n_new).astype(np.int64)
         supported = new[rng.random(n_new) < 0.6]
-        got = triplet._merge_group_counts(old, old_events, old_support, new, supported,
-                                          triplet._DENSE_SLACK, 65_536)
+        got = pending.merge_group_counts(old, old_events, old_support, new, supported,
+                                         pending.DENSE_SLACK, pending.DENSE_FLOOR)
         every = np.concatenate([old, new, supported])
-        if not len(every) or np.ptp(every) + 1 > triplet._DENSE_SLACK * len(every) + 65_536:
+        if not len(every) or np.ptp(every) + 1 > (pending.DENSE_SLACK * len(every)
+                                                  + pending.DENSE_FLOOR):
             assert got is None  # the caller sorts instead
             continue
         keys, inv = torch.unique(torch.from_numpy(every), return_inverse=True)
@@ -679,16 +690,16 @@ def test_compiled_group_count_merge_equals_the_torch_merge(spread):
 def test_numpy_bookkeeping_on_cpu_gives_the_torch_flow(backend, monkeypatch):
     """The flow's CPU bookkeeping (the events' and candidates' group keys and ordinals in
     compiled loops, or in NumPy without numba; the dense tables in NumPy;
-    ``triplet._NUMPY_ON_CPU``) gives the same RoI flows and per-event flows as the torch
+    ``pending.NUMPY_ON_CPU``) gives the same RoI flows and per-event flows as the torch
     bookkeeping that CUDA runs, streamed in uneven batches."""
-    from evtrack.flow import triplet
+    from evtrack.flow import pending
 
     ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
     cfg = FlowConfig(sensor_size=(64, 48), roi_size=16, window_us=2_000, backend=backend)
     out = []
     for numpy_on_cpu, compiled_keys in ((False, False), (True, True), (True, False)):
-        monkeypatch.setattr(triplet, "_NUMPY_ON_CPU", numpy_on_cpu)
-        monkeypatch.setattr(triplet, "jit_available", lambda c=compiled_keys: c)
+        monkeypatch.setattr(pending, "NUMPY_ON_CPU", numpy_on_cpu)
+        monkeypatch.setattr(pending, "jit_available", lambda c=compiled_keys: c)
         flow = TripletFlow(cfg, return_event_flow=True)
         parts = [flow.update(ev[a:b]) for a, b in ((0, 700), (700, 3001), (3001, len(ev)))]
         out.append(FlowResult.cat([*parts, flow.flush()]))

@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from evtrack.flow.registration import COST_SCALE, register_groups, run_starts, select_smallest
+from evtrack.flow.constants import COST_SCALE
+from evtrack.flow.registration import register_groups
+from evtrack.flow.registration_compiled import CompiledRegistration
+from evtrack.flow.registration_tensor import TensorRegistration, run_starts, select_smallest
 
 
 def _groups(seed, n_groups=5, max_events=12, max_cands=6):
@@ -149,9 +152,9 @@ def test_a_single_edge_is_flagged_as_normal_flow():
     assert abs(abs(float(direction @ n)) - 1.0) < 1e-4
     assert np.allclose(reg.flow[0].numpy(), 700.0 * n, rtol=1e-3)
     # without the refinement: F itself, projected on the edge's normal
-    for compiled in (False, True):
+    for backend in (TensorRegistration(), CompiledRegistration()):
         plain = register_groups(group, seq, ordinal, flow, 1, 100, 400, 0.05, 10**6,
-                                refine=False, compiled=compiled)
+                                refine=False, backend=backend)
         f = plain.full_flow[0].numpy().astype(np.float64)
         d = plain.normal_dir[0].numpy().astype(np.float64)
         assert bool(plain.normal[0])

@@ -20,9 +20,9 @@ pytest.importorskip("triton", reason="triton is not installed (it comes with PyT
 
 HERE = Path(__file__).resolve().parent
 
-# compares register_groups(triton=True) with the tensor path on the random inputs of
-# test_flow_backends (ties, repeats, caps, single edges, cost ties) and on collinear events
-# whose tied costs must go to the smaller rank
+# compares register_groups(backend=TritonRegistration()) with the tensor path on the random
+# inputs of test_flow_backends (ties, repeats, caps, single edges, cost ties) and on
+# collinear events whose tied costs must go to the smaller rank
 CHECK = r"""
 import sys
 import numpy as np
@@ -30,14 +30,15 @@ import torch
 sys.path.insert(0, {here!r})
 from test_flow_backends import _random_registration_input
 from evtrack.flow.registration import register_groups
+from evtrack.flow.registration_triton import TritonRegistration
 
 dev = torch.device({device!r})
 
 
 def compare(args, kw):
     a = register_groups(*args, **kw)
-    b = register_groups(*(v.to(dev) if torch.is_tensor(v) else v for v in args), triton=True,
-                        **kw)
+    b = register_groups(*(v.to(dev) if torch.is_tensor(v) else v for v in args),
+                        backend=TritonRegistration(), **kw)
     b = {{k: getattr(b, k).cpu() for k in a.__dataclass_fields__}}
     for name in ("full_flow", "cost", "used_events", "inliers", "lines"):
         assert torch.equal(torch.nan_to_num(getattr(a, name).float(), 1e30),
@@ -93,6 +94,7 @@ def test_flow_with_the_triton_registration_equals_the_tensor_flow(device):
     if device.type != "cuda":
         pytest.skip("the whole flow through Triton runs on CUDA (--device cuda)")
     from evtrack.flow import FlowConfig, TripletFlow
+    from evtrack.flow.backends import resolve
     from evtrack.flow.scenes import translating_texture
 
     ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
@@ -100,7 +102,7 @@ def test_flow_with_the_triton_registration_equals_the_tensor_flow(device):
     for backend in ("torch", "compiled"):
         cfg = FlowConfig(sensor_size=(64, 48), roi_size=16, window_us=2_000, backend=backend,
                          device=str(device))
-        assert cfg.use_triton(device.type) == (backend == "compiled")
+        assert (resolve(cfg, device).name == "triton") == (backend == "compiled")
         out[backend] = TripletFlow(cfg)(ev.to(device))
     a, b = out["torch"], out["compiled"]
     assert len(a) > 20

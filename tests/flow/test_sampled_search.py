@@ -11,8 +11,16 @@ from flow_helpers import random_stream, reference_rows
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from evtrack.flow import CandidateSearch, FlowConfig, FlowResult, TripletFlow, sampled_search
-from evtrack.flow.registration import hash32
+from evtrack.flow import (
+    CandidateSearch,
+    FlowConfig,
+    FlowResult,
+    TripletFlow,
+    numba_support,
+    sampled_search,
+)
+from evtrack.flow.compiled import CompiledSearch
+from evtrack.flow.hashing import hash32
 from evtrack.flow.scenes import translating_texture
 
 FIELDS = ("event", "offset", "age_j", "age_i", "seq_j", "seq_i", "dt_us")
@@ -52,9 +60,8 @@ def test_searching_a_sample_equals_the_reference_on_both_backends(
     # the reference's own sample: the full search's rows of the searched events
     assert sampled == [r for r in full if bool(mask[r[0]])]
     cuts = [c for c in cuts if c <= n]
-    compiled = pytest.importorskip("evtrack.flow.compiled")
-    if compiled.available():
-        assert _search_in_pieces(compiled.CompiledSearch(cfg, strips=strips),
+    if numba_support.available():
+        assert _search_in_pieces(CompiledSearch(cfg, strips=strips),
                                  x, y, t, p, mask, cuts) == sampled
     assert _search_in_pieces(CandidateSearch(cfg), x, y, t, p, mask, cuts) == sampled
 
@@ -123,8 +130,7 @@ def _whole_and_fresh_flow(ev, backend: str, roi_size: int):
     """The flow config of the dense-texture tests on ``backend`` (skips without numba for
     "compiled"), the whole search's result on ``ev``, and a fresh flow to feed in calls."""
     if backend == "compiled":
-        compiled = pytest.importorskip("evtrack.flow.compiled")
-        if not compiled.available():
+        if not numba_support.available():
             pytest.skip("numba is not installed")
     cfg = FlowConfig(roi_size=roi_size, window_us=2000, max_events_per_roi=16,
                      max_hypotheses=16, min_support=2, backend=backend)

@@ -251,9 +251,9 @@ def test_chunk_size_does_not_change_the_result(texture):
 def test_search_ahead_in_a_thread_gives_the_same_bits(texture, monkeypatch):
     """With the compiled search and several pieces per update, the next piece is searched in a
     worker thread while this one is registered; every output equals the one-at-a-time run."""
-    from evtrack.flow import compiled
+    from evtrack.flow import numba_support
 
-    if not compiled.available():
+    if not numba_support.available():
         pytest.skip("numba is not installed: no compiled search")
     ev, _ = texture
     ev = ev[:12_000]
