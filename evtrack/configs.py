@@ -100,13 +100,11 @@ __all__ = [
     "converter",
     "field_units",
     "from_dict",
-    "loading",
     "move_renamed",
     "number_from_text",
     "read_yaml",
     "setting",
     "to_dict",
-    "type_hints",
     "unknown_fields",
 ]
 
@@ -650,24 +648,12 @@ def from_dict(cls: type[C], data: Mapping[str, Any] | None, source: str = "confi
         return converter.structure(data, cls)
 
 
-def type_hints(cls: type) -> dict[str, Any]:
-    """The resolved type hints of a config class's fields (``from __future__ import
-    annotations`` strings evaluated)."""
-    return _type_hints(cls)
-
-
-@contextmanager
-def loading(source: str) -> Iterator[None]:
-    """Errors of the loader raised inside name ``source`` first (a file, a command line)."""
-    with _loading(source):
-        yield
-
-
-def move_renamed(cls: type, data: Mapping[str, Any]) -> Mapping[str, Any]:
+def move_renamed(cls: type, data: Mapping[str, Any], source: str) -> Mapping[str, Any]:
     """``data`` with each old key of ``cls.RENAMED_KEYS`` moved to its new place (a
-    :class:`RenamedKeyWarning` each; both given: an error), for a caller that merges ``data``
-    into other data before loading it."""
-    return _move_renamed(cls, data)
+    :class:`RenamedKeyWarning` each, naming ``source``; both given: an error), for a caller
+    that merges ``data`` into other data before loading it."""
+    with _loading(source):
+        return _move_renamed(cls, data)
 
 
 def convert_value(value: Any, tp: Any, where: str) -> Any:

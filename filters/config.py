@@ -8,22 +8,20 @@ by a predict over ``dt`` is ``Q·dt`` whatever the update rate.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
 
 import yaml
 
+from evtrack import configs
 from evtrack.errors import ConfigError
 
 __all__ = [
     "VelocityKFConfig",
     "PoseUKFConfig",
     "PoseTwistUKFConfig",
-    "config_from_dict",
     "load_filters_config",
 ]
 
@@ -251,60 +249,6 @@ class PoseTwistUKFConfig(PoseUKFConfig):
             _check_positive(self, name, allow_zero=True)
 
 
-C = TypeVar("C")
-
-
-def config_from_dict(cls: type[C], data: Mapping[str, Any] | None, source: str = "config") -> C:
-    """Build a config dataclass from a mapping; missing fields keep their defaults.
-
-    Raises:
-        ConfigError: naming ``source`` and the unknown or invalid field.
-    """
-    if data is None:
-        return cls()
-    if not isinstance(data, Mapping):
-        raise ConfigError(
-            f"{source}: expected a mapping of {cls.__name__} fields, got {type(data).__name__}"
-        )
-    fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ConfigError(f"{source}: unknown {cls.__name__} field(s) {unknown}")
-    values: dict[str, Any] = {}
-    for name, value in data.items():
-        default = fields[name].default
-        if value is None and default is None:
-            values[name] = None
-        elif isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise ConfigError(f"{source}: field {name!r} must be true or false, got {value!r}")
-            values[name] = value
-        elif isinstance(default, int | float) or default is None:
-            if isinstance(value, bool) or not isinstance(value, int | float | str):
-                raise ConfigError(f"{source}: field {name!r} must be a number, got {value!r}")
-            try:
-                number = float(value)
-            except ValueError as exc:
-                raise ConfigError(
-                    f"{source}: field {name!r} must be a number, got {value!r}"
-                ) from exc
-            if isinstance(default, int) and not isinstance(default, bool):
-                if not number.is_integer():
-                    raise ConfigError(f"{source}: field {name!r} must be an integer, got {value!r}")
-                number = int(number)
-            values[name] = number
-        elif isinstance(default, str):
-            if not isinstance(value, str):
-                raise ConfigError(f"{source}: field {name!r} must be a string, got {value!r}")
-            values[name] = value
-        else:  # pragma: no cover - every field is a bool, a number or a string
-            values[name] = value
-    try:
-        return cls(**values)
-    except ConfigError as exc:
-        raise ConfigError(f"{source}: {exc}") from exc
-
-
 def load_filters_config(
     path: str | Path,
 ) -> tuple[VelocityKFConfig, PoseUKFConfig, PoseTwistUKFConfig]:
@@ -329,7 +273,8 @@ def load_filters_config(
     unknown = sorted(set(data) - set(sections))
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {unknown}; expected {sorted(sections)}")
-    out = [config_from_dict(cls, data.get(key), f"{path}: {key}") for key, cls in sections.items()]
+    out = [configs.from_dict(cls, data.get(key), f"{path}: {key}")
+           for key, cls in sections.items()]
     return out[0], out[1], out[2]  # type: ignore[return-value]
 
 

@@ -30,14 +30,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
-from evtrack.config_values import checked_scalar, unknown_fields
+from evtrack import configs
+from evtrack.configs import Config
 from evtrack.errors import ConfigError
 from evtrack.flow.constants import MAX_DT_US, US_PER_S
 
@@ -50,7 +51,7 @@ LOOKUPS = ("auto", "passes", "sorted")
 
 
 @dataclass(frozen=True)
-class FlowConfig:
+class FlowConfig(Config):
     """Parameters of :class:`~evtrack.flow.TripletFlow`.
 
     Attributes:
@@ -177,6 +178,8 @@ class FlowConfig:
     backend: str = "auto"
 
     def __post_init__(self) -> None:
+        super().__post_init__()
+
         def need(cond: bool, name: str, problem: str) -> None:
             if not cond:
                 raise ConfigError(f"flow config field '{name}': {problem}")
@@ -252,57 +255,19 @@ class FlowConfig:
 
     # ------------------------------------------------------------------ loading
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None, source: str = "flow config") -> FlowConfig:
-        """Build from a mapping; missing fields keep their defaults, unknown ones are errors."""
-        data = dict(data or {})
-        known = {f.name for f in dataclasses.fields(cls) if f.init}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"{source}: {unknown_fields(unknown, known)}")
-        types = {"radius": int, "history": int, "tolerance_us": int, "refractory_us": int,
-                 "max_span_us": int,
-                 "roi_size": int,
-                 "window_us": int, "min_support": int, "max_events_per_roi": int,
-                 "max_hypotheses": int, "chunk_size": int, "pass_repeats": int,
-                 "pair_budget": int, "tolerance_rel": float, "min_speed": float,
-                 "max_speed": float, "aperture_ratio": float, "line_gate": float,
-                 "min_inlier_fraction": float,
-                 "refine_iters": int}
-        for name, kind in types.items():
-            if name in data:
-                data[name] = checked_scalar(name, data[name], kind(), "flow config")
-        if data.get("sensor_size") is not None:
-            data["sensor_size"] = tuple(data["sensor_size"])
-        for name in ("device", "backend"):
-            if name in data:
-                data[name] = str(data[name])
-        return cls(**data)
+    def from_dict(cls, data: Mapping[str, Any] | None, source: str = "flow config"
+                  ) -> FlowConfig:
+        """Build from a mapping by the rules of :mod:`evtrack.configs`; missing fields keep
+        their defaults, unknown ones are errors naming ``source`` and the field."""
+        return configs.from_dict(cls, data, source)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> FlowConfig:
         """Load from a YAML file: either the fields at top level or under a ``flow:`` key."""
-        path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except (OSError, yaml.YAMLError) as exc:
-            raise ConfigError(f"{path}: cannot read flow config ({exc})") from exc
-        if data is None:
-            data = {}
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping, got {type(data).__name__}")
-        if "flow" in data and isinstance(data["flow"], dict):
+        data = configs.read_yaml(path)
+        if isinstance(data.get("flow"), Mapping):
             data = data["flow"]
-        try:
-            return cls.from_dict(data)
-        except ConfigError as exc:
-            raise ConfigError(f"{path}: {exc}") from exc
-
-    def to_dict(self) -> dict[str, Any]:
-        """The fields as plain Python values (YAML-serialisable)."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.init}
-        if out["sensor_size"] is not None:
-            out["sensor_size"] = list(out["sensor_size"])
-        return out
+        return cls.from_dict(data, str(path))
 
 
 def search_offsets(radius: int) -> np.ndarray:

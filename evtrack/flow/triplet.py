@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from evtrack.config_values import checked_device
+from evtrack.configs import checked_device
 from evtrack.errors import EventsError, EvtrackError
 from evtrack.events import Events
 from evtrack.flow.backends import (

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -394,7 +395,7 @@ class TrackerConfig(Config):
         tracker's defaults. Every field's type is checked as the loader checks it
         (``TrackerConfig(depth_fusion={"icp": "false"})`` must not turn ICP on)."""
         defaults = None
-        hints = configs.type_hints(type(self))
+        hints = typing.get_type_hints(type(self))
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, Mapping):
@@ -444,8 +445,7 @@ class TrackerConfig(Config):
         if removed:
             raise ConfigError(f"{source}: field {removed[0]!r} was removed: "
                               f"{_REMOVED_FIELDS[removed[0]]}")
-        with configs.loading(source):
-            data = configs.move_renamed(cls, data)
+        data = configs.move_renamed(cls, data, source)
         merged = _merged((base if base is not None else cls()).to_dict(), data)
         return configs.from_dict(cls, merged, source)
 

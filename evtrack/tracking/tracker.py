@@ -66,7 +66,7 @@ import torch
 from torch import Tensor
 
 from evtrack.camera import PinholeCamera
-from evtrack.config_values import checked_device
+from evtrack.configs import checked_device
 from evtrack.errors import ConfigError, EventsError
 from evtrack.events import Events
 from evtrack.geometry import matrix_to_tq

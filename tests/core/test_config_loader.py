@@ -274,15 +274,3 @@ def test_yaml_files_and_overrides(tmp_path):
         apply_overrides({}, ["count"])
     with pytest.raises(ConfigError, match="'name' is not a section"):
         apply_overrides({"name": "x"}, ["name.first=y"])
-
-
-def test_legacy_value_checks_use_the_same_rules():
-    from evtrack.config_values import checked_scalar
-
-    assert checked_scalar("lr", "1e-3", 0.1, "flow config") == 0.001
-    assert checked_scalar("n", 4.0, 1, "flow config") == 4
-    with pytest.raises(ConfigError, match="^flow config: field 'n' must be an integer, got 4.5$"):
-        checked_scalar("n", 4.5, 1, "flow config")
-    with pytest.raises(ConfigError, match="^x: field 'on' must be true or false, got 1$"):
-        checked_scalar("on", 1, True, "x")
-    assert checked_scalar("obj", [1], None, "x") == [1]

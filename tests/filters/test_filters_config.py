@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from evtrack.configs import from_dict
 from evtrack.errors import ConfigError
 from evtrack.filters import PoseTwistUKFConfig, PoseUKFConfig, VelocityKFConfig, load_filters_config
-from evtrack.filters.config import config_from_dict
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "filters.yaml"
 
@@ -63,7 +63,7 @@ def test_bad_configs_name_the_file_and_field(tmp_path: Path, text: str, match: s
 def test_missing_file_and_dict_source() -> None:
     with pytest.raises(ConfigError, match="cannot read"):
         load_filters_config("/nonexistent/filters.yaml")
-    cfg = config_from_dict(PoseUKFConfig, {"sigma_points": True}, "tracker.yaml: pose_ukf")
+    cfg = from_dict(PoseUKFConfig, {"sigma_points": True}, "tracker.yaml: pose_ukf")
     assert cfg.sigma_points
     with pytest.raises(ConfigError, match="tracker.yaml: pose_ukf: unknown"):
-        config_from_dict(PoseUKFConfig, {"sigmapoints": True}, "tracker.yaml: pose_ukf")
+        from_dict(PoseUKFConfig, {"sigmapoints": True}, "tracker.yaml: pose_ukf")

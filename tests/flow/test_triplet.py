@@ -345,7 +345,7 @@ def test_config_loading_and_errors(tmp_path):
         FlowConfig.from_dict({"radios": 2})
     with pytest.raises(ConfigError, match="'history'"):
         FlowConfig.from_dict({"history": 0})
-    with pytest.raises(ConfigError, match="'window_us'"):
+    with pytest.raises(ConfigError, match="flow config: window_us: expected an integer"):
         FlowConfig.from_dict({"window_us": 1.5})
     with pytest.raises(ConfigError, match="'max_speed'"):
         FlowConfig(min_speed=100.0, max_speed=50.0)
