@@ -3,36 +3,32 @@
 from __future__ import annotations
 
 import argparse
-import textwrap
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from evtrack.cli._parsers import command_parser
 from evtrack.errors import ConfigError
 
 __all__ = ["register", "run"]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser(
-        "set-decode",
-        help="store the decoding settings chosen for a network in its weights file",
-        description=textwrap.fill(
-            "Set the record's decoding (WeightsRecord.decode: DecodeConfig fields that differ "
-            "from the library's defaults) of a pose-network weights file. Estimators built from "
-            "the file, and from its ONNX export, then decode with them unless given a decode of "
-            "their own; 'evtrack evaluate' and 'evtrack track' use them. Choose them on held-out "
-            "renders, e.g. 'python benchmarks/bench_pose_accuracy.py --weights W.pt "
-            "--crop-blend 45', not on the sequences you report. The state dict is copied as it "
-            "is; the file is replaced atomically (or written to --out).", 88
-        ),
-        epilog="examples:\n"
-               "  evtrack set-decode runs/pose/x/x.pt crop_blend_max_deg=45\n"
-               "  evtrack set-decode runs/pose/x/x.pt search_below=0.2 --out x_decoded.pt\n"
-               "  evtrack set-decode runs/pose/x/x.pt --clear        # back to the defaults",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = command_parser(
+        subparsers, "set-decode",
+        "store the decoding settings chosen for a network in its weights file",
+        "Set the record's decoding (WeightsRecord.decode: DecodeConfig fields that differ "
+        "from the library's defaults) of a pose-network weights file. Estimators built from "
+        "the file, and from its ONNX export, then decode with them unless given a decode of "
+        "their own; 'evtrack evaluate' and 'evtrack track' use them. Choose them on held-out "
+        "renders, e.g. 'python benchmarks/bench_pose_accuracy.py --weights W.pt "
+        "--crop-blend 45', not on the sequences you report. The state dict is copied as it "
+        "is; the file is replaced atomically (or written to --out).",
+        "examples:\n"
+        "  evtrack set-decode runs/pose/x/x.pt crop_blend_max_deg=45\n"
+        "  evtrack set-decode runs/pose/x/x.pt search_below=0.2 --out x_decoded.pt\n"
+        "  evtrack set-decode runs/pose/x/x.pt --clear        # back to the defaults")
     parser.add_argument("weights", type=Path, help="weights file (.pt)")
     parser.add_argument("settings", nargs="*", metavar="KEY=VALUE",
                         help="DecodeConfig fields (values read as YAML scalars)")
