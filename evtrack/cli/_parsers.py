@@ -1,5 +1,5 @@
-"""The shape every ``evtrack`` command's parser shares (a helper, not a command: the modules of
-this package whose names start with ``_`` are not commands)."""
+"""The shape every ``evtrack`` command's parser shares; a helper, not a command (the modules
+of this package whose names start with ``_`` are not commands)."""
 
 from __future__ import annotations
 

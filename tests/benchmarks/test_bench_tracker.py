@@ -85,7 +85,7 @@ def test_config_changes_only_given_options() -> None:
              "rt": None, "async": "off", "prior": None}
     changes = bt.config_changes({"flow": {"roi_size": 16}}, combo)
     assert changes == {"flow": {"roi_size": 16}, "method": "full", "torch_threads": 2,
-                       "load": {"search_per_roi_window": 0}, "pose_async": False}
+                       "search_per_roi_window": 0, "pose_async": False}
     assert bt.combo_label(combo) == "full sample=0 async=off"
 
 
