@@ -250,7 +250,7 @@ def test_onnx_backend_finds_and_runs_the_exported_model(tiny_benchmark, tmp_path
     assert source.estimator.session.get_session_options().intra_op_num_threads == 1
     assert source(int(seq.rgb_times_us[0]), seq.rgb(0), None) is not None
     config = tmp_path / "tracker.yaml"
-    config.write_text(TINY_TRACKER_YAML + "pose_depth_min_share: 0.0\n")
+    config.write_text(TINY_TRACKER_YAML + "pose_gate: {depth_min_share: 0.0}\n")
     out = tmp_path / "o"
     code = main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--weights-dir",
                  str(tmp_path / "onnx"), "--backend", "onnxruntime", "--config", str(config),

@@ -112,7 +112,7 @@ def test_tracker_fuses_ranges_and_tracks_depth_better(fast_sequence) -> None:
     instead of a half-resolution render (2026-11-28, an Intel Xeon): 2.95 cm without, 1.37
     with (1.78 with the render on that machine), 25 frames fused (5 refused as "too few
     agreeing"). Bounds: 0.75x, and 60 % of the frames. Both runs leave the poses
-    as the oracle gives them (``pose_depth_align`` off): the alignment moves them along the ray
+    as the oracle gives them (``pose_gate.depth_align`` off): the alignment moves them along the ray
     onto the depth frames too, which is not what this test measures (with it: 3.94 cm plain,
     1.53 cm ranged, 19 frames fused, 11 refused)."""
     seq = fast_sequence

@@ -28,7 +28,7 @@ def test_the_built_in_methods_are_motion_sources() -> None:
     assert VelocityOnlyMotion.poses_only_initialise and not EventMotion.poses_only_initialise
     with pytest.raises(KeyError, match="unknown tracking method 'nope'; known: full, velocity"):
         motion_source_class("nope")
-    with pytest.raises(ConfigError, match="'method' must be one of"):
+    with pytest.raises(ConfigError, match="method: must be one of"):
         TrackerConfig(method="nope")
 
 

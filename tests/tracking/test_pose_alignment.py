@@ -192,7 +192,7 @@ def test_tracker_builds_the_aligner_only_where_it_can_work() -> None:
     assert Tracker(TrackerConfig(), camera=CAM, mesh=box.vertices).pose_gate.aligner is None
     off = TrackerConfig.from_dict({"pose_gate": {"depth_align": False}})
     assert Tracker(off, camera=CAM, mesh=mesh).pose_gate.aligner is None
-    with pytest.raises(ConfigError, match="pose_depth_align_max_m"):
+    with pytest.raises(ConfigError, match="pose_gate.depth_align_max_m"):
         TrackerConfig.from_dict({"pose_gate": {"depth_align_max_m": 0.0}})
     aligner = PoseRayAligner.from_mesh(Mesh, CAM)
     assert aligner.sampler.points.shape == (3000, 3) and aligner.sampler.normals.shape == (3000, 3)

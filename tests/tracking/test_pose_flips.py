@@ -1,5 +1,5 @@
 """Half turns of a cuboid-keypoint network's poses, resolved against the filter's pose
-(``TrackerConfig.pose_half_turn_axes``, :mod:`evtrack.tracking.pose_flips`)."""
+(``TrackerConfig.pose_gate.half_turn_axes``, :mod:`evtrack.tracking.pose_flips`)."""
 
 from __future__ import annotations
 
@@ -94,7 +94,7 @@ def test_resolve_turns_back_a_half_turned_pose_and_keeps_a_right_one() -> None:
 def test_bad_settings_are_refused(axes, view) -> None:
     with pytest.raises(ValueError):
         HalfTurnResolver(axes, CENTER, view)
-    with pytest.raises(ConfigError, match="pose_half_turn"):
+    with pytest.raises(ConfigError, match="half_turn"):
         TrackerConfig(pose_gate={"half_turn_axes": axes, "half_turn_max_view_deg": view})
 
 
@@ -130,8 +130,8 @@ def _run(seq, turn: dict[int, int], **config):
 
 def test_the_tracker_turns_back_half_turned_poses(fast_sequence) -> None:
     """Every pose after the first turned half a turn about one of the box's axes (in turn x, y,
-    z). With ``pose_half_turn_axes: xyz`` offered from every view (90 deg) and no
-    re-initialisation on turns in a row (``pose_half_turn_reinit_after: 0``; with the default
+    z). With ``pose_gate.half_turn_axes: xyz`` offered from every view (90 deg) and no
+    re-initialisation on turns in a row (``pose_gate.half_turn_reinit_after: 0``; with the default
     2, the second would re-initialise the filter on a turned pose) the tracker turns each of
     them back and tracks as on the clean poses; without it they are rejected by the
     gate until two that agree re-initialise the filter on a turned pose.
@@ -141,9 +141,9 @@ def test_the_tracker_turns_back_half_turned_poses(fast_sequence) -> None:
     110.1 (4 rejected, then a re-initialisation on a turned pose)."""
     turn = {i: i % 3 for i in range(1, 60)}
     _, _, clean_p, clean_r = _run(fast_sequence, {})
-    tracker, source, p, r = _run(fast_sequence, turn, pose_half_turn_axes="xyz",
-                                 pose_half_turn_max_view_deg=90.0,
-                                 pose_half_turn_reinit_after=0)
+    tracker, source, p, r = _run(fast_sequence, turn,
+                                 pose_gate={"half_turn_axes": "xyz", "half_turn_max_view_deg": 90.0,
+                                            "half_turn_reinit_after": 0})
     end = int(fast_sequence.events.t[-1])
     fused = sum(t + LATENCY_US <= end for t in source.turned)
     assert fused >= 3
@@ -157,8 +157,9 @@ def test_the_tracker_turns_back_half_turned_poses(fast_sequence) -> None:
 def test_right_poses_are_never_turned(fast_sequence) -> None:
     """The clean oracle poses with every axis offered from every view: none is turned (the
     filter stays well within 90 deg of them), so the track is that of the default config."""
-    tracker, _, p, r = _run(fast_sequence, {}, pose_half_turn_axes="xyz",
-                            pose_half_turn_max_view_deg=90.0)
+    tracker, _, p, r = _run(fast_sequence, {}, pose_gate={"half_turn_axes": "xyz",
+                                                          "half_turn_max_view_deg": 90.0},
+                            )
     _, _, p0, r0 = _run(fast_sequence, {})
     assert tracker.stats.poses_half_turned == 0
     assert (p, r) == (p0, r0)
@@ -176,18 +177,20 @@ def test_a_track_started_on_a_turned_pose_is_turned_back_by_the_next_poses(
     """The first pose (which starts the track, with nothing to resolve it against) turned half
     a turn about the box's y axis, the others right. The next pose needs the turn (its half
     turn lies nearer the turned track), the one after it too: the second in a row
-    re-initialises the filter on it as it is (``pose_half_turn_reinit_after: 2``), and the
+    re-initialises the filter on it as it is (``pose_gate.half_turn_reinit_after: 2``), and the
     track is right from then on. With 0 the resolver keeps turning the right poses to the
     turned track, which stays half a turn off.
 
     Measured (10 Hz poses, 100 ms late: the track starts at 0.1 s, re-initialised at 0.3 s):
     largest rotation error after 0.4 s 10.4 deg; with 0, 178.8 deg (4 poses turned)."""
-    tracker, _, _, _ = _run(fast_sequence, {0: 1}, pose_half_turn_axes="xyz",
-                            pose_half_turn_max_view_deg=90.0)
+    tracker, _, _, _ = _run(fast_sequence, {0: 1}, pose_gate={"half_turn_axes": "xyz",
+                                                              "half_turn_max_view_deg": 90.0},
+                            )
     assert tracker.stats.half_turn_reinits == 1 and tracker.stats.poses_half_turned == 1
     late = _late_rotation_error_deg(tracker, fast_sequence, 400_000)
-    stuck, _, _, _ = _run(fast_sequence, {0: 1}, pose_half_turn_axes="xyz",
-                          pose_half_turn_max_view_deg=90.0, pose_half_turn_reinit_after=0)
+    stuck, _, _, _ = _run(fast_sequence, {0: 1},
+                          pose_gate={"half_turn_axes": "xyz", "half_turn_max_view_deg": 90.0,
+                                     "half_turn_reinit_after": 0})
     late_stuck = _late_rotation_error_deg(stuck, fast_sequence, 400_000)
     assert late < 15.0
     assert stuck.stats.half_turn_reinits == 0 and late_stuck > 150.0

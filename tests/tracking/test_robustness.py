@@ -114,11 +114,11 @@ def test_pose_outliers_are_rejected_against_the_clean_run(rest_sequence, robust_
                                                           handling) -> None:
     """10% of the poses replaced by random ones (random rotation, translation moved up to
     ±0.3 m per axis): every outlier and no inlier is rejected, before the filter by the depth
-    check (``pose_depth_min_share``, the default) or, without it, by the filter's gate; and a
+    check (``pose_gate.depth_min_share``, the default) or, without it, by the filter's gate; and a
     rejected outlier changes nothing: the run
     equals, to 1e-12, the run in which the same frames gave no pose at all. The error is then
     that of the clean run minus the information of the lost poses. With the defaults the poses
-    are first moved along their rays onto the depth frames (``pose_depth_align``): an outlier
+    are first moved along their rays onto the depth frames (``pose_gate.depth_align``): an outlier
     so moved can pass the depth check, and the gate must then reject it (its rotation is
     random).
 
@@ -172,7 +172,7 @@ def test_pose_outliers_are_rejected_against_the_clean_run(rest_sequence, robust_
 def test_agreeing_rejected_poses_reinitialise_at_the_second(rest_sequence, agreement) -> None:
     """From 0.8 s (at rest) every pose is 0.4 m farther away, as when the filter has drifted
     off: the gate rejects the shifted poses (the innovation is over 7 sigma). With
-    ``reinit_on_agreement`` the second shifted pose agrees with the first (same shift, the
+    ``pose_gate.reinit_on_agreement`` the second shifted pose agrees with the first (same shift, the
     object at rest) and re-initialises the filter: 2 rejected, 1 re-initialisation, and the
     rest are fused. Without it the filter's ``reinit_after`` (3 in the tracker) takes the
     third. Both end on the shifted poses. (The depth frames, which show the object where it
@@ -364,7 +364,7 @@ def _textured_object_with_burst(seed: int = 0) -> Events:
 
 
 def test_event_cap_bounds_the_work_per_step_whatever_the_chunking() -> None:
-    """At most ``max_events_per_step`` events of a step reach the flow (the rest are thinned
+    """At most ``load.max_events_per_step`` events of a step reach the flow (the rest are thinned
     and counted), the burst steps are found, and both decisions do not depend on how the
     events are chunked: one chunk and random chunks give the same output bit for bit."""
     ev = _textured_object_with_burst()
@@ -410,7 +410,7 @@ def _track_textured_object(config: TrackerConfig, ev: Events, chunks: str, seed:
 
 
 def test_sampled_search_is_counted_and_independent_of_the_chunking() -> None:
-    """With ``search_per_roi_window`` the flow searches a sample of each dense RoI window:
+    """With ``load.search_per_roi_window`` the flow searches a sample of each dense RoI window:
     the events given to the flow but not searched are counted, the sample (a hash of the
     stream index, counted per step group) does not depend on how the events were pushed,
     and it changes the RoI flows only where a window's sample is short of the data term."""
@@ -456,7 +456,7 @@ def test_sampled_search_keeps_the_error_bounded(fast_sequence, runs) -> None:
 
 
 def test_search_budget_bounds_the_searched_events_whatever_the_chunking() -> None:
-    """With ``max_searched_per_step`` the flow searches at most that many events per step
+    """With ``load.max_searched_per_step`` the flow searches at most that many events per step
     (over a step group, by whole cells), every event still reaches it (none is thinned), the
     rest are counted as unsearched, and the choice does not depend on how the events were
     pushed."""
@@ -592,9 +592,9 @@ def test_leaving_and_reentering_the_view(exit_sequence, box, setting) -> None:
     with the frame at 808 ms -> tracking from 908 ms (bound: + one period + the latency, 1008
     ms). After re-initialisation: 5.93 cm / 8.61 deg RMSE, against 5.83 cm / 8.81 deg before the
     object left (bound: 1.5x the error before it left, at least 8 cm / 8 deg). The same holds
-    with the mesh aligned with the depth frames (``depth_icp``): nothing is aligned while the
+    with the mesh aligned with the depth frames (``depth_fusion.icp``): nothing is aligned while the
     object is lost, and the alignment of a half-visible object does not hold the track. And
-    with model depth (``depth_source: model``): after it, 2.7-7.5 cm per 25 ms from the return
+    with model depth (``depth.source: model``): after it, 2.7-7.5 cm per 25 ms from the return
     on (2026-11-27; 19-22 cm, with the next pose gated out, while the check of the re-measured
     steps looked at 50 ms of a pose held still)."""
     depth_icp = setting == "depth_icp"
@@ -734,7 +734,7 @@ def test_a_rejected_event_chunk_changes_nothing() -> None:
 
 
 def test_low_confidence_detections_are_misses_and_lose_the_object() -> None:
-    """Detections below ``pose_min_confidence`` are ignored (counted as misses); after
+    """Detections below ``pose_gate.min_confidence`` are ignored (counted as misses); after
     ``lost_after_misses`` of them in a row the object is lost."""
     confidence = {"value": 0.9}
 
@@ -764,7 +764,7 @@ def test_low_confidence_detections_are_misses_and_lose_the_object() -> None:
 def test_depth_contradicting_poses_are_dropped(rest_sequence) -> None:
     """The shifted poses of ``test_agreeing_rejected_poses_reinitialise_at_the_second`` (0.4 m
     farther from 0.8 s, the object at rest) against depth frames that show the object where
-    it is: with the depth check (the default ``pose_depth_min_share``) none of them reaches
+    it is: with the depth check (the default ``pose_gate.depth_min_share``) none of them reaches
     the filter, so nothing is rejected or re-initialised and the track stays on the object,
     where the unchecked filter ends 0.4 m off."""
     seq = rest_sequence
@@ -797,7 +797,7 @@ def test_a_pushed_pose_is_checked_against_the_depth_of_its_time(rest_sequence, l
     moves along the camera's axis at ~0.4 m/s. The depth check and the alignment read the
     depth frame of the pose's time, not the latest one: 80 ms on, the latest lies ~3 cm
     farther (aligned onto it, the pose would be that far off); 250 ms on, it is older than
-    ``max_depth_age_ms`` allows. A pose 0.4 m behind the object is dropped; the true pose
+    ``depth.max_age_ms`` allows. A pose 0.4 m behind the object is dropped; the true pose
     moved 5 cm along its ray is aligned to within 1 cm of the truth and starts the track.
     Only the depth maps of the last ``history_ms`` (here 300 ms) are kept."""
     seq = rest_sequence
@@ -841,10 +841,10 @@ def test_a_dropped_pose_gives_way_to_an_alternative_the_depth_confirms(rest_sequ
                                                                        ) -> None:
     """Streaming, the object at rest: the pose handed in lies 0.4 m behind the object (the
     depth drops it) and carries two alternatives, one 0.5 m in front (dropped as well) and
-    the true pose 5 cm off along its ray. With ``pose_alternatives`` (the default) the
+    the true pose 5 cm off along its ray. With ``pose_gate.alternatives`` (the default) the
     second alternative is aligned, starts the track within 1 cm of the truth and is counted
     in ``poses_from_alternatives``, not as implausible; off, or with the alternatives below
-    ``pose_min_confidence`` or ``pose_alternatives_min_confidence`` (0.3), the pose is
+    ``pose_gate.min_confidence`` or ``pose_gate.alternatives_min_confidence`` (0.3), the pose is
     dropped and the filter stays uninitialised."""
     seq = rest_sequence
     settings = {"off": {"pose_gate": {"alternatives": False}},
@@ -882,9 +882,9 @@ def test_pose_measurement_alternatives_are_validated() -> None:
     pose = torch.eye(4, dtype=torch.float64)
     pose[2, 3] = 1.0
     alt = PoseMeasurement(10, pose)
-    assert PoseMeasurement(10, pose, alternatives=[alt]).alternatives == (alt)
+    assert PoseMeasurement(10, pose, alternatives=[alt]).alternatives == (alt,)
     for bad in ([PoseMeasurement(11, pose)], [pose],
-                [PoseMeasurement(10, pose, alternatives=(alt))]):
+                [PoseMeasurement(10, pose, alternatives=(alt,))]):
         with pytest.raises(ValueError, match="alternative"):
             PoseMeasurement(10, pose, alternatives=bad)
 
@@ -892,9 +892,9 @@ def test_pose_measurement_alternatives_are_validated() -> None:
 @pytest.mark.parametrize("align", [True, False])
 def test_a_pose_off_in_range_is_moved_onto_the_depth(rest_sequence, align) -> None:
     """Streaming, the object at rest: the first pose handed in is the true one moved 5 cm
-    farther along its viewing ray, as an RGB network errs. With ``pose_depth_align`` (the default)
-    it is moved onto the depth frame of its time and the filter starts within 1 cm of the
-    truth (measured: 1.5 mm); without, 5 cm off (the depth check passes it: its 6 cm
+    farther along its viewing ray, as an RGB network errs. With ``pose_gate.depth_align`` (the
+    default) it is moved onto the depth frame of its time and the filter starts within 1 cm of
+    the truth (measured: 1.5 mm); without, 5 cm off (the depth check passes it: its 6 cm
     tolerance). The true pose itself is moved by under 5 mm."""
     seq = rest_sequence
     tracker, _ = make_tracker(seq, pose_gate={"depth_align": align})
@@ -971,7 +971,7 @@ def test_step_runs_equal_steps_with_dropped_frames_in_chunks(fast_sequence) -> N
 def test_step_runs_equal_steps_when_a_late_first_pose_measures_again(fast_sequence,
                                                                      depth_source) -> None:
     """The first pose (100 ms late) has the steps since its frame measured again, a step
-    group per compiled run (``remeasure_on_pose``), with sensor depth (the frames dropped in
+    group per compiled run (``remeasure.on_pose``), with sensor depth (the frames dropped in
     that span: depth maps that expire inside a group) and with model depth (no live runs):
     the same trajectory and counts as step by step."""
     seq = fast_sequence

@@ -161,7 +161,7 @@ def test_pose_source_rate_and_latency() -> None:
 
 def test_model_depth_needs_a_mesh() -> None:
     with pytest.raises(ConfigError, match="mesh"):
-        _tracker(depth_source="model")
+        _tracker(depth={"source": "model"})
 
 
 def test_track_command(fast_sequence, tmp_path, capsys) -> None:

@@ -158,7 +158,7 @@ def test_frame_flow_measures_the_frames_a_late_first_pose_missed(fast_sequence, 
 
 def test_event_flow_measures_again_the_steps_a_late_first_pose_missed(fast_sequence,
                                                                      runs) -> None:
-    """remeasure_on_pose (default): once the first pose (100 ms late) starts the track, the
+    """remeasure.on_pose (default): once the first pose (100 ms late) starts the track, the
     steps since its frame, measured on all events without a pose, are measured again at the
     timeline's poses (RoIs in the silhouette, depths in its range, the object as pivot)."""
     traj, tracker, _ = runs.get("full")
@@ -203,7 +203,7 @@ def test_a_first_pose_that_misses_the_events_is_not_used_to_measure_again(fast_s
                                        depth={"source": depth_source})
     plain.pose_source = _first_pose_shifted(plain_source, 0.06)
     _same(traj, plain.track(fast_sequence))
-    with pytest.raises(ConfigError, match="remeasure_min_inside"):
+    with pytest.raises(ConfigError, match="remeasure: min_inside"):
         TrackerConfig(remeasure={"min_inside": 1.5})
 
 
