@@ -13,7 +13,9 @@ optical flow in px/s, quaternions wxyz, float64 by default.
 
 Each filter also has a pure ``step`` (state in, state out) that exports to ONNX
 (:mod:`evtrack.filters.onnx_export`), and ``compile_steps()`` to run its steps through
-``torch.compile`` (batch-1 latency is otherwise bound by per-op dispatch).
+``torch.compile`` (batch-1 latency is otherwise bound by per-op dispatch). The torch steps are
+the specification; one float64 CPU track runs on a single-track backend instead (NumPy, or
+numba where installed: :mod:`evtrack.filters.backends`), equal to them to rounding.
 """
 
 from evtrack.filters.config import (

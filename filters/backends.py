@@ -100,12 +100,15 @@ def get_backend(name: str) -> FilterBackend | None:
     torch steps."""
     if name == AUTO:
         name = _DEFAULT[0]
+    backend = _REGISTRY.get(name)
+    if backend is not None and backend.available():
+        return backend
     if name == TORCH:
         return None
-    backend = _REGISTRY.get(name)
-    if backend is None or not backend.available():  # "auto", or a backend missing here
-        backend = next((b for b in _REGISTRY.values() if b.available()), None)
-    return backend
+    for backend in _REGISTRY.values():  # "auto", or a backend missing here
+        if backend.available():
+            return backend
+    return None
 
 
 def resolve_backend(

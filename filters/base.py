@@ -24,8 +24,9 @@ __all__ = ["TrackFilter", "check_dt", "checked"]
 class TrackFilter(CompilableSteps, nn.Module):
     """Base of the filters: B tracks whose state lives in buffers (first dimension B).
 
-    Subclasses set :attr:`_STATE`, the names of the state buffers a single-track backend reads
-    (the first one's leading dimension is B), and call :meth:`_init_backend` in ``__init__``.
+    Subclasses set :attr:`_STATE`, the names of the three state buffers a single-track backend
+    reads (the first one's leading dimension is B), and call :meth:`_init_backend` in
+    ``__init__``.
     """
 
     _STATE: ClassVar[tuple[str, ...]]
@@ -62,12 +63,13 @@ class TrackFilter(CompilableSteps, nn.Module):
         """The single-track backend that runs a stateful call with ``inputs``, or ``None``: the
         torch steps (another preference, compiled steps, a batch, another dtype or device,
         gradients, tracing; see :func:`~evtrack.filters.backends.resolve_backend`)."""
-        if (self.backend == TORCH or self.__dict__.get("_compiled_steps")
+        preference = self.backend
+        if (preference == TORCH or self.__dict__.get("_compiled_steps")
                 or not self._single_track_allowed()):
             return None
         buf = self._buffers
-        state = [buf[name] for name in self._STATE]
-        return resolve_backend(self.backend, state[0], (*state[1:], *inputs))
+        first, second, third = self._STATE
+        return resolve_backend(preference, buf[first], (buf[second], buf[third], *inputs))
 
     def _dt(self, dt: float | Tensor) -> Tensor:
         """``dt`` (seconds, a float or (B,)) as a (B,) tensor of the state's dtype and device;

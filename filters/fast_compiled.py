@@ -56,6 +56,7 @@ __all__ = [
 ]
 
 _TINY = float(np.finfo(np.float64).tiny)
+_NUMBA = _numba_available()  # whether numba compiles the kernels here
 _NOT_PD = -1  # status of a factorisation that met a non-positive pivot
 
 
@@ -358,15 +359,13 @@ def _settings(model: VelocityModel) -> tuple[bool | int | float, ...]:
 
 def _roi_arrays(model: VelocityModel, rois: RoiRows) -> tuple[np.ndarray, ...]:
     """The RoI inputs as the kernels take them: contiguous float64 ``uv`` (N,2), ``depth``
-    (N,), ``flow`` (N,2), and bool ``normal`` (N,) (``assume_normal`` where not given) and
-    ``mask`` (N,) (all True where not given)."""
+    (N,), ``flow`` (N,2), and bool ``normal`` (N,) (``assume_normal`` where not given)."""
     f64 = np.float64
-    uv, depth, flow, normal_only, mask = rois
-    N = depth.shape[0]
-    normal = np.full(N, model.config.assume_normal) if normal_only is None else normal_only
-    return (np.ascontiguousarray(uv, f64).reshape(-1, 2), np.ascontiguousarray(depth, f64),
-            np.ascontiguousarray(flow, f64).reshape(-1, 2), np.ascontiguousarray(normal, np.bool_),
-            np.ones(N, np.bool_) if mask is None else np.ascontiguousarray(mask, np.bool_))
+    uv, depth, flow, normal_only, _ = rois
+    normal = (np.full(depth.shape[0], model.config.assume_normal) if normal_only is None
+              else normal_only)
+    return (np.ascontiguousarray(uv, f64), np.ascontiguousarray(depth, f64),
+            np.ascontiguousarray(flow, f64), np.ascontiguousarray(normal, np.bool_))
 
 
 def velocity_update(
@@ -380,9 +379,12 @@ def velocity_update(
         numpy.linalg.LinAlgError: if a 6x6 matrix is not positive definite.
     """
     f64 = np.float64
+    mask = rois.mask
+    mask = np.ones(rois.depth.shape[0], np.bool_) if mask is None else mask
     post_twist, post_cov, skipped_depth, skipped_flow = _update_kernel(
         *_settings(model), np.ascontiguousarray(twist, f64), np.ascontiguousarray(cov, f64),
-        np.ascontiguousarray(reference, f64), *_roi_arrays(model, rois))
+        np.ascontiguousarray(reference, f64), *_roi_arrays(model, rois),
+        np.ascontiguousarray(mask, np.bool_))
     if skipped_depth < 0:
         raise np.linalg.LinAlgError("a 6x6 information matrix is not positive definite")
     return post_twist, post_cov, skipped_depth, skipped_flow
@@ -432,12 +434,11 @@ def velocity_run(
     :func:`velocity_update` in one call, with the same arithmetic (arguments and results as
     :meth:`FilterBackend.velocity_run`)."""
     f64 = np.float64
-    uv, depth, flow, normal, _ = _roi_arrays(model, rois)
     return _velocity_run_kernel(
         *_settings(model), float(model.consts[0]), np.ascontiguousarray(q_matrix, f64),
         np.ascontiguousarray(twist, f64), np.ascontiguousarray(cov, f64),
         np.ascontiguousarray(reference, f64), np.ascontiguousarray(dts, f64).reshape(-1),
-        np.ascontiguousarray(bounds, np.int64), uv, depth, flow, normal)
+        np.ascontiguousarray(bounds, np.int64), *_roi_arrays(model, rois))
 
 
 @_inlined
@@ -562,4 +563,4 @@ class NumbaBackend(NumpyBackend):
 
     def available(self) -> bool:
         """Whether numba is installed."""
-        return available()
+        return _NUMBA

@@ -209,13 +209,12 @@ class PoseFilterBase(TrackFilter):
             valid: (B,) bool, False for tracks without a measurement (default all True).
                 Non-finite inputs or a non-positive variance count as missing.
         """
-        B = self.batch_size
-        kw = self._kw()
+        B, kw = self.batch_size, self._kw()
         u = checked(direction, (B, 3), "direction", kw, copy=False)
         z = checked(distance, (B,), "distance", kw, copy=False)
         r = torch.as_tensor(variance, **kw)
         r = checked(r.expand(B) if r.ndim == 0 else r, (B,), "variance", kw, copy=False)
-        valid = self._checked_valid(valid)
+        valid = self._checked_valid(valid, B, kw["device"])
         *state, passed = range_update(self._state(), self.initialized, u, z, r, valid,
                                       self.config.range_gate_chi2)
         self._set_state(*state)
@@ -260,34 +259,34 @@ class PoseFilterBase(TrackFilter):
         self, t_meas: Tensor, q_meas: Tensor, cov_meas: Tensor | None, valid: Tensor | None
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Checked :meth:`update` inputs of the filter's dtype and device, defaults filled in."""
-        B = self.batch_size
-        kw = self._kw()
+        B, kw = self.batch_size, self._kw()
         t_meas = checked(t_meas, (B, 3), "t_meas", kw, copy=False)
         q_meas = checked(q_meas, (B, 4), "q_meas", kw, copy=False)
-        R = self._checked_cov(cov_meas, self.meas_cov)
-        valid = self._checked_valid(valid)
+        R = self._checked_cov(cov_meas, self.meas_cov, B, kw)
+        valid = self._checked_valid(valid, B, kw["device"])
         if q_meas.is_cpu and not bool((q_meas != 0).any(dim=-1).all()):
             valid = valid & (q_meas != 0).any(dim=-1)  # a zero quaternion: no pose, as NaN
         return t_meas, q_meas, R, valid
 
     def _kw(self) -> dict[str, Any]:
         """The state's dtype and device, as keyword arguments."""
-        return {"dtype": self.t.dtype, "device": self.t.device}
+        t = self._buffers["t"]
+        return {"dtype": t.dtype, "device": t.device}
 
-    def _checked_cov(self, cov_meas: Tensor | None, default: Tensor) -> Tensor:
-        """A measurement covariance (B,6,6) from ``cov_meas`` (B,6,6) or (6,6), or ``None``:
-        ``default`` (6,6)."""
-        B = self.batch_size
-        kw = self._kw()
+    @staticmethod
+    def _checked_cov(cov_meas: Tensor | None, default: Tensor, B: int, kw: dict[str, Any]
+                     ) -> Tensor:
+        """A measurement covariance (B,6,6) of dtype and device ``kw`` from ``cov_meas`` (B,6,6)
+        or (6,6), or ``None``: ``default`` (6,6)."""
         R = default if cov_meas is None else cov_meas.to(**kw)
         if R.shape == (6, 6):
             R = R.expand(B, 6, 6)
         return checked(R, (B, 6, 6), "cov_meas", kw, copy=False)
 
-    def _checked_valid(self, valid: Tensor | None) -> Tensor:
-        """The (B,) bool flags of the tracks that have a measurement (``None``: all)."""
-        B = self.batch_size
-        device = self.t.device
+    @staticmethod
+    def _checked_valid(valid: Tensor | None, B: int, device: torch.device) -> Tensor:
+        """The (B,) bool flags on ``device`` of the tracks that have a measurement (``None``:
+        all)."""
         if valid is None:
             valid = torch.ones(B, dtype=torch.bool, device=device)
         return checked(valid, (B,), "valid", {"device": device}, copy=False)

@@ -395,9 +395,10 @@ class PoseTwistUKF(PoseFilterBase):
         """Fuse a twist measurement (B,6) with covariance (B,6,6) or (6,6) (default from the
         config); ``valid`` (B,) bool marks the tracks that have one (non-finite ones are
         skipped)."""
-        z = checked(twist_meas, (self.batch_size, 6), "twist_meas", self._kw(), copy=False)
-        R = self._checked_cov(cov_meas, self.twist_meas_cov)
-        valid = self._checked_valid(valid)
+        B, kw = self.batch_size, self._kw()
+        z = checked(twist_meas, (B, 6), "twist_meas", kw, copy=False)
+        R = self._checked_cov(cov_meas, self.twist_meas_cov, B, kw)
+        valid = self._checked_valid(valid, B, kw["device"])
         self.t, self.q, self.twist, self.cov = self.step_function("update_twist_state")(
             self.t, self.q, self.twist, self.cov, z, R, valid
         )

@@ -293,7 +293,7 @@ class VelocityKF(TrackFilter):
         flow: Tensor,
         normal_only: Tensor | None = None,
     ) -> Tensor | None:
-        """``len(dts)`` calls of :meth:`forward` in one compiled call, with the same
+        """``len(dts)`` calls of :meth:`forward` in one backend call, with the same
         arithmetic: step ``k`` predicts over ``dts[k]`` s and updates with the rows
         ``bounds[k]:bounds[k+1]`` of the RoIs (a step without rows only predicts, as
         :meth:`predict`). For a tracker's group of velocity steps, where one call per step
@@ -310,9 +310,9 @@ class VelocityKF(TrackFilter):
             state after step ``m - 1``. ``m < n`` when the update of step ``m`` meets a
             matrix that is not positive definite: nothing of that step is done, and it is
             left to :meth:`forward` (whose torch path reports it). ``None``, with the filter
-            unchanged, when :meth:`forward` would not take the compiled single-track path
-            (a batch, CUDA, float32, gradients, a distorted camera, no numba...): then call
-            :meth:`forward` per step.
+            unchanged, when :meth:`forward` would not run on a single-track backend with runs
+            (a batch, CUDA, float32, gradients, a distorted camera, the NumPy or torch backend,
+            no numba...): then call :meth:`forward` per step.
         """
         n = len(dts)
         if len(bounds) != n + 1:

@@ -9,13 +9,15 @@ the intrinsics ``K`` so that keypoints stay the projections of the poses.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+import types
+import typing
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
-from evtrack.errors import ConfigError
+from evtrack.configs import Config, FieldError, converter, setting
 from evtrack.models.crop_refine import box_window, warp_crop
 from evtrack.train.samples import PoseSample
 
@@ -32,13 +34,13 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class ColorJitter:
+class ColorJitter(Config):
     """Random brightness, contrast, saturation (factors ``1 ± x``) and hue shift (degrees)."""
 
     brightness: float = 0.3
     contrast: float = 0.3
     saturation: float = 0.3
-    hue_deg: float = 8.0
+    hue_deg: float = setting(8.0, unit="deg")
     p: float = 0.8
 
     def __call__(self, sample: PoseSample, rng: np.random.Generator) -> PoseSample:
@@ -57,10 +59,10 @@ class ColorJitter:
 
 
 @dataclass(frozen=True)
-class MotionBlur:
+class MotionBlur(Config):
     """Linear motion blur of random length (pixels) and direction, centred on each pixel."""
 
-    max_length_px: int = 11
+    max_length_px: int = setting(11, unit="px")
     p: float = 0.3
 
     def __call__(self, sample: PoseSample, rng: np.random.Generator) -> PoseSample:
@@ -79,10 +81,10 @@ class MotionBlur:
 
 
 @dataclass(frozen=True)
-class GaussianNoise:
+class GaussianNoise(Config):
     """Additive Gaussian noise with a standard deviation drawn from [0, max_sigma] (grey levels)."""
 
-    max_sigma: float = 8.0
+    max_sigma: float = setting(8.0, unit="grey levels")
     p: float = 0.5
 
     def __call__(self, sample: PoseSample, rng: np.random.Generator) -> PoseSample:
@@ -94,7 +96,7 @@ class GaussianNoise:
 
 
 @dataclass(frozen=True)
-class RandomCrop:
+class RandomCrop(Config):
     """Cut a fixed-size window, usually around an object instance; keypoints and ``K`` follow.
 
     Training on crops spends the compute on the pixels that carry the object: a 160x160 crop of
@@ -126,31 +128,21 @@ class RandomCrop:
             of the crop side.
     """
 
-    size: tuple[int, int] = (160, 160)
-    object_p: float = 0.85
-    max_offset: float = 0.3
-    zoom_p: float = 0.0
-    zoom_box: tuple[float, float] = (0.65, 0.9)
-    zoom_offset: float = 0.05
+    size: tuple[int, int] = setting((160, 160), gt=0, unit="px")
+    object_p: float = setting(0.85, ge=0, le=1)
+    max_offset: float = setting(0.3, ge=0)
+    zoom_p: float = setting(0.0, ge=0, le=1, note="0: never")
+    zoom_box: tuple[float, float] = setting((0.65, 0.9), gt=0)
+    zoom_offset: float = setting(0.05, ge=0)
 
     def __post_init__(self) -> None:
-        h, w = (int(v) for v in self.size)
-        if h <= 0 or w <= 0 or h % 8 or w % 8:
-            raise ConfigError(f"data.augment.crop.size must be positive multiples of 8, got "
-                              f"{self.size}")
-        if not 0.0 <= self.object_p <= 1.0:
-            raise ConfigError(f"data.augment.crop.object_p must be in [0, 1], got {self.object_p}")
-        if self.max_offset < 0:
-            raise ConfigError(f"data.augment.crop.max_offset must be >= 0, got {self.max_offset}")
-        if not 0.0 <= self.zoom_p <= 1.0:
-            raise ConfigError(f"data.augment.crop.zoom_p must be in [0, 1], got {self.zoom_p}")
+        super().__post_init__()
+        if len(self.size) != 2 or any(int(v) % 8 for v in self.size):
+            raise FieldError(self, "size", f"must be positive multiples of 8, got {self.size}")
         box = tuple(self.zoom_box)
-        if len(box) != 2 or not 0.0 < float(box[0]) <= float(box[1]):
-            raise ConfigError(f"data.augment.crop.zoom_box must be (low, high) with "
-                              f"0 < low <= high, got {self.zoom_box}")
-        if self.zoom_offset < 0:
-            raise ConfigError(f"data.augment.crop.zoom_offset must be >= 0, got "
-                              f"{self.zoom_offset}")
+        if len(box) != 2 or not float(box[0]) <= float(box[1]):
+            raise FieldError(self, "zoom_box", f"must be (low, high) with 0 < low <= high, got "
+                             f"{self.zoom_box}")
 
     def __call__(self, sample: PoseSample, rng: np.random.Generator) -> PoseSample:
         ch, cw = (int(v) for v in self.size)
@@ -205,7 +197,7 @@ class RandomCrop:
 
 
 @dataclass(frozen=True)
-class RandomScale:
+class RandomScale(Config):
     """Zoom about the image centre and shift; keypoints and ``K`` follow, the size is kept.
 
     The new pixel of an old pixel ``p`` is ``s * (p - c) + c + d`` with ``c`` the image centre,
@@ -235,7 +227,7 @@ class RandomScale:
 
 
 @dataclass(frozen=True)
-class RandomOcclusion:
+class RandomOcclusion(Config):
     """Up to ``max_boxes`` rectangles of noise or flat colour, each up to ``max_size`` of the
     image side, pasted anywhere (keypoints keep their targets: the network learns to
     predict hidden corners, as DOPE does)."""
@@ -282,12 +274,31 @@ _SECTIONS: dict[str, type] = {
 }
 
 
+def _is_section(tp: Any) -> bool:
+    """Whether ``tp`` is the type of an :class:`AugmentConfig` section (``Transform | None``)."""
+    return (typing.get_origin(tp) in (typing.Union, types.UnionType)
+            and any(arg in _SECTIONS.values() for arg in typing.get_args(tp)))
+
+
+def _structure_section(value: Any, tp: Any) -> Any:
+    """An :class:`AugmentConfig` section: ``null`` or ``false`` (off), ``true`` (the
+    transform's defaults) or a mapping of the transform's fields."""
+    if value is None or value is False:
+        return None
+    kind = next(arg for arg in typing.get_args(tp) if arg in _SECTIONS.values())
+    return converter.structure({} if value is True else value, kind)
+
+
+converter.register_structure_hook_func(_is_section, _structure_section)
+
+
 @dataclass(frozen=True)
-class AugmentConfig:
+class AugmentConfig(Config):
     """Which transforms run (in this order: crop, scale, colour, occlusion, motion blur, noise).
 
-    Each section is ``None`` (off) or the transform's parameters; ``enabled: false`` turns
-    everything off (validation data is never augmented). ``crop`` is off by default.
+    Each section is ``None`` or ``false`` (off), ``true`` (the transform's defaults) or the
+    transform's parameters; ``enabled: false`` turns everything off (validation data is never
+    augmented). ``crop`` is off by default.
     """
 
     enabled: bool = True
@@ -298,43 +309,8 @@ class AugmentConfig:
     motion_blur: MotionBlur | None = field(default_factory=MotionBlur)
     noise: GaussianNoise | None = field(default_factory=GaussianNoise)
 
-    @classmethod
-    def from_dict(cls, data: dict[str, Any] | None, source: str = "data.augment") -> AugmentConfig:
-        data = dict(data or {})
-        unknown = sorted(set(data) - {"enabled", *_SECTIONS})
-        if unknown:
-            raise ConfigError(f"{source}: unknown section(s) {unknown}; known: "
-                              f"{['enabled', *_SECTIONS]}")
-        kwargs: dict[str, Any] = {"enabled": bool(data.get("enabled", True))}
-        for name, kind in _SECTIONS.items():
-            if name not in data:
-                continue
-            value = data[name]
-            if value is None or value is False:
-                kwargs[name] = None
-                continue
-            value = {} if value is True else dict(value)
-            known = {f.name for f in fields(kind)}
-            bad = sorted(set(value) - known)
-            if bad:
-                raise ConfigError(f"{source}.{name}: unknown field(s) {bad}; known: "
-                                  f"{sorted(known)}")
-            value = {k: tuple(v) if isinstance(v, list) else v for k, v in value.items()}
-            kwargs[name] = kind(**value)
-        return cls(**kwargs)
-
-    def to_dict(self) -> dict[str, Any]:
-        from dataclasses import asdict
-
-        out: dict[str, Any] = {"enabled": self.enabled}
-        for name in _SECTIONS:
-            t = getattr(self, name)
-            out[name] = None if t is None else {
-                k: list(v) if isinstance(v, tuple) else v for k, v in asdict(t).items()
-            }
-        return out
-
     def build(self) -> Compose:
+        """The transforms that are on, in the order of the class docstring."""
         if not self.enabled:
             return Compose(())
         return Compose(tuple(t for n in _SECTIONS if (t := getattr(self, n)) is not None))

@@ -10,12 +10,13 @@ with other shapes need the synthetic data engine (source kind ``sim``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from evtrack.configs import Config, FieldError, setting
 from evtrack.errors import ConfigError
 from evtrack.models.cuboid import Cuboid
 from evtrack.train.samples import PoseSample, SourceSpec, project_keypoints, register_source
@@ -45,7 +46,7 @@ _SUBPIXEL = 1 << _SUBPIXEL_BITS
 
 
 @dataclass(frozen=True)
-class CuboidSourceOptions:
+class CuboidSourceOptions(Config):
     """Options of the ``cuboid`` source (the ``data.options`` mapping of a config).
 
     Attributes:
@@ -60,40 +61,22 @@ class CuboidSourceOptions:
         ambient: ambient part of the face shading (the rest is Lambertian).
     """
 
-    hfov_deg: float = 60.0
-    distance_range: tuple[float, float] = (2.5, 6.0)
-    margin: float = 0.1
-    max_instances: int = 1
-    empty_probability: float = 0.05
+    hfov_deg: float = setting(60.0, gt=0, lt=170, unit="deg")
+    distance_range: tuple[float, float] = setting((2.5, 6.0), gt=0)
+    margin: float = setting(0.1, ge=0, lt=0.5)
+    max_instances: int = setting(1, ge=1)
+    empty_probability: float = setting(0.05, ge=0, le=1)
     texture_seed: int = 0
     distractor_boxes: int = 2
     distractor_shapes: int = 8
     ambient: float = 0.45
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         lo, hi = self.distance_range
-        if not 0 < lo <= hi:
-            raise ConfigError(f"cuboid source: distance_range must be 0 < lo <= hi, got "
-                              f"{self.distance_range}")
-        if not 0 < self.hfov_deg < 170:
-            raise ConfigError(f"cuboid source: hfov_deg must be in (0, 170), got {self.hfov_deg}")
-        if self.max_instances < 1:
-            raise ConfigError("cuboid source: max_instances must be >= 1")
-        if not 0 <= self.margin < 0.5 or not 0 <= self.empty_probability <= 1:
-            raise ConfigError("cuboid source: margin must be in [0, 0.5), "
-                              "empty_probability in [0, 1]")
-
-    @classmethod
-    def from_dict(cls, data: dict | None) -> CuboidSourceOptions:
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"data.options: unknown cuboid-source option(s) {unknown}; "
-                              f"known: {sorted(known)}")
-        if "distance_range" in data:
-            data["distance_range"] = tuple(data["distance_range"])
-        return cls(**data)
+        if not lo <= hi:
+            raise FieldError(self, "distance_range", f"must be 0 < low <= high, got "
+                             f"{self.distance_range}")
 
 
 def make_face_textures(seed: int, size: int = _TEXTURE_SIZE) -> list[np.ndarray]:
@@ -305,5 +288,5 @@ class SyntheticCuboidSource:
 def _cuboid_factory(spec: SourceSpec) -> SyntheticCuboidSource:
     return SyntheticCuboidSource(
         spec.cuboid, spec.num_samples, spec.image_size, object_name=spec.object_name,
-        seed=spec.seed, options=CuboidSourceOptions.from_dict(spec.options),
+        seed=spec.seed, options=CuboidSourceOptions.from_dict(spec.options, spec.options_key),
     )

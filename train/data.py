@@ -156,11 +156,13 @@ class PoseDataModule(L.LightningDataModule):
         c = self.config
         train = split == "train"
         kind = c.source if train or c.val_source is None else c.val_source
-        options = c.options if train or c.val_options is None else c.val_options
+        own_options = not train and c.val_options is not None
         spec = SourceSpec(
-            options=dict(options), object_name=self.object_name, cuboid=self.cuboid,
+            options=dict(c.val_options if own_options else c.options),
+            object_name=self.object_name, cuboid=self.cuboid,
             mesh=self.mesh, num_samples=c.train_samples if train else c.val_samples,
             image_size=tuple(c.image_size), seed=c.seed if train else c.val_seed,
+            options_key="data.val_options" if own_options else "data.options",
         )
         return kind, spec
 

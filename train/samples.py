@@ -111,6 +111,8 @@ class SourceSpec:
         num_samples: how many samples the source must provide.
         image_size: ``(height, width)`` of the images.
         seed: base seed (the same seed gives the same samples).
+        options_key: where ``options`` are in the config (``data.options`` or
+            ``data.val_options``); errors about them start with it.
     """
 
     options: dict[str, Any]
@@ -120,6 +122,7 @@ class SourceSpec:
     num_samples: int
     image_size: tuple[int, int]
     seed: int
+    options_key: str = "data.options"
 
 
 _FACTORIES: dict[str, Callable[[SourceSpec], SampleSource]] = {}

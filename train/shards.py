@@ -286,10 +286,10 @@ class ShardSource:
 def _shard_factory(spec: SourceSpec) -> ShardSource:
     unknown = sorted(set(spec.options) - {"folder"})
     if unknown or "folder" not in spec.options:
-        raise ConfigError(f"data.options: the shards source takes exactly 'folder', got "
+        raise ConfigError(f"{spec.options_key}: the shards source takes exactly 'folder', got "
                           f"{sorted(spec.options)}")
     source = ShardSource(spec.options["folder"], limit=spec.num_samples)
     if source.object_name != spec.object_name:
-        raise ConfigError(f"data.options.folder holds samples of {source.object_name!r}, the "
-                          f"config trains {spec.object_name!r}")
+        raise ConfigError(f"{spec.options_key}.folder holds samples of {source.object_name!r}, "
+                          f"the config trains {spec.object_name!r}")
     return source

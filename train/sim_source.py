@@ -17,10 +17,12 @@ shards and train from those.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
+from evtrack.configs import Config, FieldError, setting
 from evtrack.errors import ConfigError
 from evtrack.models.cuboid import Cuboid
 from evtrack.train.samples import PoseSample, SourceSpec, project_keypoints, register_source
@@ -30,8 +32,12 @@ __all__ = ["SimSourceOptions", "SimSource", "sim_object_cuboid"]
 _CUBOID_TOLERANCE_M = 1e-4  # the config's cuboid and the engine's mesh must agree this well
 
 
+DistractorKind = Literal["box", "can", "bottle"]
+"""A procedural kind of distractor object of the synthetic data engine."""
+
+
 @dataclass(frozen=True)
-class SimSourceOptions:
+class SimSourceOptions(Config):
     """Options of the ``sim`` source (``data.options`` of a config).
 
     Attributes:
@@ -62,60 +68,51 @@ class SimSourceOptions:
         view_spread_deg: see ``view_probability``.
     """
 
-    samples_per_scene: int = 32
+    samples_per_scene: int = setting(32, ge=1)
     object_seed: int = 0
-    focal_at_640: float = 615.0
-    z_range: tuple[float, float] = (0.35, 1.2)
-    margin: float = 0.1
+    focal_at_640: float = setting(615.0, unit="px")
+    z_range: tuple[float, float] = setting((0.35, 1.2), gt=0, unit="m")
+    margin: float = setting(0.1, ge=0, lt=0.5)
     max_distractors: int = 4
-    distractor_kinds: tuple[str, ...] | None = None
-    blur_probability: float = 0.5
-    blur_renders: int = 8
-    exposure_s: float = 1.0 / 60.0
-    max_linear_speed: float = 1.5
-    max_angular_speed: float = 8.0
+    distractor_kinds: tuple[DistractorKind, ...] | None = None
+    blur_probability: float = setting(0.5, ge=0, le=1)
+    blur_renders: int = setting(8, ge=1)
+    exposure_s: float = setting(1.0 / 60.0, unit="s")
+    max_linear_speed: float = setting(1.5, unit="m/s")
+    max_angular_speed: float = setting(8.0, unit="rad/s")
     ambient_range: tuple[float, float] = (0.15, 0.5)
     diffuse_range: tuple[float, float] = (0.4, 0.9)
     view_directions: tuple[tuple[float, float, float], ...] | None = None
-    view_probability: float = 0.0
-    view_spread_deg: float = 20.0
+    view_probability: float = setting(0.0, ge=0, le=1)
+    view_spread_deg: float = setting(20.0, ge=0, unit="deg")
 
     def __post_init__(self) -> None:
-        if not 0 <= self.view_probability <= 1 or not self.view_spread_deg >= 0:
-            raise ConfigError("sim source: view_probability in [0, 1] and view_spread_deg >= 0, "
-                              f"got {self.view_probability} and {self.view_spread_deg}")
+        super().__post_init__()
         if self.view_directions is not None:
-            try:
-                dirs = np.asarray(self.view_directions, np.float64).reshape(-1, 3)
-            except (TypeError, ValueError) as exc:
-                raise ConfigError("sim source: view_directions must be a list of [x, y, z] "
-                                  f"directions, got {self.view_directions!r}") from exc
-            if not len(dirs) or not np.isfinite(dirs).all() or (
-                    np.linalg.norm(dirs, axis=1) == 0).any():
-                raise ConfigError("sim source: view_directions must be non-zero finite [x, y, z] "
-                                  f"directions, got {self.view_directions!r}")
-            object.__setattr__(self, "view_directions",
-                               tuple(tuple(float(v) for v in d) for d in dirs))
+            object.__setattr__(self, "view_directions", self._checked_directions())
         if self.view_probability > 0 and not self.view_directions:
-            raise ConfigError("sim source: view_probability > 0 needs view_directions")
+            raise FieldError(self, "view_probability", f"is {self.view_probability}, which "
+                             "needs view_directions")
         lo, hi = self.z_range
-        if not 0 < lo <= hi:
-            raise ConfigError(f"sim source: z_range must be 0 < lo <= hi, got {self.z_range}")
-        if self.samples_per_scene < 1 or self.blur_renders < 1:
-            raise ConfigError("sim source: samples_per_scene and blur_renders must be >= 1")
-        if not 0 <= self.blur_probability <= 1 or not 0 <= self.margin < 0.5:
-            raise ConfigError("sim source: blur_probability in [0, 1], margin in [0, 0.5)")
+        if not lo <= hi:
+            raise FieldError(self, "z_range", f"must be 0 < low <= high, got {self.z_range}")
 
-    @classmethod
-    def from_dict(cls, data: dict | None) -> SimSourceOptions:
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"data.options: unknown sim-source option(s) {unknown}; "
-                              f"known: {sorted(known)}")
-        data = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
-        return cls(**data)
+    def _checked_directions(self) -> tuple[tuple[float, float, float], ...]:
+        """``view_directions`` as a tuple of ``(x, y, z)`` float triples.
+
+        Raises:
+            FieldError: not a list of non-zero finite ``[x, y, z]`` directions.
+        """
+        try:
+            dirs = np.asarray(self.view_directions, np.float64).reshape(-1, 3)
+        except (TypeError, ValueError):
+            raise FieldError(self, "view_directions", "must be a list of [x, y, z] "
+                             f"directions, got {self.view_directions!r}") from None
+        if not len(dirs) or not np.isfinite(dirs).all() or (
+                np.linalg.norm(dirs, axis=1) == 0).any():
+            raise FieldError(self, "view_directions", "must be non-zero finite [x, y, z] "
+                             f"directions, got {self.view_directions!r}")
+        return tuple((float(x), float(y), float(z)) for x, y, z in dirs)
 
 
 def _resolve(spec: str, seed: int):
@@ -313,5 +310,5 @@ def _sim_factory(spec: SourceSpec) -> SimSource:
     return SimSource(
         spec.mesh or spec.object_name, spec.cuboid, spec.num_samples, spec.image_size,
         object_name=spec.object_name, seed=spec.seed,
-        options=SimSourceOptions.from_dict(spec.options),
+        options=SimSourceOptions.from_dict(spec.options, spec.options_key),
     )

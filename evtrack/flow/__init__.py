@@ -6,6 +6,9 @@ Public API::
     flow = TripletFlow(roi_size=32, window_us=2000)     # or TripletFlow(FlowConfig(...))
     res = flow(events)            # res.xy (R,2) px, res.t (R,) µs, res.flow (R,2) px/s, ...
     part = flow.update(batch)     # streaming; flow.flush() at the end; flow.reset()
+
+``FlowConfig.backend`` and the device choose the kernels (tensors, numba on CPU, Triton on
+CUDA): :func:`evtrack.flow.backends.resolve`.
 """
 
 from evtrack.flow.candidates import Candidates, CandidateSearch

@@ -28,7 +28,7 @@ _POS_MASK = (1 << _POS_BITS) - 1
 
 
 @kernel()
-def insert_smallest(buf, filled, cap, key):
+def insert_smallest(buf: np.ndarray, filled: int, cap: int, key: int) -> int:
     """Add ``key`` to ``buf[:filled]`` (ascending, at most ``cap`` keys), keeping the ``cap``
     smallest; returns the new fill. Keys are distinct (they carry their position)."""
     if filled == cap:
@@ -163,7 +163,9 @@ def _lay_out(seq, ordinal, flow, n_ordinals, run_first, group_run_start, runs_by
 
 
 @kernel()
-def arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypotheses, n_ordinals):
+def arrange_kernel(group: np.ndarray, seq: np.ndarray, ordinal: np.ndarray, flow: np.ndarray,
+                   n_groups: int, max_events: int, max_hypotheses: int, n_ordinals: int
+                  ) -> tuple[np.ndarray, ...]:
     """The caps and the layout (module docstring). Candidates of one event are consecutive
     in the input and events come in stream order.
 
@@ -187,7 +189,7 @@ def arrange_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypothes
 
 
 @kernel()
-def group_positions(keys, gkey, slack, floor):
+def group_positions(keys: np.ndarray, gkey: np.ndarray, slack: int, floor: int) -> np.ndarray:
     """Position of each ``gkey`` in the sorted, distinct ``keys`` (every value occurs there):
     through a table over the keys' range when it spans at most ``slack * count + floor``,
     else by binary search."""

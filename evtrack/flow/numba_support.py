@@ -23,7 +23,7 @@ try:  # numba is optional: without it the torch backend runs everywhere
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
-__all__ = ["available", "kernel", "prange", "filled", "torch_thread_count", "numba"]
+__all__ = ["available", "kernel", "prange", "filled", "torch_thread_count", "thread_limit", "numba"]
 
 F = TypeVar("F", bound=Callable[..., Any])
 

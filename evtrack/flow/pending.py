@@ -236,7 +236,9 @@ def keep_open(p: Pending, n_c: int, n_g: int, n_done_events: int, max_events: in
 
 
 @njit
-def event_group_keys(x, y, t, window_us, roi_of_x, roi_of_y, n_roi, out):
+def event_group_keys(x: np.ndarray, y: np.ndarray, t: np.ndarray, window_us: int,
+                     roi_of_x: np.ndarray, roi_of_y: np.ndarray, n_roi: int, out: np.ndarray
+                    ) -> None:
     """``out[i]``: event ``i``'s group key ``window * n_roi + roi``, ``window`` the floor of
     ``t / window_us``, ``roi = roi_of_y[y] + roi_of_x[x]`` (tables of the RoI column
     ``x // roi_size`` and the row offset ``(y // roi_size) * cols``).
@@ -256,8 +258,9 @@ def event_group_keys(x, y, t, window_us, roi_of_x, roi_of_y, n_roi, out):
 
 
 @njit
-def candidate_group_keys(event, offset, age_j, age_i, seq0, gkey, history, c_g, ordinal,
-                          supported):
+def candidate_group_keys(event: np.ndarray, offset: np.ndarray, age_j: np.ndarray,
+                         age_i: np.ndarray, seq0: int, gkey: np.ndarray, history: int,
+                         c_g: np.ndarray, ordinal: np.ndarray, supported: np.ndarray) -> int:
     """Per candidate its event's group key and its ordinal; ``supported``: the group key of
     each event with candidates (its first candidate's), in order. Returns their count."""
     n_sup = 0
@@ -300,8 +303,9 @@ def _ingest_kernel(x, y, t, window_us, roi_of_x, roi_of_y, n_roi, c_event, c_off
 
 
 @njit
-def merge_group_counts(old_keys, old_events, old_support, event_keys, supported_keys, slack,
-                        floor):
+def merge_group_counts(old_keys: np.ndarray, old_events: np.ndarray, old_support: np.ndarray,
+                       event_keys: np.ndarray, supported_keys: np.ndarray, slack: int,
+                       floor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """The pending groups after adding events: the sorted union of ``old_keys`` (sorted,
     distinct) with the new events' keys, with the old counts plus one per new event
     (``events``) and one per new event with candidates (``support``, keys in

@@ -90,10 +90,15 @@ def _store(hist, hist_s, c, history, tk, seq):
 
 
 @kernel()
-def search_kernel(x, y, t, p, srch, start, seq0, width, height, off_x, off_y, dt_lo, dt_hi,
-                  hi_j, num_x, num_y, history, refractory, tol_abs, permille, last, hist,
-                  hist_s, o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_out,
-                  lo, hi, r2, halo_pix, halo_cell):
+def search_kernel(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, srch: np.ndarray,
+                  start: int, seq0: int, width: int, height: int, off_x: np.ndarray,
+                  off_y: np.ndarray, dt_lo: np.ndarray, dt_hi: np.ndarray, hi_j: np.ndarray,
+                  num_x: np.ndarray, num_y: np.ndarray, history: int, refractory: int,
+                  tol_abs: int, permille: int, last: np.ndarray, hist: np.ndarray,
+                  hist_s: np.ndarray, o_event: np.ndarray, o_off: np.ndarray, o_aj: np.ndarray,
+                  o_ai: np.ndarray, o_sj: np.ndarray, o_si: np.ndarray, o_dt: np.ndarray,
+                  o_flow: np.ndarray, n_out: int, lo: int, hi: int, r2: int, halo_pix: int,
+                  halo_cell: int) -> tuple[int, int]:
     """Process events ``start..`` until done or until the output might overflow.
 
     Times ``t`` and the state's are int32-range µs relative to the search's base.
@@ -174,8 +179,9 @@ def search_kernel(x, y, t, p, srch, start, seq0, width, height, off_x, off_y, dt
 
 
 @kernel()
-def copy_halos(lo_s, hi_s, r2, width, height, x_min, x_max, last, hist, hist_s, halo_pix0,
-                halo_cell0):
+def copy_halos(lo_s: np.ndarray, hi_s: np.ndarray, r2: int, width: int, height: int, x_min: int,
+               x_max: int, last: np.ndarray, hist: np.ndarray, hist_s: np.ndarray, halo_pix0: int,
+               halo_cell0: int) -> None:
     """Copy, for every strip, the ``r2`` rows above and below it from the shared state into
     its private rows (run before any strip searches: the copies are the state at the start
     of the batch). Only columns ``x_min - r2 .. x_max + r2`` (the batch's events' columns and
@@ -203,10 +209,15 @@ def copy_halos(lo_s, hi_s, r2, width, height, x_min, x_max, last, hist, hist_s, 
 
 
 @kernel(parallel=True)
-def search_strips(x, y, t, p, srch, starts, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
-                   num_x, num_y, history, refractory, tol_abs, permille, last, hist, hist_s,
-                   o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow, n_outs, cap,
-                   lo_s, hi_s, r2, halo_pix0, halo_cell0):
+def search_strips(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray, srch: np.ndarray,
+                  starts: np.ndarray, seq0: int, width: int, height: int, off_x: np.ndarray,
+                  off_y: np.ndarray, dt_lo: np.ndarray, dt_hi: np.ndarray, hi_j: np.ndarray,
+                  num_x: np.ndarray, num_y: np.ndarray, history: int, refractory: int,
+                  tol_abs: int, permille: int, last: np.ndarray, hist: np.ndarray,
+                  hist_s: np.ndarray, o_event: np.ndarray, o_off: np.ndarray, o_aj: np.ndarray,
+                  o_ai: np.ndarray, o_sj: np.ndarray, o_si: np.ndarray, o_dt: np.ndarray,
+                  o_flow: np.ndarray, n_outs: np.ndarray, cap: int, lo_s: np.ndarray,
+                  hi_s: np.ndarray, r2: int, halo_pix0: int, halo_cell0: int) -> None:
     """:func:`search_kernel` on every strip in parallel; strip ``s`` writes its rows at
     ``[s * cap, (s + 1) * cap)`` of the outputs and resumes from ``starts[s]``."""
     strip_pix = 2 * r2 * width
@@ -225,8 +236,11 @@ def search_strips(x, y, t, p, srch, starts, seq0, width, height, off_x, off_y, d
 
 
 @kernel()
-def merge_strips(n, seq0, seg_start, seg_len, i_event, i_off, i_aj, i_ai, i_sj, i_si, i_dt,
-                  i_flow, o_event, o_off, o_aj, o_ai, o_sj, o_si, o_dt, o_flow):
+def merge_strips(n: int, seq0: int, seg_start: np.ndarray, seg_len: np.ndarray,
+                 i_event: np.ndarray, i_off: np.ndarray, i_aj: np.ndarray, i_ai: np.ndarray,
+                 i_sj: np.ndarray, i_si: np.ndarray, i_dt: np.ndarray, i_flow: np.ndarray,
+                 o_event: np.ndarray, o_off: np.ndarray, o_aj: np.ndarray, o_ai: np.ndarray,
+                 o_sj: np.ndarray, o_si: np.ndarray, o_dt: np.ndarray, o_flow: np.ndarray) -> None:
     """Interleave the strips' rows (each in stream order, events disjoint) into stream order:
     an event's rows go where the sequential loop would have written them."""
     first_row = filled(n + 1, 0, np.int64)
@@ -256,7 +270,7 @@ def merge_strips(n, seq0, seg_start, seg_len, i_event, i_off, i_aj, i_ai, i_sj, 
 
 
 @kernel()
-def strip_cuts(y, height, count):
+def strip_cuts(y: np.ndarray, height: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``count`` strips of consecutive rows with about ``len(y) / count`` of the events
     each: ``(first rows, end rows, events per strip)``. Each cut is the row boundary nearest
     to its share of the cumulative row counts; cuts that fall together merge (fewer strips,
@@ -291,9 +305,13 @@ def strip_cuts(y, height, count):
 
 
 @kernel(parallel=True)
-def search_strips_merged(x, y, t, p, srch, seq0, width, height, off_x, off_y, dt_lo, dt_hi, hi_j,
-                          num_x, num_y, history, refractory, tol_abs, permille, last, hist,
-                          hist_s, lo_s, hi_s, r2, halo_pix0, halo_cell0, cap):
+def search_strips_merged(x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
+                         srch: np.ndarray, seq0: int, width: int, height: int, off_x: np.ndarray,
+                         off_y: np.ndarray, dt_lo: np.ndarray, dt_hi: np.ndarray, hi_j: np.ndarray,
+                         num_x: np.ndarray, num_y: np.ndarray, history: int, refractory: int,
+                         tol_abs: int, permille: int, last: np.ndarray, hist: np.ndarray,
+                         hist_s: np.ndarray, lo_s: np.ndarray, hi_s: np.ndarray, r2: int,
+                         halo_pix0: int, halo_cell0: int, cap: int) -> tuple:
     """The first pass of a batch in strips, in one call: the private rows' copy
     (:func:`copy_halos`), every strip's search in parallel into outputs of ``cap`` rows each
     (:func:`search_strips`) and, when no strip stopped early, the merge into stream order

@@ -32,7 +32,7 @@ _MAX_LANES = 48
 
 
 @kernel()
-def rounded_distance(d2, cost_scale, q_max):
+def rounded_distance(d2: float, cost_scale: float, q_max: float) -> int:
     """:func:`evtrack.flow.registration_tensor.rounded_distance` of one float32 ``d2``."""
     dd = np.float64(d2) * (cost_scale * cost_scale)
     if dd >= q_max * q_max:
@@ -386,9 +386,11 @@ def _solve_group(g, h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start
 
 
 @kernel(parallel=True)
-def solve_kernel(h_cand, h_start, h_count, c_x, c_y, c_event, counts, c_start,
-                  ev_per_group, cost_scale, q_max, parallel_eps, line_gate, irls_delta,
-                  refine_iters, threads):
+def solve_kernel(h_cand: np.ndarray, h_start: np.ndarray, h_count: np.ndarray, c_x: np.ndarray,
+                 c_y: np.ndarray, c_event: np.ndarray, counts: np.ndarray, c_start: np.ndarray,
+                 ev_per_group: np.ndarray, cost_scale: float, q_max: float, parallel_eps: float,
+                 line_gate: float, irls_delta: float, refine_iters: int, threads: int
+                ) -> tuple[np.ndarray, ...]:
     """Step 2 of the module docstring, in parallel over the groups: a few tasks per thread
     (``threads``: numba's thread count), each a run of consecutive groups with scratch arrays
     of its own (allocated once per task, not a dozen times per group).

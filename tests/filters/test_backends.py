@@ -35,7 +35,7 @@ def single(request: pytest.FixtureRequest) -> str:
 
 # ---------------------------------------------------------------------------- registry
 def test_registry_names_and_auto() -> None:
-    assert backend_names() == (TORCH, "numba", "numpy")
+    assert backend_names()[0] == TORCH and {"numba", "numpy"} <= set(backend_names())
     assert get_backend(TORCH) is None
     assert get_backend("numpy").name == "numpy"
     assert get_backend(AUTO).name == ("numba" if numba_available() else "numpy")
@@ -160,8 +160,8 @@ def test_pose_backend_only_where_it_applies(calls: dict, single: str) -> None:
     PoseUKF(1, backend=single).predict([[0.0] * 6], 1e-3)  # converted, then one track
     PoseTwistUKF(1, backend=single).predict(1e-3)  # sigma points: torch
     assert calls == {f"{single}.pose_predict": 2}
-    assert PoseUKF(1, backend=single).predict_run([twist], [1e-3]) is None or (
-        get_backend(single).runs)
+    states = PoseUKF(1, backend=single).predict_run([twist], [1e-3])
+    assert (states is not None) == get_backend(single).runs  # runs only where it has them
 
 
 def test_pose_single_track_checks_inputs(single: str) -> None:

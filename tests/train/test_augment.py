@@ -17,6 +17,7 @@ from evtrack.train import (
     RandomOcclusion,
     RandomScale,
     SyntheticCuboidSource,
+    TrainConfig,
 )
 
 CUBOID = Cuboid((0.1, 0.16, 0.07))
@@ -82,10 +83,26 @@ def test_config_from_dict():
         "RandomScale", "ColorJitter", "RandomOcclusion"]
     assert AugmentConfig.from_dict(cfg.to_dict()) == cfg
     assert AugmentConfig(enabled=False).build().transforms == ()
-    with pytest.raises(ConfigError, match="unknown section"):
-        AugmentConfig.from_dict({"blur": {}})
-    with pytest.raises(ConfigError, match=r"data.augment.noise: unknown field"):
-        AugmentConfig.from_dict({"noise": {"sigma": 3}})
+    assert AugmentConfig.from_dict({"crop": True, "color": None}) == AugmentConfig(
+        crop=RandomCrop(), color=None)  # true: the transform's defaults
+    with pytest.raises(ConfigError, match=r"^data\.augment: unknown field\(s\) \['blur'\]"):
+        AugmentConfig.from_dict({"blur": {}}, "data.augment")
+    with pytest.raises(ConfigError, match=r"^data\.augment: noise: unknown field\(s\) \['sigma'\] "
+                       r"\('sigma': did you mean 'max_sigma'\?\)"):
+        AugmentConfig.from_dict({"noise": {"sigma": 3}}, "data.augment")
+    with pytest.raises(ConfigError, match=r"^data\.augment: enabled: expected true or false"):
+        AugmentConfig.from_dict({"enabled": "yes"}, "data.augment")
+    with pytest.raises(ConfigError, match=r"^data\.augment: color: expected a mapping, got int"):
+        AugmentConfig.from_dict({"color": 3}, "data.augment")
+
+
+def test_configs_round_trip_through_their_dicts():
+    for cfg in [AugmentConfig(), AugmentConfig(enabled=False, crop=RandomCrop(size=(64, 96)),
+                                               noise=None, scale=RandomScale((0.9, 1.1)))]:
+        assert AugmentConfig.from_dict(cfg.to_dict()) == cfg
+    for kind in (RandomCrop, RandomScale, ColorJitter, RandomOcclusion, MotionBlur,
+                 GaussianNoise):
+        assert kind.from_dict(kind().to_dict()) == kind()
 
 
 def test_crop_keeps_keypoints_projections_and_content(sample):
@@ -134,10 +151,14 @@ def test_crop_config_is_validated_and_runs_first():
     assert type(cfg.build().transforms[0]).__name__ == "RandomCrop"
     assert AugmentConfig().crop is None
     assert AugmentConfig.from_dict(cfg.to_dict()) == cfg
-    with pytest.raises(ConfigError, match="crop.size"):
+    with pytest.raises(ConfigError, match=r"^RandomCrop\.size: must be positive multiples of 8"):
         RandomCrop(size=(100, 160))
-    with pytest.raises(ConfigError, match="object_p"):
+    with pytest.raises(ConfigError, match=r"^RandomCrop\.object_p: must be in \[0, 1\]"):
         RandomCrop(object_p=1.5)
+    with pytest.raises(ConfigError, match=r"^run\.yaml: data\.augment\.crop\.size: must be "
+                       r"positive multiples of 8, got \(100, 160\)"):
+        TrainConfig.from_dict({"object": {"name": "box", "dimensions": [0.1, 0.1, 0.1]},
+                               "data": {"augment": {"crop": {"size": [100, 160]}}}}, "run.yaml")
 
 
 def test_zoomed_crop_shows_the_instance_as_the_estimators_second_pass(sample):
@@ -181,13 +202,17 @@ def test_zoomed_crop_needs_two_known_corners_and_checks_its_settings(sample):
         s, np.random.default_rng(0))
     np.testing.assert_allclose(out.keypoints[0, 8], (16, 16), atol=0.51)
     np.testing.assert_allclose(out.K[:2, :2], np.eye(2))  # not scaled
-    with pytest.raises(ConfigError, match="zoom_p"):
+    with pytest.raises(ConfigError, match=r"^RandomCrop\.zoom_p: must be in \[0, 1\]"):
         RandomCrop(zoom_p=1.5)
-    with pytest.raises(ConfigError, match="zoom_box"):
+    with pytest.raises(ConfigError, match=r"^RandomCrop\.zoom_box: must be \(low, high\) with "
+                       r"0 < low <= high"):
         RandomCrop(zoom_box=(0.9, 0.5))
-    with pytest.raises(ConfigError, match="zoom_box"):
+    with pytest.raises(ConfigError, match=r"^RandomCrop\.zoom_box: must be \(low, high\)"):
         RandomCrop(zoom_box=(0.5, 0.6, 0.7))
-    with pytest.raises(ConfigError, match="zoom_offset"):
+    with pytest.raises(ConfigError, match=r"^data\.augment: crop\.zoom_box: expected a list of 2 "
+                       r"values"):
+        AugmentConfig.from_dict({"crop": {"zoom_box": [0.5, 0.6, 0.7]}}, "data.augment")
+    with pytest.raises(ConfigError, match=r"^RandomCrop\.zoom_offset: must be >= 0"):
         RandomCrop(zoom_offset=-0.1)
     cfg = AugmentConfig.from_dict({"crop": {"size": [320, 320], "zoom_p": 0.6,
                                             "zoom_box": [0.68, 0.86]}})

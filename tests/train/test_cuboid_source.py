@@ -13,7 +13,9 @@ from evtrack.models import Cuboid
 from evtrack.train import (
     CuboidSourceOptions,
     PoseSample,
+    SourceSpec,
     SyntheticCuboidSource,
+    build_source,
     draw_textured_cuboid,
 )
 
@@ -88,7 +90,23 @@ def test_behind_camera_is_refused_and_options_are_checked():
     with pytest.raises(ValueError, match="in front of the camera"):
         draw_textured_cuboid(np.zeros((10, 10, 3), np.uint8), np.eye(3), pose, CUBOID,
                              [np.zeros((4, 4, 3), np.uint8)] * 6)
-    with pytest.raises(ConfigError, match="unknown cuboid-source option"):
-        CuboidSourceOptions.from_dict({"fov": 3})
-    with pytest.raises(ConfigError, match="distance_range"):
-        CuboidSourceOptions.from_dict({"distance_range": [3, 1]})
+    with pytest.raises(ConfigError, match=r"^data\.options: unknown field\(s\) \['fov'\]"):
+        CuboidSourceOptions.from_dict({"fov": 3}, "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: distance_range: must be 0 < low <= "
+                       r"high, got \(3\.0, 1\.0\)"):
+        CuboidSourceOptions.from_dict({"distance_range": [3, 1]}, "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: hfov_deg: must be in \(0, 170\) deg"):
+        CuboidSourceOptions.from_dict({"hfov_deg": 170}, "data.options")
+    with pytest.raises(ConfigError, match=r"^CuboidSourceOptions\.max_instances: must be >= 1"):
+        CuboidSourceOptions(max_instances=0)
+
+
+def test_options_round_trip_and_errors_name_the_options_key():
+    opts = CuboidSourceOptions.from_dict({"distance_range": [3, 4], "max_instances": 2.0})
+    assert opts.distance_range == (3.0, 4.0) and opts.max_instances == 2
+    for cfg in (CuboidSourceOptions(), opts):
+        assert CuboidSourceOptions.from_dict(cfg.to_dict()) == cfg
+    spec = SourceSpec(options={"fov": 3}, object_name="box", cuboid=CUBOID, mesh=None,
+                      num_samples=1, image_size=(48, 64), seed=0, options_key="data.val_options")
+    with pytest.raises(ConfigError, match=r"^data\.val_options: unknown field\(s\) \['fov'\]"):
+        build_source("cuboid", spec)

@@ -77,6 +77,16 @@ def test_data_module_renders_the_cache_once(tmp_path):
     assert len(list((tmp_path / "cache").iterdir())) == 3
 
 
+def test_bad_source_options_name_their_key():
+    cfg = DataConfig(train_samples=2, val_samples=2, image_size=(48, 64),
+                     options={"max_instances": 2}, val_options={"max_instances": 0})
+    dm = PoseDataModule(cfg, "box", CUBOID, mean=MEAN, std=STD)
+    assert dm._source("train").options.max_instances == 2
+    with pytest.raises(ConfigError, match=r"^data\.val_options: max_instances: must be >= 1, "
+                       r"got 0"):
+        dm._source("val")
+
+
 def test_render_workers_fill_the_same_cache(tmp_path, monkeypatch):
     """``data.render_workers`` renders the cache in processes: same folder (the fingerprint
     ignores the worker count), same samples."""

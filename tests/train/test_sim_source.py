@@ -93,10 +93,11 @@ def test_ycb_mesh_frame_matches_the_config_cuboid(gl, ycb_dir):
 def test_engine_names_give_the_cuboid_and_options_are_checked():
     pytest.importorskip("moderngl")
     assert ObjectConfig(name="bottle").cuboid() == sim_object_cuboid("bottle")
-    with pytest.raises(ConfigError, match="unknown sim-source option"):
-        SimSourceOptions.from_dict({"fov": 1})
-    with pytest.raises(ConfigError, match="z_range"):
-        SimSourceOptions.from_dict({"z_range": [1.0, 0.5]})
+    with pytest.raises(ConfigError, match=r"^data\.options: unknown field\(s\) \['fov'\]"):
+        SimSourceOptions.from_dict({"fov": 1}, "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: z_range: must be 0 < low <= high, "
+                       r"got \(1\.0, 0\.5\)"):
+        SimSourceOptions.from_dict({"z_range": [1.0, 0.5]}, "data.options")
 
 
 def test_demo_config_trains_end_to_end_on_renders(gl, tmp_path, monkeypatch, capsys):
@@ -189,9 +190,41 @@ def test_view_bias_draws_rotations_around_the_given_views():
     plain = poses()
     off = poses(view_directions=views.tolist(), view_probability=0.0)
     assert all(np.array_equal(a, b) for a, b in zip(plain, off, strict=True))
-    with pytest.raises(ConfigError, match="needs view_directions"):
-        SimSourceOptions.from_dict({"view_probability": 0.5})
-    with pytest.raises(ConfigError, match="view_directions"):
-        SimSourceOptions.from_dict({"view_directions": [[0, 0, 0]], "view_probability": 0.5})
-    with pytest.raises(ConfigError, match="view_probability"):
-        SimSourceOptions.from_dict({"view_directions": [[0, 0, 1]], "view_probability": 2})
+    with pytest.raises(ConfigError, match=r"^data\.options: view_probability: is 0\.5, which "
+                       r"needs view_directions"):
+        SimSourceOptions.from_dict({"view_probability": 0.5}, "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: view_directions: must be non-zero "
+                       r"finite \[x, y, z\] directions"):
+        SimSourceOptions.from_dict({"view_directions": [[0, 0, 0]], "view_probability": 0.5},
+                                   "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: view_probability: must be in "
+                       r"\[0, 1\], got 2\.0"):
+        SimSourceOptions.from_dict({"view_directions": [[0, 0, 1]], "view_probability": 2},
+                                   "data.options")
+
+
+def test_options_are_read_by_the_config_loader_and_round_trip():
+    """Typed fields, ranges and choices without rendering anything."""
+    opts = SimSourceOptions.from_dict({
+        "z_range": ["1e-1", 2], "distractor_kinds": ["can"], "view_directions": [[0, 2, 0]],
+        "view_probability": 0.25, "samples_per_scene": 8.0}, "data.options")
+    assert opts.z_range == (0.1, 2.0) and opts.samples_per_scene == 8
+    assert opts.distractor_kinds == ("can",) and opts.view_directions == ((0.0, 2.0, 0.0),)
+    for cfg in (SimSourceOptions(), opts):
+        assert SimSourceOptions.from_dict(cfg.to_dict()) == cfg
+    assert SimSourceOptions.from_dict(None) == SimSourceOptions()
+    with pytest.raises(ConfigError, match=r"^data\.options: distractor_kinds\[0\]: must be one "
+                       r"of \['box', 'can', 'bottle'\], got 'cube'"):
+        SimSourceOptions.from_dict({"distractor_kinds": ["cube"]}, "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: samples_per_scene: must be >= 1, "
+                       r"got 0"):
+        SimSourceOptions.from_dict({"samples_per_scene": 0}, "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: margin: must be in \[0, 0\.5\)"):
+        SimSourceOptions.from_dict({"margin": 0.5}, "data.options")
+    with pytest.raises(ConfigError, match=r"^data\.options: view_directions\[0\]: expected a "
+                       r"list of 3 values"):
+        SimSourceOptions.from_dict({"view_directions": [[0, 1]]}, "data.options")
+    with pytest.raises(ConfigError, match=r"^SimSourceOptions\.z_range: must be > 0 m"):
+        SimSourceOptions(z_range=(0.0, 1.0))
+    # directions given in code are normalised to float triples
+    assert SimSourceOptions(view_directions=[[1, 0, 0]]).view_directions == ((1.0, 0.0, 0.0),)
