@@ -214,7 +214,7 @@ class DepthFusionConfig(Config):
         range: fuse the object's range along its viewing ray, measured on every sensor depth frame
             against the mesh's surface at the predicted pose (:mod:`evtrack.tracking.depth_range`),
             into the pose filter: the depth the event flow sees worst. Off by default (the paper's
-            method uses depth only for the flow's interaction matrix); needs ``depth_source:
+            method uses depth only for the flow's interaction matrix); needs ``depth.source:
             sensor`` and the object's mesh (with faces). Not used by ``velocity``, which takes poses
             only to initialise.
         range_std_m: the floor of a range measurement's standard deviation (m).
@@ -224,7 +224,7 @@ class DepthFusionConfig(Config):
             own covariance: what the depth cannot see (a can turning about its axis, sliding within
             a face seen head-on) stays with the events and the pose source. The event flow sees an
             object's turn about an axis across the image barely apart from a shift; the depth sees
-            it. Off by default (not in the paper); needs ``depth_source: sensor`` and the object's
+            it. Off by default (not in the paper); needs ``depth.source: sensor`` and the object's
             mesh. Not used by ``velocity``.
         icp_rate_hz: at most this many depth frames per second are aligned (each costs 13-17 ms of
             one CPU core with the defaults below, for a YCB object at 640x480: ``track`` took
@@ -290,7 +290,7 @@ class LoadConfig(Config):
             deterministic. Needs ``max_searched_per_step > 0``. The work no budget bounds (reading
             and masking every event, the filters and the pose fusions: ~0.7-0.8 of real time on 2
             cores of a slow AMD EPYC with few events, 2026-12-02) stays. Shedding events costs
-            accuracy: see ``docs/results.md``, "Live use: realtime_load".
+            accuracy: see ``docs/results.md``, "Live use: load.realtime".
         min_searched_per_step: the lowest search budget ``realtime`` goes to.
         min_events_per_step: the lowest event budget ``realtime`` goes to; 0: it never sheds events
             (only the search budget adapts). The floors bound the accuracy lost: on the cracker box
@@ -333,12 +333,12 @@ class RemeasureConfig(Config):
         before_pose: before the first pose (and after losing the object) run the flow and the
             velocity filter on all events, with the sensor depth's patch medians, so that the first
             pose, which arrives ``pose_latency_ms`` late, is carried to the present by the measured
-            motion (``full`` and ``velocity``). Model depth needs a pose: with ``depth_source:
+            motion (``full`` and ``velocity``). Model depth needs a pose: with ``depth.source:
             model`` the flow runs but the velocity filter only predicts, and the steps wait for
             ``on_pose``.
         on_pose: with ``before_pose``, keep those steps' RoI flows and depth frames (model depth:
             rendered at the timeline's poses then; on the benchmark set, 4 kHz, oracle poses, this
-            took ``depth_source: model`` from 11.82 cm / 25.15 deg to 6.44 / 16.63 on `faster` and
+            took ``depth.source: model`` from 11.82 cm / 25.15 deg to 6.44 / 16.63 on `faster` and
             from 3.04 / 8.22 to 2.70 / 6.49 on `regular`, 2026-11-27: without it the first pose, 200
             ms old, is held still and the track starts far off), and once the late pose has started
             the track, measure the steps since that pose again at the poses the filter then has

@@ -112,7 +112,7 @@ class Tracker:
         camera: the event camera.
         mesh: the object: an :class:`~evtrack.sim.objects.ObjectMesh`, a mesh file (read in its
             own frame, which must be the poses' object frame), or (V, 3) vertices (enough for
-            everything but ``depth_source="model"``).
+            everything but ``depth.source: model``).
         pose_source: gives absolute poses from RGB frames (:mod:`evtrack.tracking.pose_sources`);
             ``None``: poses only through :meth:`push_pose` or :meth:`reset`.
         rgb_camera: the RGB-D camera (default: the event camera).
@@ -128,6 +128,9 @@ class Tracker:
         ukf: the pose filter; timeline: its rolling past (:mod:`~evtrack.tracking.pose_timeline`).
         roi_depth, gate, load, pose_gate, pose_calls, depth_fusion, outputs, view: the parts
             (see the module docstring); ``depth_fusion`` is ``None`` without one.
+        scheduler, frames, fusion: the internal drivers (:mod:`~evtrack.tracking.scheduler`,
+            :mod:`~evtrack.tracking.frames`, :mod:`~evtrack.tracking.fusion`) that run the
+            steps, take the frames and apply the queued measurements.
 
     Example:
         >>> tracker = Tracker.for_sequence(seq, TrackerConfig(), pose_source)   # doctest: +SKIP

@@ -187,8 +187,12 @@ def test_the_flat_keys_of_earlier_versions_load_with_a_warning_naming_the_new_ke
     path = tmp_path / "old.yaml"
     path.write_text("depth_source: model\nrealtime_load: 0.5\npose_depth_min_share: 0.7\n"
                     "load: {max_searched_per_step: 2000}\n")
-    with pytest.warns(RenamedKeyWarning, match="'depth_source' is renamed 'depth.source'"):
+    with pytest.warns(RenamedKeyWarning) as record:
         cfg = TrackerConfig.from_yaml(path)
+    messages = sorted(str(w.message) for w in record)
+    assert len(messages) == 3 and all(str(path) in m for m in messages)
+    assert any("'depth_source' is renamed 'depth.source'" in m for m in messages)
+    assert any("'realtime_load' is renamed 'load.realtime'" in m for m in messages)
     assert cfg.depth.source == "model" and cfg.load.realtime == 0.5
     assert cfg.load.max_searched_per_step == 2000  # the section's other keys kept
     assert cfg.pose_gate.depth_min_share == 0.7
