@@ -8,6 +8,7 @@ so that a full tracker run takes about 4 s of CPU.
 from __future__ import annotations
 
 import pytest
+from robustness_scenes import knot_trajectory, simulate_sequence
 from tracker_helpers import make_tracker, sim_config
 
 from evtrack import Sequence
@@ -66,3 +67,19 @@ def depth_form(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) 
         pytest.skip("numba is not installed")
     monkeypatch.setattr(depth_sources, "COMPILED", request.param == "compiled")
     return request.param
+
+
+@pytest.fixture(scope="session")
+def exit_sequence(tmp_path_factory, box):
+    """The box crosses the image to the right, leaves it at ~0.37 s, waits outside, comes back
+    from the right at ~0.8 s and slows down in the middle (z = 0.7 m)."""
+    z = 0.7
+    traj = knot_trajectory(
+        [0.0, 0.3, 0.45, 0.7, 0.85, 1.1],
+        [[-0.15, 0, z], [0.3, 0.0, z], [0.6, 0, z], [0.6, 0, z], [0.25, 0, z], [0.05, 0.02, z]],
+        [[1.2, 0, 0], [1.5, 0, 0], [0, 0, 0], [0, 0, 0], [-1.5, 0, 0], [0, 0, 0]],
+        rotvecs=[[0, 0, 0], [0.2, 0.3, 0.1], [0.3, 0.4, 0.1], [0.3, 0.4, 0.1], [0.2, 0.2, 0.0],
+                 [0.1, 0.1, 0.0]],
+        rotvec_rates=[[0.5, 0.5, 0.2], [0.8, 0.8, 0.2], [0, 0, 0], [0, 0, 0],
+                      [-0.8, -0.8, -0.2], [0, 0, 0]])
+    return simulate_sequence(box, traj, 1.1, tmp_path_factory.mktemp("robust") / "exit")

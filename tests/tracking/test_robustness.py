@@ -22,7 +22,7 @@ from robustness_scenes import (
     simulate_sequence,
     with_events,
 )
-from tracker_helpers import ORACLE_NOISE, TEST_TRACKER, make_tracker, stream
+from tracker_helpers import ORACLE_NOISE, TEST_TRACKER, make_tracker, record_flow_calls, stream
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import EventsError
@@ -65,20 +65,6 @@ def rest_sequence(tmp_path_factory, box):
     return simulate_sequence(box, traj, 1.45, tmp_path_factory.mktemp("robust") / "rest")
 
 
-@pytest.fixture(scope="module")
-def exit_sequence(tmp_path_factory, box):
-    """The box crosses the image to the right, leaves it at ~0.37 s, waits outside, comes back
-    from the right at ~0.8 s and slows down in the middle (z = 0.7 m)."""
-    z = 0.7
-    traj = knot_trajectory(
-        [0.0, 0.3, 0.45, 0.7, 0.85, 1.1],
-        [[-0.15, 0, z], [0.3, 0.0, z], [0.6, 0, z], [0.6, 0, z], [0.25, 0, z], [0.05, 0.02, z]],
-        [[1.2, 0, 0], [1.5, 0, 0], [0, 0, 0], [0, 0, 0], [-1.5, 0, 0], [0, 0, 0]],
-        rotvecs=[[0, 0, 0], [0.2, 0.3, 0.1], [0.3, 0.4, 0.1], [0.3, 0.4, 0.1], [0.2, 0.2, 0.0],
-                 [0.1, 0.1, 0.0]],
-        rotvec_rates=[[0.5, 0.5, 0.2], [0.8, 0.8, 0.2], [0, 0, 0], [0, 0, 0],
-                      [-0.8, -0.8, -0.2], [0, 0, 0]])
-    return simulate_sequence(box, traj, 1.1, tmp_path_factory.mktemp("robust") / "exit")
 
 
 class _Runs:
@@ -235,20 +221,6 @@ def test_a_second_at_rest(rest_sequence, robust_runs) -> None:
 
 
 # ---------------------------------------------------------------------------- event bursts
-def _record_flow_calls(tracker: Tracker) -> list[tuple[int, int, int, int]]:
-    """Wrap the tracker's flow: record (events, first t, last t, events searched) of every
-    call."""
-    calls: list[tuple[int, int, int, int]] = []
-    update = tracker.motion.flow.update
-
-    def recorded(ev: Events, **kwargs):
-        search = kwargs.get("search")
-        calls.append((len(ev), int(ev.t[0]) if len(ev) else -1, int(ev.t[-1]) if len(ev) else -1,
-                      len(ev) if search is None else int(search.sum())))
-        return update(ev, **kwargs)
-
-    tracker.motion.flow.update = recorded
-    return calls
 
 
 def test_event_burst_over_the_whole_sensor(fast_sequence, runs) -> None:
@@ -277,7 +249,7 @@ def test_event_burst_over_the_whole_sensor(fast_sequence, runs) -> None:
     burst = noise_burst(ev.sensor_size, t0, t1 - t0, 100 * rate, seed=5)
     noisy = with_events(seq, merged(ev, burst))
     tracker, _ = make_tracker(noisy, method="full")
-    calls = _record_flow_calls(tracker)
+    calls = record_flow_calls(tracker)
     traj = tracker.track(noisy)
     clean, clean_tracker, _ = runs.get("full")
     st = tracker.stats
@@ -348,191 +320,26 @@ def test_after_a_burst_the_flow_filter_continues_each_pixel_first_event(fast_seq
 
 CAM_W = 128
 CAM = PinholeCamera(100.0, 100.0, 63.5, 47.5, 128, 96)
-BIG_CUBE = np.array([[x, y, z] for x in (-.15, .15) for y in (-.15, .15) for z in (-.05, .05)])
-
-
-def _textured_object_with_burst(seed: int = 0) -> Events:
-    """A texture moving at 300 px/s seen only inside the big cube's silhouette at 0.6 m
-    (x 36..91, y 20..75 px) for 50 ms, and a 500 Hz-per-pixel burst over the sensor in
-    [20, 30) ms."""
-
-    ev, _ = translating_texture((128, 96), velocity=(300.0, 0.0), duration_us=50_000,
-                                seed=seed)
-    inside = (ev.x >= 40) & (ev.x < 88) & (ev.y >= 24) & (ev.y < 72)
-    burst = noise_burst((128, 96), 20_000, 10_000, 500 * 128 * 96, seed=seed + 1)
-    return merged(ev[inside], burst)
-
-
-def test_event_cap_bounds_the_work_per_step_whatever_the_chunking() -> None:
-    """At most ``load.max_events_per_step`` events of a step reach the flow (the rest are thinned
-    and counted), the burst steps are found, and both decisions do not depend on how the
-    events are chunked: one chunk and random chunks give the same output bit for bit."""
-    ev = _textured_object_with_burst()
-    cap = 200  # about a quarter of the object's events
-    config = TrackerConfig.from_dict({"flow": {"roi_size": 16},
-                                      "load": {"max_events_per_step": cap},
-                                      "mask_margin_px": 4.0})
-    outputs = []
-    for chunks in ("one", "random"):
-        tracker, calls = _track_textured_object(config, ev, chunks, seed=3)
-        st = tracker.stats
-        assert st.burst_steps == 10
-        assert st.events_thinned > 0
-        per_group = cap * config.flow_batch_steps
-        assert max(c[0] for c in calls) <= per_group
-        assert sum(c[0] for c in calls) == (st.events_on_object - st.events_in_bursts
-                                            - st.events_thinned)
-        assert st.roi_flows > 0 and np.isfinite(tracker.twist()).all()
-        outputs.append((tracker.trajectory(), st.to_dict()))
-    (a, sa), (b, sb) = outputs
-    assert torch.equal(a.poses, b.poses) and torch.equal(a.twists, b.twists)
-    sa.pop("time_s"), sb.pop("time_s")
-    assert sa == sb
-
-
-def _track_textured_object(config: TrackerConfig, ev: Events, chunks: str, seed: int):
-    """Track ``ev`` from the big cube's pose at 0.6 m, pushed in one chunk or in 41 random
-    ones; returns the tracker and its recorded flow calls (:func:`_record_flow_calls`)."""
-    tracker = Tracker(config, camera=CAM, mesh=BIG_CUBE)
-    start = np.eye(4)
-    start[2, 3] = 0.6
-    tracker.reset(start, t_us=0)
-    calls = _record_flow_calls(tracker)
-    if chunks == "one":
-        tracker.push_events(ev)
-    else:
-        rng = np.random.default_rng(seed)
-        cuts = np.sort(rng.choice(len(ev), 40, replace=False))
-        for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(ev)], strict=True):
-            tracker.push_events(ev[int(a):int(b)])
-    tracker.flush()
-    return tracker, calls
-
-
-def test_sampled_search_is_counted_and_independent_of_the_chunking() -> None:
-    """With ``load.search_per_roi_window`` the flow searches a sample of each dense RoI window:
-    the events given to the flow but not searched are counted, the sample (a hash of the
-    stream index, counted per step group) does not depend on how the events were pushed,
-    and it changes the RoI flows only where a window's sample is short of the data term."""
-    ev = _textured_object_with_burst()
-    base = {"flow": {"roi_size": 16}, "load": {"max_events_per_step": 0}, "mask_margin_px": 4.0}
-    sampled = TrackerConfig.from_dict({**base, "load": {**base["load"],
-                                                         "search_per_roi_window": 6}})
-    runs_ = [_track_textured_object(sampled, ev, chunks, seed=5) for chunks in ("one", "random")]
-    (a, calls_a), (b, calls_b) = runs_
-    searched_a, searched_b = (sum(c[3] for c in calls) for calls in (calls_a, calls_b))
-    st = a.stats
-    given = st.events_on_object - st.events_in_bursts
-    assert 0 < st.events_unsearched < given
-    assert searched_a == searched_b == given - st.events_unsearched
-    assert torch.equal(a.trajectory().poses, b.trajectory().poses)
-    sa, sb = a.stats.to_dict(), b.stats.to_dict()
-    sa.pop("time_s"), sb.pop("time_s")
-    assert sa == sb
-    whole, calls_whole = _track_textured_object(
-        TrackerConfig.from_dict({**base, "load": {**base["load"], "search_per_roi_window": 0}}),
-        ev, "one", seed=5)
-    assert whole.stats.events_unsearched == 0 and sum(c[3] for c in calls_whole) == given
-    assert whole.stats.roi_flows > 0 and st.roi_flows > 0
-    assert not torch.equal(whole.trajectory().twists, a.trajectory().twists)
-
-
-def test_sampled_search_keeps_the_error_bounded(fast_sequence, runs) -> None:
-    """A sample of 4 events per RoI window (an eighth of the tracker's default) still
-    tracks the fast sequence close to the whole search: measured 5.25 cm / 12.27 deg with
-    81 % of the flow's events unsearched, against 4.27 / 12.37 (2026-11-27). Bounds: whole
-    + 2 cm and + 3 deg."""
-    whole, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 0})
-    sampled, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 4})
-    gt = fast_sequence.ground_truth
-    ref = tracking_errors(whole.track(fast_sequence), gt)
-    err = tracking_errors(sampled.track(fast_sequence), gt)
-    share = sampled.stats.events_unsearched / sampled.stats.events_on_object
-    print(f"sampled {err.position_rmse_cm:.2f} cm / {err.rotation_rmse_deg:.2f} deg, whole "
-          f"{ref.position_rmse_cm:.2f} / {ref.rotation_rmse_deg:.2f}, {share:.0%} unsearched")
-    assert whole.stats.events_unsearched == 0 and share > 0.2
-    assert err.position_rmse_cm < ref.position_rmse_cm + 2.0
-    assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 3.0
-
-
-def test_search_budget_bounds_the_searched_events_whatever_the_chunking() -> None:
-    """With ``load.max_searched_per_step`` the flow searches at most that many events per step
-    (over a step group, by whole cells), every event still reaches it (none is thinned), the
-    rest are counted as unsearched, and the choice does not depend on how the events were
-    pushed."""
-    ev = _textured_object_with_burst()
-    budget = 40
-    config = TrackerConfig.from_dict({"flow": {"roi_size": 16}, "mask_margin_px": 4.0,
-                                      "load": {"max_events_per_step": 0,
-                                               "search_per_roi_window": 0,
-                                               "max_searched_per_step": budget}})
-    (a, calls_a), (b, calls_b) = (_track_textured_object(config, ev, chunks, seed=7)
-                                  for chunks in ("one", "random"))
-    st = a.stats
-    given = st.events_on_object - st.events_in_bursts
-    assert st.events_thinned == 0 and sum(c[0] for c in calls_a) == given
-    assert max(c[3] for c in calls_a) <= budget * config.flow_batch_steps
-    assert max(c[0] for c in calls_a) > budget * config.flow_batch_steps  # it did cut
-    assert sum(c[3] for c in calls_a) == given - st.events_unsearched > 0
-    assert [c[3] for c in calls_a] == [c[3] for c in calls_b]
-    assert torch.equal(a.trajectory().poses, b.trajectory().poses)
-    sa, sb = a.stats.to_dict(), b.stats.to_dict()
-    sa.pop("time_s"), sb.pop("time_s")
-    assert sa == sb
-    assert st.roi_flows > 0 and np.isfinite(a.twist()).all()
-
-
-def test_search_budget_keeps_the_error_bounded(fast_sequence, runs) -> None:
-    """A search budget of half the fast sequence's events per step (on this small sensor a
-    few RoIs hold most of them) still tracks it close to the whole search: measured 5.66 cm /
-    13.37 deg with 62 % of the flow's events unsearched and 39 % of the RoI flows, against
-    4.27 / 12.37 (2026-11-27; with cells of 2 x 2 RoIs 5.81 / 14.67). Bounds: whole + 2.5 cm
-    and + 4 deg."""
-    whole, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 0,
-                                                                "max_searched_per_step": 0})
-    gt = fast_sequence.ground_truth
-    ref = tracking_errors(whole.track(fast_sequence), gt)
-    budget = max(1, int(whole.stats.events_on_object / whole.stats.steps / 2))
-    cut, _ = make_tracker(fast_sequence, method="full", load={"search_per_roi_window": 0,
-                                                              "max_searched_per_step": budget})
-    calls = _record_flow_calls(cut)
-    err = tracking_errors(cut.track(fast_sequence), gt)
-    given = sum(c[0] for c in calls)
-    print(f"budget {budget} per step: {err.position_rmse_cm:.2f} cm / "
-          f"{err.rotation_rmse_deg:.2f} deg, whole {ref.position_rmse_cm:.2f} / "
-          f"{ref.rotation_rmse_deg:.2f}, {cut.stats.events_unsearched / given:.0%} unsearched, "
-          f"RoI flows {cut.stats.roi_flows} / {whole.stats.roi_flows}")
-    assert whole.stats.events_unsearched == 0
-    assert sum(c[0] - c[3] for c in calls) == cut.stats.events_unsearched > 0.3 * given
-    assert max(c[3] for c in calls) <= budget * cut.config.flow_batch_steps
-    assert cut.stats.events_thinned == whole.stats.events_thinned
-    assert err.position_rmse_cm < ref.position_rmse_cm + 2.5
-    assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 4.0
 
 
 
 
 
 
-def test_thinned_tracking_keeps_the_error_bounded(fast_sequence, runs) -> None:
-    """A budget of 60 events per step, about half the fast sequence's mean rate: the track
-    stays within a bound of the clean run's. Measured: 10.37 cm / 14.11 deg with 49 % of the
-    events thinned, against 5.50 / 14.02 clean; thinning single events (the former rule) gave
-    8.72 / 14.80 with 41 % thinned on this sparse scene, but 34.5 cm / 58 deg on the dense
-    cracker box `faster` with a budget of 4000 events per step (9.24 / 13.8 by cells, 4.35 /
-    6.5 unthinned; see the next test for why). Bounds: clean + 6 cm and + 3 deg."""
-    tracker, _ = make_tracker(fast_sequence, method="full", load={"max_events_per_step": 60})
-    traj = tracker.track(fast_sequence)
-    clean, _, _ = runs.get("full")
-    st = tracker.stats
-    assert 0.2 * st.events < st.events_thinned < 0.8 * st.events
-    gt = fast_sequence.ground_truth
-    err, ref = tracking_errors(traj, gt), tracking_errors(clean, gt)
-    print(f"thinned {err.position_rmse_cm:.2f} cm / {err.rotation_rmse_deg:.2f} deg, clean "
-          f"{ref.position_rmse_cm:.2f} / {ref.rotation_rmse_deg:.2f}, "
-          f"{st.events_thinned / st.events:.0%} of the events thinned")
-    assert err.position_rmse_cm < ref.position_rmse_cm + 6.0
-    assert err.rotation_rmse_deg < ref.rotation_rmse_deg + 3.0
+
+
+
+
+
+
+
+
+
+
+
+
+
+
 
 
 
@@ -921,86 +728,9 @@ def test_a_pose_off_in_range_is_moved_onto_the_depth(rest_sequence, align) -> No
     assert res.ok and abs(res.shift) < 0.005
 
 
-# ---------------------------------------------------------------------------- step runs
-def _same_runs(make, feed) -> tuple[Tracker, list[tuple[int, bool]]]:
-    """Track with the filters' compiled step runs and step by step (``Tracker.step_runs``):
-    the trajectories must be equal bit for bit and every counter the same. Returns the run
-    tracker and its compiled runs (steps done, whether the object was lost in the run)."""
-    results = []
-    inside: list[tuple[int, bool]] = []
-    for runs in (True, False):
-        tracker = make()
-        tracker.step_runs = runs
-        step_run = tracker.scheduler.step_run
-
-        def watched(t0, k, end, poly, pose, tracker=tracker, step_run=step_run):
-            lost_before = tracker.stats.lost
-            done = step_run(t0, k, end, poly, pose)
-            if done is not None:
-                inside.append((done - k, tracker.stats.lost > lost_before))
-            return done
-
-        tracker.scheduler.step_run = watched
-        results.append((feed(tracker), tracker))
-    (fast, fast_tracker), (slow, slow_tracker) = results
-    assert torch.equal(fast.t_us, slow.t_us) and torch.equal(fast.status, slow.status)
-    assert torch.equal(fast.poses.nan_to_num(7.0), slow.poses.nan_to_num(7.0))
-    assert torch.equal(fast.twists, slow.twists)
-    fast_stats, slow_stats = fast_tracker.stats.to_dict(), slow_tracker.stats.to_dict()
-    fast_stats.pop("time_s"), slow_stats.pop("time_s")
-    assert fast_stats == slow_stats
-    return fast_tracker, inside
 
 
-def test_step_runs_equal_steps_with_dropped_frames_in_chunks(fast_sequence) -> None:
-    """Streamed in random chunks, with RGB-D frames dropped (depth maps that expire, and
-    arrive, inside a step group): the compiled runs give the per-step trajectory exactly."""
-    seq = fast_sequence
-    times = seq.rgb_times_us.numpy()
-    dropped = ((times >= 150_000) & (times < 400_000)) | (
-        np.random.default_rng(1).random(len(times)) < 0.5)
-    tracker, inside = _same_runs(
-        lambda: make_tracker(seq, method="full")[0],
-        lambda tr: stream(tr, seq, np.random.default_rng(5), keep_frame=lambda i: not dropped[i]))
-    assert tracker.stats.depth_fallbacks > 0
-    assert sum(n for n, _ in inside) > 0.5 * tracker.stats.steps  # most steps in runs
-    assert tracker.stats.steps_remeasured > 50  # the late first pose's steps: runs of a group
 
 
-@pytest.mark.parametrize("depth_source", ["sensor", "model"])
-def test_step_runs_equal_steps_when_a_late_first_pose_measures_again(fast_sequence,
-                                                                     depth_source) -> None:
-    """The first pose (100 ms late) has the steps since its frame measured again, a step
-    group per compiled run (``remeasure.on_pose``), with sensor depth (the frames dropped in
-    that span: depth maps that expire inside a group) and with model depth (no live runs):
-    the same trajectory and counts as step by step."""
-    seq = fast_sequence
-    times = seq.rgb_times_us.numpy()
-    dropped = (times >= 20_000) & (times < 90_000)
-    tracker, _ = _same_runs(
-        lambda: make_tracker(seq, method="full", depth={"source": depth_source})[0],
-        lambda tr: stream(tr, seq, np.random.default_rng(2), keep_frame=lambda i: not dropped[i]))
-    assert tracker.stats.steps_remeasured > 50
 
 
-@pytest.mark.parametrize("lost_after_ms", [5.0, 12.0, 23.0])
-def test_step_runs_equal_steps_when_the_object_leaves_the_view(exit_sequence, box,
-                                                               lost_after_ms) -> None:
-    """The object leaves the image and is lost by its predicted silhouette (no misses
-    counted; lost once 5% of it has been out of the image for ``lost_after_ms``): the loss
-    falls inside a run (at its first step or a later one, by the delay), whose later steps
-    are then done step by step, with the same trajectory (the held pose included) as step
-    by step throughout."""
-    seq = exit_sequence
-
-    def make() -> Tracker:
-        oracle = OraclePoseSource.from_sequence(seq, seed=0, **ORACLE_NOISE)
-        source = VisibleOnlySource(oracle, np.asarray(box.vertices), seq.meta.event_camera, 0.3)
-        cfg = TrackerConfig.from_dict({**TEST_TRACKER, "lost_after_misses": 0,
-                                       "min_visible_fraction": 0.95,
-                                       "lost_after_ms": lost_after_ms})
-        return Tracker.for_sequence(seq, cfg, source)
-
-    tracker, inside = _same_runs(make, lambda tr: tr.track(seq))
-    assert tracker.stats.lost >= 1
-    assert any(lost for _, lost in inside)  # lost at a step of a run

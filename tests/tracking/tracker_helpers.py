@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from evtrack import Sequence
 from evtrack.camera import PinholeCamera
+from evtrack.events import Events
 from evtrack.sim.config import EventConfig, GroundTruthConfig, SimConfig, TrajectoryConfig
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.pose_sources import OraclePoseSource
@@ -80,3 +81,19 @@ def stream(tracker: Tracker, seq: Sequence, rng: np.random.Generator | None = No
     tracker.advance(int(ev.t[-1]) + 1)
     tracker.flush()
     return tracker.trajectory()
+
+
+def record_flow_calls(tracker: Tracker) -> list[tuple[int, int, int, int]]:
+    """Wrap the tracker's flow: record (events, first t, last t, events searched) of every
+    call."""
+    calls: list[tuple[int, int, int, int]] = []
+    update = tracker.motion.flow.update
+
+    def recorded(ev: Events, **kwargs):
+        search = kwargs.get("search")
+        calls.append((len(ev), int(ev.t[0]) if len(ev) else -1, int(ev.t[-1]) if len(ev) else -1,
+                      len(ev) if search is None else int(search.sum())))
+        return update(ev, **kwargs)
+
+    tracker.motion.flow.update = recorded
+    return calls

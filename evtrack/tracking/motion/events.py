@@ -91,7 +91,6 @@ class EventMotion(MotionSource):
 
     def track_started(self, t_pose: int) -> None:
         if self.remeasurer is not None and self.remeasurer.unposed:
-            self.remeasurer.stats = self.stats
             self.remeasurer.remeasure(t_pose, self.services.step_runs())
 
     # ------------------------------------------------------------ steps
