@@ -83,11 +83,9 @@ import math
 import os
 import platform
 import shlex
-import shutil
 import statistics
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 import warnings
@@ -98,15 +96,14 @@ import evtrack  # noqa: F401  # isort: skip
 import numpy as np
 import torch
 
+# beside this script (a script's folder is on the import path)
+from revision_trees import export_package, resolve_revision, tree_commit
+from tracker_tables import print_compact, print_wide
+
 # only names both the current and older trees have: a --baseline child imports this module
 # with the older package
 from evtrack import Sequence, Tracker, TrackerConfig
 
-#: The folders of a revision that make the installed package, and where each goes in it.
-PACKAGE_DIRS = {"evtrack": "evtrack", "models": "evtrack/models", "filters": "evtrack/filters",
-                "train": "evtrack/train"}
-#: Written into an export (kept with ``--export-dir``): the commit it holds.
-MARKER = ".bench-tracker-commit"
 #: The oracle's noise per axis (m, rad), as ``evtrack evaluate --oracle`` sets it.
 ORACLE_NOISE = (0.01, 0.03)
 
@@ -376,61 +373,6 @@ class Worker:
                 self.proc.wait()
 
 
-# ----------------------------------------------------------------------------- git trees
-def _git(args: list[str], cwd: Path) -> str:
-    out = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True)
-    if out.returncode != 0:
-        raise RuntimeError(f"git {' '.join(args)}: {out.stderr.strip()}")
-    return out.stdout.strip()
-
-
-def tree_commit(folder: Path) -> str:
-    """``folder``'s checkout: its commit, and a note when the package's folders have
-    uncommitted changes (what runs is the working tree)."""
-    try:
-        top = Path(_git(["rev-parse", "--show-toplevel"], folder))
-        head = _git(["rev-parse", "--short", "HEAD"], top)
-        dirty = _git(["status", "--porcelain", "--", *PACKAGE_DIRS], top)
-    except (RuntimeError, OSError):
-        return f"{folder} (not a git checkout)"
-    return f"{head}" + (" + uncommitted changes" if dirty else "") + f" ({top})"
-
-
-def resolve_revision(rev: str, repo: Path) -> str:
-    """The full commit id of ``rev`` in ``repo``."""
-    return _git(["rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}"], repo)
-
-
-def export_package(commit: str, repo: Path, dest: Path) -> Path:
-    """Assemble an importable copy of the package of ``commit`` under ``dest``: ``dest/evtrack``
-    with the revision's ``models``, ``filters``, ``train`` inside it, as installed. Returns
-    ``dest`` (the folder to put on ``PYTHONPATH``). A ``dest`` that already holds ``commit``
-    (written by this function) is reused, with the compiled-kernel caches in it."""
-    marker = dest / MARKER
-    if marker.is_file() and marker.read_text().strip() == commit:
-        return dest
-    if dest.exists() and any(dest.iterdir()):
-        raise RuntimeError(f"{dest} is not empty and holds no export of {commit[:12]}; give an "
-                           "empty or new folder")
-    repo = Path(_git(["rev-parse", "--show-toplevel"], repo))  # paths are from the top
-    present = _git(["ls-tree", "--name-only", commit], repo).splitlines()
-    parts = [p for p in PACKAGE_DIRS if p in present]
-    if "evtrack" not in parts:
-        raise RuntimeError(f"revision {commit[:12]} has no evtrack/ folder")
-    dest.mkdir(parents=True, exist_ok=True)
-    src = dest / ".src"
-    src.mkdir()
-    archive = src / "tree.tar"
-    _git(["archive", "--format=tar", "-o", str(archive), commit, "--", *parts], repo)
-    with tarfile.open(archive) as tar:
-        tar.extractall(src, filter="data")
-    for part in parts:
-        shutil.move(str(src / part), str(dest / PACKAGE_DIRS[part]))
-    shutil.rmtree(src)
-    marker.write_text(commit + "\n")
-    return dest
-
-
 # ----------------------------------------------------------------------------- planning
 def cpu_model() -> str:
     try:
@@ -488,15 +430,6 @@ def median_row(runs: list[dict]) -> dict:
     return row
 
 
-def same_trajectory(old: dict, new: dict) -> str:
-    """``same``, ``differs`` or ``varies`` (see the module docstring)."""
-    if len(old["trajs"]) == 1 and old["trajs"] == new["trajs"]:
-        return "same"
-    if len(old["trajs"]) > 1 or len(new["trajs"]) > 1:
-        return "varies"
-    return "differs"
-
-
 def ratio_summary(pairs: list[tuple[float, float]]) -> str:
     """The new/old processing times of the rows: geometric mean, range, totals."""
     ratios = [n / o for o, n in pairs if o > 0]
@@ -513,64 +446,6 @@ def config_differences(old: dict, new: dict) -> list[str]:
     keys = sorted(set(old) | set(new))
     return [f"{k}: {old.get(k, '(absent)')} -> {new.get(k, '(absent)')}"
             for k in keys if old.get(k, "(absent)") != new.get(k, "(absent)")]
-
-
-# ----------------------------------------------------------------------------- output
-def _print_wide(rows: list[dict]) -> None:
-    head = (f"{'method':<10} {'thr':>3} {'async':>5} {'prior':>5} {'cap':>6} {'sample':>6} "
-            f"{'budget':>6} "
-            f"{'rt':>4} {'min bgt':>7} {'min ev':>6} "
-            f"{'unsearched':>10} {'thinned':>8} "
-            f"{'proc s':>7} "
-            f"{'rtf':>6} {'pose src':>8} "
-            f"{'ev/s':>9} {'flow':>6} "
-            f"{'veloc':>6} {'pose':>6} {'frames':>6} {'grp p50':>8} {'grp p95':>8} "
-            f"{'filt/step':>9}  error")
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        print(f"{r['method']:<10} {r['threads']:>3} {r['async']:>5} {r['prior']:>5} {r['cap']:>6} "
-              f"{r['sample']:>6} {r['budget']:>6} {r['rt']:>4g} {r['budget_min']:>7} "
-              f"{r['events_min']:>6} "
-              f"{r['unsearched']:>10} "
-              f"{r['thinned']:>8} {r['proc_s']:>7.2f} {r['rtf']:>6.2f} "
-              f"{r['pose_src']:>8.2f} "
-              f"{r['ev_per_s']:>9.0f} {r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} "
-              f"{r['frames']:>6.2f} {r['group_p50_ms']:>6.2f}ms {r['group_p95_ms']:>6.2f}ms "
-              f"{r['step_us']:>7.0f}us  {r.get('error', '')}"
-              + (f"  runs {' '.join(f'{t:.2f}' for t in r['runs'])}" if len(r['runs']) > 1
-                 else ""))
-
-
-def _print_compact(table: list[tuple[str, dict, dict]], baseline: bool) -> None:
-    """``table``: (label, {code: row}) per sequence and setting."""
-    width = max([len(label) for label, _, _ in table] + [8])
-    seq_w = max([len(rows[next(iter(rows))]["sequence"]) for _, rows, _ in table] + [8])
-    head = (f"{'sequence':<{seq_w}} {'run':<{width}} {'thr':>3} "
-            + (f"{'code':<4} " if baseline else "")
-            + f"{'proc s':>7} {'rtf':>6} {'ev/s':>9} {'flow':>6} {'veloc':>6} {'pose':>6} "
-            f"{'frames':>6} {'pose src':>8} {'grp p50':>8} {'grp p95':>8} "
-            + (f"{'new/old':>7} {'traj':>7} " if baseline else "")
-            + f"{'error':<20} runs (s)")
-    print(head)
-    print("-" * len(head))
-    for label, rows, _ in table:
-        for code, r in rows.items():
-            extra = ""
-            if baseline:
-                if code == "new" and "old" in rows:
-                    extra = (f"{r['proc_s'] / rows['old']['proc_s']:>7.3f} "
-                             f"{same_trajectory(rows['old'], r):>7} ")
-                else:
-                    extra = f"{'':>7} {'':>7} "
-            print(f"{r['sequence']:<{seq_w}} {label:<{width}} {r['threads']:>3} "
-                  + (f"{code:<4} " if baseline else "")
-                  + f"{r['proc_s']:>7.2f} {r['rtf']:>6.2f} {r['ev_per_s']:>9.0f} "
-                  f"{r['flow']:>6.2f} {r['velocity']:>6.2f} {r['pose']:>6.2f} {r['frames']:>6.2f} "
-                  f"{r['pose_src']:>8.2f} {r['group_p50_ms']:>6.2f}ms {r['group_p95_ms']:>6.2f}ms "
-                  + extra
-                  + f"{r.get('error', ''):<20} " + " ".join(f"{t:.2f}" for t in r["runs"]),
-                  flush=True)
 
 
 def _reference(argv: list[str] | None, new_where: str, old: str | None) -> None:
@@ -858,9 +733,9 @@ def _print_results(args, table, runners, codes, several: bool, n_seq: int) -> No
         print("tracker configuration: the same in both trees" if not diffs
               else "tracker configuration, old -> new: " + "; ".join(diffs))
     if several or "old" in codes:
-        _print_compact([(label, rows, combo) for label, rows, combo in table], "old" in codes)
+        print_compact([(label, rows, combo) for label, rows, combo in table], "old" in codes)
     else:
-        _print_wide([rows["new"] for _, rows, _ in table])
+        print_wide([rows["new"] for _, rows, _ in table])
     print("rtf = processing time / sequence time; grp = one step group (one flow call): the "
           "output latency in live use" + ("" if several or "old" in codes else
                                             "; filt/step = velocity KF + pose UKF per 1 ms step")

@@ -14,6 +14,8 @@ from evtrack import Events
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import bench_tracker as bt  # noqa: E402
+import revision_trees  # noqa: E402
+import tracker_tables  # noqa: E402
 
 
 def _git(repo: Path, *args: str) -> str:
@@ -46,7 +48,7 @@ def test_export_assembles_the_installed_layout(repo: Path, tmp_path: Path) -> No
     assert (dest / "evtrack/filters/__init__.py").read_text() == "F = 4\n"
     assert not (dest / "evtrack/train").exists()  # absent in the revision: left out
     assert not (dest / "models").exists() and not (dest / "benchmarks").exists()
-    assert sorted(p.name for p in dest.iterdir()) == sorted([bt.MARKER, "evtrack"])
+    assert sorted(p.name for p in dest.iterdir()) == sorted([revision_trees.MARKER, "evtrack"])
     out = subprocess.run([sys.executable, "-c", "import evtrack, evtrack.models as m; "
                           "print(evtrack.X, m.M, evtrack.__file__)"], cwd=tmp_path,
                          env={"PYTHONPATH": str(dest), "PATH": "/usr/bin:/bin"},
@@ -100,9 +102,9 @@ def test_median_row_and_trajectory_comparison() -> None:
     row = bt.median_row(runs)
     assert row["proc_s"] == 2.0 and row["rtf"] == 1.0 and row["events"] == 10
     assert row["runs"] == [3.0, 1.0, 2.0] and row["trajs"] == ["a"]
-    assert bt.same_trajectory({"trajs": ["a"]}, {"trajs": ["a"]}) == "same"
-    assert bt.same_trajectory({"trajs": ["a"]}, {"trajs": ["b"]}) == "differs"
-    assert bt.same_trajectory({"trajs": ["a", "b"]}, {"trajs": ["a"]}) == "varies"
+    assert tracker_tables.same_trajectory({"trajs": ["a"]}, {"trajs": ["a"]}) == "same"
+    assert tracker_tables.same_trajectory({"trajs": ["a"]}, {"trajs": ["b"]}) == "differs"
+    assert tracker_tables.same_trajectory({"trajs": ["a", "b"]}, {"trajs": ["a"]}) == "varies"
 
 
 def test_ratio_summary_and_config_differences() -> None:
