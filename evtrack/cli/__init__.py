@@ -19,7 +19,7 @@ from evtrack.errors import EvtrackError
 
 __all__ = ["main", "build_parser"]
 
-ORDER = ("info", "convert", "simulate", "flow", "train", "average_weights", "set_decode", "export",
+ORDER = ("info", "convert", "import_data", "simulate", "flow", "train", "average_weights", "set_decode", "export",
          "track", "evaluate", "demo")
 
 
