@@ -19,8 +19,8 @@ from evtrack.errors import EvtrackError
 
 __all__ = ["main", "build_parser"]
 
-ORDER = ("info", "convert", "import_data", "simulate", "flow", "train", "average_weights", "set_decode", "export",
-         "track", "evaluate", "demo")
+ORDER = ("info", "convert", "import_data", "simulate", "flow", "train", "average_weights",
+         "set_decode", "export", "track", "evaluate", "demo")
 
 
 def _command_modules() -> list[str]:
