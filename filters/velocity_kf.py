@@ -311,8 +311,13 @@ class VelocityKF(TrackFilter):
             matrix that is not positive definite: nothing of that step is done, and it is
             left to :meth:`forward` (whose torch path reports it). ``None``, with the filter
             unchanged, when :meth:`forward` would not run on a single-track backend with runs
-            (a batch, CUDA, float32, gradients, a distorted camera, the NumPy or torch backend,
-            no numba...): then call :meth:`forward` per step.
+            (a batch, CUDA, float32, gradients, the NumPy or torch backend, no numba...): then
+            call :meth:`forward` per step.
+
+        With a distorted camera the rows of all the steps are mapped to the ideal pinhole image
+        at once (:func:`~evtrack.filters.interaction.undistort_flow`, as :meth:`update` maps
+        each step's), then run as an undistorted camera's: the same states as per step, to
+        rounding (the per-point arithmetic is the same; only the tensors' sizes differ).
         """
         n = len(dts)
         if len(bounds) != n + 1:
@@ -329,9 +334,11 @@ class VelocityKF(TrackFilter):
         if n and (b[0] < 0 or b[-1] > N or (np.diff(b) < 0).any()):
             raise ValueError(f"forward_run: row bounds must rise within [0, {N}], got {b}")
         backend = (self._single_track((uv, depth, flow, normal_only, *(float(dt) for dt in dts)))
-                   if n and self.camera.dist is None else None)
+                   if n else None)
         if backend is None or not backend.runs:
             return None
+        if self.camera.dist is not None:
+            uv, flow, normal_only = self._undistorted_rows(uv, flow, normal_only)
         buf = self._buffers
         rois = RoiRows(as_array(uv), as_array(depth), as_array(flow),
                        None if normal_only is None else as_bool_array(normal_only), None)
@@ -345,6 +352,20 @@ class VelocityKF(TrackFilter):
             self._store(twists[last:done].copy(), covs[last:done].copy(), refs[last:done].copy(),
                         *(int(v) for v in skipped[:done].sum(0)))
         return torch.from_numpy(twists[:done]).unsqueeze(1)
+
+    def _undistorted_rows(self, uv: Tensor, flow: Tensor, normal_only: Tensor | None
+                          ) -> tuple[Tensor, Tensor, Tensor]:
+        """The rows of :meth:`forward_run` in the ideal pinhole image: ``uv`` (N,2) px and
+        ``flow`` (N,2) px/s of the filter's dtype, mapped by
+        :func:`~evtrack.filters.interaction.undistort_flow` constraint for constraint, and
+        ``normal_only`` (N,) bool (``config.assume_normal`` where ``None``), as :meth:`update`
+        maps one step's."""
+        kw = {"dtype": self.twist.dtype, "device": self.twist.device}
+        if normal_only is None:
+            normal_only = torch.full((uv.shape[0],), self.config.assume_normal, dtype=torch.bool,
+                                     device=kw["device"])
+        uv, flow = undistort_flow(self.camera, uv.to(**kw), flow.to(**kw), normal_only)
+        return uv, flow, normal_only
 
     # ------------------------------------------------------------------ single track (B = 1)
     # Buffers are read from and written to ``_buffers`` directly: nn.Module's attribute

@@ -7,7 +7,6 @@ import pytest
 import torch
 from filter_helpers import CAM, F64, flows, run_rows
 
-from evtrack.camera import PinholeCamera
 from evtrack.filters import PoseTwistUKF, PoseUKF, PoseUKFConfig, VelocityKF, backends
 from evtrack.filters.backends import (
     AUTO,
@@ -127,9 +126,7 @@ def test_forward_run_declines_without_runs_and_checks_inputs() -> None:
     uv, depth, flow, normal = run_rows(g, [5, 5])
     args = ([1e-3, 1e-3], [0, 5, 10], uv, depth, flow, normal)
     declining = [VelocityKF(CAM, 2), VelocityKF(CAM, 1).to(torch.float32),
-                 VelocityKF(CAM, 1, fast_path=False),
-                 VelocityKF(PinholeCamera(500.0, 480.0, 330.0, 250.0, 640, 480,
-                                          dist=[0.1, 0.0, 0.0, 0.0, 0.0]), 1)]
+                 VelocityKF(CAM, 1, fast_path=False)]
     declining += [VelocityKF(CAM, 1, backend=b.name) for b in single_track_backends()
                   if not b.runs]
     for kf in declining:
