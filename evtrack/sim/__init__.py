@@ -11,7 +11,8 @@ Example:
     >>> stats = simulate(resolve_object("can"), SimConfig(duration=1.0), "out/can")
 
 Modules: :mod:`~evtrack.sim.config` (settings), :mod:`~evtrack.sim.objects` and
-:mod:`~evtrack.sim.textures` (objects), :mod:`~evtrack.sim.scene` and
+:mod:`~evtrack.sim.textures` (objects), :mod:`~evtrack.sim.plane` (planes, e.g. a static
+scene seen by a moving camera), :mod:`~evtrack.sim.scene` and
 :mod:`~evtrack.sim.renderer` (rendering), :mod:`~evtrack.sim.trajectory` (motion),
 :mod:`~evtrack.sim.esim` (events), :mod:`~evtrack.sim.frames` (RGB-D camera),
 :mod:`~evtrack.sim.groundtruth` (flow, pixel speeds), :mod:`~evtrack.sim.engine` (one
@@ -43,6 +44,7 @@ from evtrack.sim.objects import (
     procedural_object,
     resolve_object,
 )
+from evtrack.sim.plane import facing_pose, plane_facing_camera, plane_mesh, view_plane_size
 from evtrack.sim.renderer import Renderer, RenderOutput
 from evtrack.sim.trajectory import Trajectory, random_trajectory, static_trajectory
 
@@ -65,6 +67,7 @@ __all__ = [
     "TrajectoryConfig",
     "benchmark_entries",
     "event_flow",
+    "facing_pose",
     "load_config",
     "load_mesh",
     "log_intensity",
@@ -73,6 +76,8 @@ __all__ = [
     "make_box",
     "make_can",
     "pixel_speeds",
+    "plane_facing_camera",
+    "plane_mesh",
     "plot_speed_cdf",
     "point_flow",
     "procedural_object",
@@ -80,4 +85,5 @@ __all__ = [
     "resolve_object",
     "simulate",
     "static_trajectory",
+    "view_plane_size",
 ]
