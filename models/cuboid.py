@@ -64,13 +64,19 @@ class Cuboid:
     def from_mesh(cls, mesh: Any) -> Cuboid:
         """The axis-aligned bounding box of a mesh (a path trimesh can load, or a trimesh object).
 
+        A BOP model file (``obj_000005.ply`` beside a ``models_info.json``) is in millimetres
+        and gives its box in metres.
+
         Raises:
             ConfigError: when the file cannot be loaded or holds no geometry.
         """
         import trimesh
 
         source = mesh
+        scale = 1.0
         if isinstance(mesh, (str, Path)):
+            from evtrack.datasets.bop import MM, is_bop_model_file
+
             path = Path(mesh)
             if not path.is_file():
                 raise ConfigError(f"{path}: mesh file not found")
@@ -78,10 +84,11 @@ class Cuboid:
                 mesh = trimesh.load(path, force="scene")
             except Exception as exc:  # trimesh raises many types for bad files
                 raise ConfigError(f"{path}: cannot load mesh: {exc}") from exc
+            scale = MM if is_bop_model_file(path) else 1.0
         bounds = getattr(mesh, "bounds", None)
         if bounds is None or not np.all(np.isfinite(bounds)):
             raise ConfigError(f"{source}: mesh has no finite bounds (empty geometry?)")
-        lo, hi = np.asarray(bounds, dtype=np.float64)
+        lo, hi = np.asarray(bounds, dtype=np.float64) * scale
         return cls(tuple(hi - lo), tuple((hi + lo) / 2))
 
     @classmethod

@@ -6,7 +6,7 @@ same sample for the same index (seeded by the index), plus three attributes: ``o
 registered by kind with :func:`register_source`, so a YAML config picks one by name::
 
     data:
-      source: cuboid          # a registered kind: cuboid (OpenCV-drawn box), shards, sim, ...
+      source: cuboid          # a registered kind: cuboid (OpenCV-drawn box), shards, sim, bop
       options: {...}          # keyword options of that kind
 """
 
@@ -164,4 +164,4 @@ def build_source(kind: str, spec: SourceSpec) -> SampleSource:
 
 def _import_builtin_sources() -> None:
     # the built-in kinds register themselves on import
-    from evtrack.train import cuboid_source, shards, sim_source  # noqa: F401
+    from evtrack.train import bop_source, cuboid_source, shards, sim_source  # noqa: F401

@@ -52,7 +52,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--object", required=True,
                    help="a procedural object (no download): coded_box (the one the shipped "
                         "demo network knows), box, can or bottle; a YCB name such as "
-                        "003_cracker_box; or a mesh file (glTF/GLB/OBJ/PLY, metres)")
+                        "003_cracker_box; a mesh file (glTF/GLB/OBJ/PLY, metres); or a BOP "
+                        "model, in millimetres and scaled to metres: a file obj_000005.ply "
+                        "beside a models_info.json, or bop:MODELS_DIR:5")
     p.add_argument("--speed", choices=("regular", "faster"), default=None,
                    help="trajectory preset (default: regular, or the config's)")
     p.add_argument("--seed", type=int, default=None,

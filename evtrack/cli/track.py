@@ -54,6 +54,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default=None, help="torch device (overrides the config's)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads while tracking (default: the config's torch_threads)")
+    p.add_argument("--bop-results", type=Path, default=None, metavar="FILE.csv",
+                   help="also write the tracked poses at the sequence's images as a BOP "
+                        "challenge results CSV (scene_id,im_id,obj_id,score,R,t,time; t in mm), "
+                        "in the camera frame of the BOP ground truth; for a sequence imported "
+                        "from a BOP-layout dataset (evtrack import bop / ycbev)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -100,6 +105,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--out {args.out}: use a .csv, .h5 or .hdf5 file")
     check_writable(args.out, "--out")  # before the tracking, not after it
     seq = Sequence.load(args.sequence)
+    if args.bop_results is not None:
+        _check_bop_results(args.bop_results, seq)
     cfg = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     changes: dict = {k: v for k, v in (("method", args.method), ("device", args.device),
                                        ("torch_threads", args.threads)) if v}
@@ -110,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
     traj = tracker.track(seq, progress=not args.quiet)
     traj.save(args.out)
+    if args.bop_results is not None:
+        _write_bop_results(args.bop_results, traj, seq)
     st = tracker.stats
     print(f"{args.out}: {len(traj)} samples ({cfg.method}), {int(traj.tracked.sum())} tracking; "
           f"{st.events} events, {st.poses} poses ({st.poses_rejected} rejected), "
@@ -127,3 +136,23 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"error against ground truth: {tracking_errors(traj, seq.ground_truth)}")
     return 0
+
+
+def _check_bop_results(path: Path, seq) -> None:
+    """Before tracking: ``--bop-results`` is a writable ``.csv`` and the sequence has the BOP
+    record it needs."""
+    from evtrack.datasets.bop_results import bop_record
+
+    if path.suffix.lower() != ".csv":
+        raise ConfigError(f"--bop-results {path}: BOP results are a .csv file")
+    check_writable(path, "--bop-results")
+    bop_record(seq.meta)
+
+
+def _write_bop_results(path: Path, traj, seq) -> None:
+    from evtrack.datasets.bop_results import bop_record, sequence_bop_rows, write_bop_results
+
+    rows = sequence_bop_rows(traj, seq.meta)
+    write_bop_results(path, rows)
+    print(f"{path}: {len(rows)} BOP results for the {len(bop_record(seq.meta)['im_ids'])} "
+          "annotated images")

@@ -1,7 +1,8 @@
 """Textured objects for the simulator: meshes from files and seeded procedural objects.
 
-Object frame: a mesh loaded from a file keeps its axes and units (metres) but is recentred on
-its axis-aligned bounding-box centre unless ``recenter=False``; :attr:`ObjectMesh.offset`
+Object frame: a mesh loaded from a file keeps its axes and units (metres; a BOP model, in
+millimetres, is scaled to metres) but is recentred on its axis-aligned bounding-box centre
+unless ``recenter=False``; :attr:`ObjectMesh.offset`
 records the shift (``P_object = P_file - offset``). Procedural objects are built centred with
 ``y`` up (the axis of cans and bottles; the height of boxes) and ``z`` towards the front face.
 
@@ -127,22 +128,34 @@ def _srgb_u8_to_linear(c: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- files
 def load_mesh(path: str | Path, *, name: str | None = None, recenter: bool = True,
-              scale: float = 1.0) -> ObjectMesh:
+              scale: float | None = None) -> ObjectMesh:
     """Load a textured mesh (glTF/GLB, OBJ, PLY, ... anything trimesh reads).
+
+    A BOP model (``obj_000005.ply`` in a folder holding ``models_info.json``) is in
+    millimetres: without ``scale`` it is read as such (x 0.001) and checked against the
+    ``diameter`` of ``models_info.json`` (:mod:`evtrack.datasets.bop`).
 
     Args:
         path: mesh file. Scenes with several parts are merged into one mesh.
         name: object name; default: the file stem without ``_textured``.
         recenter: shift the object frame to the bounding-box centre.
-        scale: multiply coordinates (e.g. 0.001 for a mesh in millimetres).
+        scale: multiply coordinates (e.g. 0.001 for a mesh in millimetres); default 0.001
+            for a BOP model, else 1 (metres).
 
     Raises:
         MeshFileError: missing, unreadable or empty file, or a size outside 5 mm - 3 m (wrong
             units; use ``scale``).
+        EventFileError: a BOP model whose size disagrees with its ``models_info.json``.
     """
     path = Path(path)
     if not path.is_file():
         raise MeshFileError(path, "mesh file not found")
+    bop_model = False
+    if scale is None:
+        from evtrack.datasets.bop import MM, is_bop_model_file
+
+        bop_model = is_bop_model_file(path)
+        scale = MM if bop_model else 1.0
     try:
         loaded = trimesh.load(path, process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
@@ -165,6 +178,10 @@ def load_mesh(path: str | Path, *, name: str | None = None, recenter: bool = Tru
         raise MeshFileError(
             path, f"object size {size:.4g} (after scale={scale}) is outside "
                   f"{_SIZE_LIMITS_M[0]}-{_SIZE_LIMITS_M[1]} m: wrong units? pass scale=")
+    if bop_model:
+        from evtrack.datasets.bop import check_bop_model_size
+
+        check_bop_model_size(path, vertices)
     offset = (vertices.min(0) + vertices.max(0)) / 2.0 if recenter else np.zeros(3)
     texture, uv, colors = _visual_arrays(mesh)
     normals = np.asarray(mesh.vertex_normals, np.float32)
@@ -505,16 +522,26 @@ def resolve_object(spec: str, *, seed: int = 0, ycb_dir: str | Path | None = Non
 
     Args:
         spec: a procedural name (``box``, ``coded_box``, ``can``, ``bottle``), a YCB name
-            (``003_cracker_box`` or ``cracker_box``), or a mesh file path.
+            (``003_cracker_box`` or ``cracker_box``), a mesh file path, or a BOP model as
+            ``bop:MODELS_DIR:OBJ_ID``. A BOP model file (``.../obj_000005.ply`` beside a
+            ``models_info.json``) is read in millimetres (see :func:`load_mesh`).
         seed: texture seed of procedural objects.
         ycb_dir: folder of the YCB meshes (see :func:`find_ycb_dir`).
 
     Raises:
-        ConfigError: an unknown name, or a YCB name without a YCB folder.
+        ConfigError: an unknown name, a YCB name without a YCB folder, or a BOP spec without
+            such a model.
         MeshFileError: an unreadable mesh file.
     """
     if spec in PROCEDURAL_OBJECTS:
         return procedural_object(spec, seed)
+    if spec.startswith("bop:"):
+        from evtrack.datasets.bop import bop_model_file
+
+        folder, _, obj_id = spec[len("bop:"):].rpartition(":")
+        if not folder or not obj_id.isdigit():
+            raise ConfigError(f"object {spec!r}: expected bop:MODELS_DIR:OBJ_ID")
+        return load_mesh(bop_model_file(folder, int(obj_id)))
     path = Path(spec)
     if path.suffix and (path.is_file() or os.sep in spec or "/" in spec):
         return load_mesh(path)
