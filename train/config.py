@@ -47,7 +47,8 @@ class ObjectConfig(Config):
 
     Attributes:
         name: object name (stored with the weights; estimators report it).
-        mesh: mesh file (glTF, OBJ, PLY, ...); its bounding box gives the cuboid.
+        mesh: mesh file (glTF, OBJ, PLY, ...); its bounding box gives the cuboid. A BOP model
+            (``obj_000005.ply`` beside a ``models_info.json``) is read in millimetres.
         recenter: with a mesh, the object frame is the mesh's bounding-box-centred frame (the
             synthetic data engine's convention; poses are reported in it); ``false`` keeps
             the file's origin.
@@ -130,7 +131,8 @@ class DataConfig(Config):
     """Training and validation data.
 
     Attributes:
-        source: registered source kind for training samples (``cuboid``, ``shards``, ``sim``).
+        source: registered source kind for training samples (``cuboid``, ``shards``, ``sim``,
+            ``bop``).
         options: that source's options.
         val_source, val_options: the validation source (default: the same as training).
         train_samples, val_samples: samples per epoch / in the validation set.

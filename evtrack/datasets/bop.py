@@ -1,6 +1,7 @@
-"""Readers of the BOP layout (bop.felk.cvut.cz): scenes, their cameras and ground truth, models.
+"""Readers of the BOP layout of pose datasets: scenes, their cameras and ground truth, models.
 
-A BOP dataset holds one folder per scene and one folder of object models::
+A BOP dataset (https://bop.felk.cvut.cz) holds one folder per scene and one folder of object
+models::
 
     <split>/<scene_id:06d>/scene_camera.json   per image: cam_K (3x3, row-major list of 9),
                                                depth_scale (depth png value x scale = mm),
