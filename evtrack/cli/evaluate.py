@@ -1,4 +1,5 @@
-"""``evtrack evaluate``: every tracking method on a benchmark, tables like the paper's, plots."""
+"""``evtrack evaluate``: every tracking method on a benchmark, tables like the paper's (with the
+ADD / ADD-S AUC and the 5 cm / 5° share beside the RMSE), plots."""
 
 from __future__ import annotations
 
@@ -14,7 +15,12 @@ DESCRIPTION = """\
 Track every sequence of a benchmark with each method and compare the trajectories with the
 ground truth: RMSE ± σ of the position (cm, Euclidean) and of the rotation (deg, geodesic) per
 sequence, per speed and averaged, printed like the paper's Tables I-II (and Table III with
---ablation) and saved as results.md and results.csv. Also writes every trajectory
+--ablation) and saved as results.md and results.csv. Beside them, the pose accuracy as 6-DoF
+trackers report it: the ADD AUC and the ADD-S AUC (%, thresholds up to 10 % of the object's
+diameter; ADD-S forgives the object's symmetries) and the share of samples within 5 cm and 5°
+at once (%), over every ground-truth sample, those before the first pose or while lost
+counting as failures (a table of their own per sequence, and columns of Tables II-III and of
+results.csv; '—' where a sequence has no mesh). Also writes every trajectory
 (trajectories/<sequence>/<run>.h5), the tracking curves and the error against pixel velocity
 and the pixel-velocity CDF (plots/), a manifest (results.yaml) and, with --video, an overlay
 video per sequence (videos/).
@@ -47,7 +53,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from evtrack.tracking.config import METHODS
 
     p = subparsers.add_parser(
-        "evaluate", help="every method on a benchmark: error tables, plots, videos",
+        "evaluate", help="every method on a benchmark: error and ADD(-S) AUC tables, plots, "
+                         "videos",
         description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--benchmark", type=Path, required=True, metavar="DIR",

@@ -3,7 +3,9 @@
 Each (sequence, run) pair is independent: a fresh :class:`~evtrack.Tracker` with a fresh pose
 source built from the same :class:`~evtrack.eval.pose_setup.PoseSourceSpec` (same seed), so
 every method sees the same pose measurements and results do not depend on the order or on how
-many worker processes run them. Each trajectory is saved as
+many worker processes run them. Each trajectory is measured twice: RMSE and σ of its tracked
+samples (:func:`~evtrack.eval.metrics.tracking_errors`), and the ADD / ADD-S AUC and 5 cm / 5°
+share of all its samples (:func:`~evtrack.eval.pose_auc.sequence_pose_scores`). It is saved as
 ``<out>/trajectories/<sequence>/<run>.h5`` (:meth:`~evtrack.Trajectory.save`), so plots and
 tables can be redone without tracking again.
 """
@@ -18,6 +20,7 @@ from typing import Any
 
 from evtrack.errors import ConfigError
 from evtrack.eval.metrics import TrackingErrors, tracking_errors
+from evtrack.eval.pose_auc import PoseScores, sequence_pose_scores
 from evtrack.eval.pose_setup import PoseSourceSpec, make_pose_source
 from evtrack.eval.sequences import BenchmarkSequence
 from evtrack.tracking.config import METHODS, TrackerConfig
@@ -107,6 +110,8 @@ class RunResult:
         seconds: wall time of the tracking, seconds.
         cpu_seconds: CPU time of the tracking process meanwhile, seconds.
         stats: the tracker's counters (:class:`~evtrack.tracking.tracker.TrackerStats` as a dict).
+        scores: ADD / ADD-S AUC (%) and 5 cm / 5° share (%) over all samples, the untracked
+            ones failing (:class:`~evtrack.eval.pose_auc.PoseScores`); ``None``: not measured.
     """
 
     sequence: str
@@ -119,6 +124,7 @@ class RunResult:
     seconds: float
     cpu_seconds: float = 0.0
     stats: dict[str, Any] = field(default_factory=dict)
+    scores: PoseScores | None = None
 
 
 def trajectory_path(out_dir: str | Path, sequence: BenchmarkSequence, run: str) -> Path:
@@ -129,7 +135,8 @@ def trajectory_path(out_dir: str | Path, sequence: BenchmarkSequence, run: str) 
 def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
             pose: PoseSourceSpec, weights: Path | None, out_dir: str | Path,
             torch_threads: int | None = None) -> RunResult:
-    """Track ``sequence`` with one run, save the trajectory, measure its errors."""
+    """Track ``sequence`` with one run, save the trajectory, measure its errors and scores
+    (the scores' nearest-point queries use the run's torch threads)."""
     from evtrack.tracking.tracker import Tracker
 
     seq = sequence.load()
@@ -142,9 +149,10 @@ def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
     traj.meta.update({"sequence": sequence.name, "run": spec.name, "pose_source": pose.label})
     path = trajectory_path(out_dir, sequence, spec.name)
     traj.save(path)
+    scores = sequence_pose_scores(traj, seq, workers=threads_per_job(cfg.torch_threads))
     return RunResult(sequence.name, sequence.object_name, sequence.speed, spec.name, spec.method,
                      tracking_errors(traj, seq.ground_truth), path, seconds, cpu,
-                     tracker.stats.to_dict())
+                     tracker.stats.to_dict(), scores)
 
 
 def _run_job(args: tuple) -> RunResult:

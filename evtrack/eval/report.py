@@ -4,7 +4,8 @@ Layout of ``<out>``::
 
     results.md, results.csv          tables (evtrack.eval.tables)
     results.yaml                     manifest: pose source, tracker config, sequences, runs,
-                                     per-run errors, timings and counters, trajectory files
+                                     per-run errors, pose scores (ADD / ADD-S AUC, 5 cm / 5°),
+                                     timings and counters, trajectory files
     trajectories/<sequence>/<run>.h5 every trajectory (evtrack.Trajectory.load)
     plots/<sequence>_tracking.png    tracking curves against ground truth
     plots/error_vs_pixel_velocity.png
@@ -69,7 +70,9 @@ def write_manifest(path: Path, results: Sequence[RunResult],
                   "overrides": r.overrides} for r in runs],
         "results": [{
             "sequence": r.sequence, "run": r.run, "method": r.method,
-            "errors": r.errors.to_dict(), "trajectory": _rel(r.trajectory, root),
+            "errors": r.errors.to_dict(),
+            "pose_scores": r.scores.to_dict() if r.scores is not None else None,
+            "trajectory": _rel(r.trajectory, root),
             "seconds": round(r.seconds, 3), "cpu_seconds": round(r.cpu_seconds, 3),
             "counters": {k: v for k, v in r.stats.items() if k != "time_s"},
         } for r in results],

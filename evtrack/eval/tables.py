@@ -1,20 +1,29 @@
 """Benchmark tables like the method paper's Tables I–III, as Markdown and CSV.
 
 Input: one entry per (sequence, run) with the attributes ``sequence``, ``object_name``,
-``speed``, ``run`` and ``errors`` (:class:`~evtrack.eval.metrics.TrackingErrors`), e.g.
-:class:`~evtrack.eval.benchmark.RunResult`.
+``speed``, ``run``, ``errors`` (:class:`~evtrack.eval.metrics.TrackingErrors`) and, optionally,
+``scores`` (:class:`~evtrack.eval.pose_auc.PoseScores`; an entry without it, or with ``None``,
+shows ``—`` there), e.g. :class:`~evtrack.eval.benchmark.RunResult`.
 
 * Table I: rows = sequences (object x speed), then averages per speed and over all sequences;
   columns = runs; cells ``RMSE ± σ`` of the position error (cm) and the rotation error (deg).
 * Tracked samples: the share of each trajectory the RMSE is taken over (the rest is before the
   first pose or while the object was lost).
-* Table II: the averages only (rows = runs, columns = speeds).
-* Table III (ablation): the full method against its ablations, averaged.
+* Pose accuracy: rows as Table I, with the object's diameter ``d`` (cm); per run the ADD AUC
+  and the ADD-S AUC (%, thresholds from 0 to 10 % of ``d``) and the share of samples within
+  5 cm and 5° (%), over every ground-truth sample of each sequence, the untracked ones failing
+  (:mod:`evtrack.eval.pose_auc`). Then one line per sequence whose scores could not be
+  computed, saying why.
+* Table II: the averages only (rows = runs, columns = speeds): the RMSEs, then the ADD AUC,
+  ADD-S AUC and 5 cm / 5° share per speed.
+* Table III (ablation): the full method against its ablations, averaged, as Table II.
 
 Conventions: σ is the population standard deviation of a sequence's per-sample errors
 (:func:`~evtrack.eval.metrics.error_summary`). An average is the arithmetic mean of the
 per-sequence RMSEs (the paper's Table II averages them this way) and of the per-sequence σs;
-it is undefined (``—``, NaN in the CSV) when any of its sequences has no tracked sample.
+it is undefined (``—``, NaN in the CSV) when any of its sequences has no tracked sample. The
+averages of the AUCs and of the 5 cm / 5° share are the means of the per-sequence values too,
+undefined when any of its sequences has none (no mesh); a sequence tracked nowhere scores 0.
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ from pathlib import Path
 from typing import Protocol
 
 from evtrack.eval.metrics import TrackingErrors
+from evtrack.eval.pose_auc import PoseScores
 from evtrack.eval.sequences import SPEEDS
 
 __all__ = ["ErrorEntry", "Cell", "AverageRow", "average_rows", "markdown_tables", "csv_table",
@@ -38,11 +48,15 @@ ALL = "all"
 
 CSV_COLUMNS = ("table", "sequence", "object", "speed", "run", "label", "position_rmse_cm",
                "position_std_cm", "rotation_rmse_deg", "rotation_std_deg", "samples", "total",
-               "tracked_fraction", "sequences")
+               "tracked_fraction", "sequences", "add_auc_pct", "adds_auc_pct",
+               "within_5cm_5deg_pct", "diameter_cm")
+"""Columns of ``results.csv``: ``*_pct`` are the ADD / ADD-S AUC and the 5 cm / 5° share (%);
+``diameter_cm`` is the object's diameter (NaN in the average rows)."""
 
 
 class ErrorEntry(Protocol):
-    """What the tables read from each (sequence, run) result."""
+    """What the tables read from each (sequence, run) result (and ``scores``, a
+    :class:`~evtrack.eval.pose_auc.PoseScores` or ``None``, where the entry has it)."""
 
     sequence: str
     object_name: str
@@ -73,6 +87,8 @@ class AverageRow:
         position, rotation: mean RMSE and mean σ (cm, deg).
         samples, total: tracked and all samples summed over the group.
         sequences: sequences averaged.
+        add_auc, adds_auc, within_5cm_5deg: means of the per-sequence ADD AUC, ADD-S AUC and
+            5 cm / 5° share (%), NaN where a sequence has none.
     """
 
     run: str
@@ -82,6 +98,9 @@ class AverageRow:
     samples: int
     total: int
     sequences: int
+    add_auc: float = math.nan
+    adds_auc: float = math.nan
+    within_5cm_5deg: float = math.nan
 
 
 def _speed_groups(entries: Sequence[ErrorEntry]) -> list[str]:
@@ -97,13 +116,27 @@ def _mean(values: list[float]) -> float:
     return sum(values) / len(values)
 
 
+def _scores(entry: ErrorEntry) -> PoseScores | None:
+    return getattr(entry, "scores", None)
+
+
+def _score_values(entry: ErrorEntry) -> tuple[float, float, float]:
+    """(ADD AUC, ADD-S AUC, 5 cm / 5° share) in %, NaN where not measured."""
+    s = _scores(entry)
+    if s is None:
+        return math.nan, math.nan, math.nan
+    return s.add_auc, s.adds_auc, s.within_5cm_5deg
+
+
 def _average(run: str, speed: str, group: list[ErrorEntry]) -> AverageRow:
     errs = [e.errors for e in group]
+    add, adds, within = zip(*(_score_values(e) for e in group), strict=True)
     return AverageRow(
         run, speed,
         Cell(_mean([x.position_rmse_cm for x in errs]), _mean([x.position_std_cm for x in errs])),
         Cell(_mean([x.rotation_rmse_deg for x in errs]), _mean([x.rotation_std_deg for x in errs])),
-        sum(x.samples for x in errs), sum(x.total for x in errs), len(errs))
+        sum(x.samples for x in errs), sum(x.total for x in errs), len(errs),
+        _mean(list(add)), _mean(list(adds)), _mean(list(within)))
 
 
 def average_rows(entries: Sequence[ErrorEntry], runs: Sequence[str]) -> list[AverageRow]:
@@ -185,17 +218,69 @@ def _tracked_table(entries, runs, labels) -> list[str]:
     return lines
 
 
+def _percent(value: float) -> str:
+    return f"{value:.1f}" if math.isfinite(value) else "—"
+
+
+_SCORE_HEADS = ("ADD", "ADD-S", "5cm/5°")
+"""Column heads of the pose-accuracy cells: ADD AUC, ADD-S AUC (%), share within 5 cm and
+5° (%)."""
+
+
+def _pose_table(entries, runs, labels, avgs) -> list[str]:
+    """Rows as Table I; per run ADD AUC, ADD-S AUC, 5 cm / 5° (%); then why any is missing."""
+    seqs = _sequences(entries)
+    objects = _object_labels(seqs)
+    by_key = {(e.sequence, e.run): e for e in entries}
+    head = ["object", "speed", "d (cm)"]
+    for run in runs:
+        head += [f"{labels[run]} {h}" for h in _SCORE_HEADS]
+    lines = _md_header(head, [":--", ":--", "--:"] + ["--:"] * (3 * len(runs)))
+    notes: dict[str, str] = {}
+    for name, _, speed in seqs:
+        mine = [by_key[(name, run)] for run in runs if (name, run) in by_key]
+        diameters = [s.diameter_m for s in map(_scores, mine)
+                     if s is not None and math.isfinite(s.diameter_m)]
+        cells = [objects[name], speed or "?",
+                 f"{100 * diameters[0]:.1f}" if diameters else "—"]
+        for run in runs:
+            e = by_key.get((name, run))
+            cells += ["", "", ""] if e is None else [_percent(v) for v in _score_values(e)]
+            scores = _scores(e) if e is not None else None
+            if scores is not None and scores.note:
+                notes.setdefault(name, scores.note)
+        lines.append(_md_row(cells))
+    by_avg = {(a.run, a.speed): a for a in avgs}
+    for speed in [*_speed_groups(entries), ALL]:
+        cells = ["**average**", speed or "?", ""]
+        for run in runs:
+            a = by_avg.get((run, speed))
+            cells += ["", "", ""] if a is None else [
+                _percent(a.add_auc), _percent(a.adds_auc), _percent(a.within_5cm_5deg)]
+        lines.append(_md_row(cells))
+    if notes:
+        lines += [""] + [f"— {name}: not computed, {note}." for name, note in notes.items()]
+    return lines
+
+
 def _average_table(avgs, runs, labels, groups) -> list[str]:
+    """Rows = runs; the RMSE cells per group, then the pose-accuracy cells per group."""
     by_avg = {(a.run, a.speed): a for a in avgs}
     head = ["run"]
     for g in groups:
         head += [f"{g} e_p (cm)", f"{g} e_r (deg)"]
-    lines = _md_header(head, [":--"] + ["--:"] * (2 * len(groups)))
+    for g in groups:
+        head += [f"{g} {h}" for h in _SCORE_HEADS]
+    lines = _md_header(head, [":--"] + ["--:"] * (5 * len(groups)))
     for run in runs:
         cells = [labels[run]]
         for g in groups:
             a = by_avg.get((run, g))
             cells += ["", ""] if a is None else [a.position.text(), a.rotation.text()]
+        for g in groups:
+            a = by_avg.get((run, g))
+            cells += ["", "", ""] if a is None else [
+                _percent(a.add_auc), _percent(a.adds_auc), _percent(a.within_5cm_5deg)]
         lines.append(_md_row(cells))
     return lines
 
@@ -203,7 +288,7 @@ def _average_table(avgs, runs, labels, groups) -> list[str]:
 def markdown_tables(entries: Sequence[ErrorEntry], methods: Sequence[str],
                     labels: dict[str, str] | None = None, ablations: Sequence[str] = (),
                     caption: str = "") -> str:
-    """Tables I, tracked samples, II and (with ``ablations``) III as Markdown.
+    """Tables I, tracked samples, pose accuracy, II and (with ``ablations``) III as Markdown.
 
     Args:
         entries: one per (sequence, run).
@@ -227,6 +312,16 @@ def markdown_tables(entries: Sequence[ErrorEntry], methods: Sequence[str],
     out += _table_one(entries, list(methods), labels, avgs) + [""]
     out += ["## Tracked samples (share of each trajectory in the RMSE)", ""]
     out += _tracked_table(entries, list(methods), labels) + [""]
+    out += ["## Pose accuracy per sequence: ADD / ADD-S AUC (%, up to 10 % of the diameter) "
+            "and 5 cm / 5° (%)", ""]
+    out += ["Over every ground-truth sample of each sequence, scored with the tracker's "
+            "latest output; those without an estimate (before the first pose, lost) fail. "
+            "ADD: mean distance of the mesh's points under the "
+            "estimated and the true pose; ADD-S: from each true point to the nearest "
+            "estimated one, the fair score for symmetric objects. AUC: area under the "
+            "accuracy over thresholds 0 to 0.1 d (d: the object's diameter). 5cm/5°: share "
+            "within 5 cm and 5° at once. Higher is better.", ""]
+    out += _pose_table(entries, list(methods), labels, avgs) + [""]
     out += ["## Table II: average tracking error", ""]
     out += _average_table(avgs, list(methods), labels, groups) + [""]
     if ablations:
@@ -243,7 +338,9 @@ def csv_table(entries: Sequence[ErrorEntry], runs: Sequence[str],
               labels: dict[str, str] | None = None) -> str:
     """Long-format CSV: one row per (sequence, run), then one per (run, speed group) average.
 
-    Columns: :data:`CSV_COLUMNS`; ``table`` is ``sequence`` or ``average``.
+    Columns: :data:`CSV_COLUMNS`; ``table`` is ``sequence`` or ``average``. The pose
+    accuracy (``add_auc_pct``, ``adds_auc_pct``, ``within_5cm_5deg_pct``) is NaN where not
+    measured.
     """
     labels = {**{e.run: e.run for e in entries}, **(labels or {})}
     buf = io.StringIO()
@@ -251,16 +348,19 @@ def csv_table(entries: Sequence[ErrorEntry], runs: Sequence[str],
     writer.writerow(CSV_COLUMNS)
     order = {r: i for i, r in enumerate(runs)}
     for e in sorted((e for e in entries if e.run in order), key=lambda e: order[e.run]):
-        x = e.errors
+        x, scores = e.errors, _scores(e)
+        diameter_cm = 100 * scores.diameter_m if scores is not None else math.nan
         writer.writerow(["sequence", e.sequence, e.object_name, e.speed, e.run, labels[e.run],
                          _num(x.position_rmse_cm), _num(x.position_std_cm),
                          _num(x.rotation_rmse_deg), _num(x.rotation_std_deg), x.samples,
-                         x.total, _num(x.tracked_fraction), 1])
+                         x.total, _num(x.tracked_fraction), 1,
+                         *(_num(v) for v in _score_values(e)), _num(diameter_cm)])
     for a in average_rows(entries, list(runs)):
         frac = a.samples / a.total if a.total else math.nan
         writer.writerow(["average", "", ALL, a.speed, a.run, labels[a.run],
                          _num(a.position.rmse), _num(a.position.std), _num(a.rotation.rmse),
-                         _num(a.rotation.std), a.samples, a.total, _num(frac), a.sequences])
+                         _num(a.rotation.std), a.samples, a.total, _num(frac), a.sequences,
+                         _num(a.add_auc), _num(a.adds_auc), _num(a.within_5cm_5deg), "nan"])
     return buf.getvalue()
 
 

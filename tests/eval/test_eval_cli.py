@@ -80,6 +80,53 @@ def test_evaluate_numbers_match_an_independent_computation(evaluated, tiny_bench
             np.mean([x["rotation_std_deg"] for x in refs]), rel=1e-6)
 
 
+def test_evaluate_pose_scores_match_an_independent_computation(evaluated, tiny_benchmark):
+    """ADD / ADD-S AUC and 5 cm / 5° per sequence from the one-pose functions, every
+    ground-truth sample scored with the latest trajectory sample (untracked: a failure)."""
+    from scipy.spatial.transform import Rotation
+
+    from evtrack.eval.pose_metrics import add_distance, adds_distance, object_diameter
+    from evtrack.sim.objects import load_mesh
+
+    rows = rows_of(evaluated / "results.csv")
+    manifest = yaml.safe_load((evaluated / "results.yaml").read_text())
+    listed = {(r["sequence"], r["run"]): r["pose_scores"] for r in manifest["results"]}
+    positive = 0
+    for r in (r for r in rows if r["table"] == "sequence"):
+        seq = Sequence.load(tiny_benchmark / r["sequence"])
+        traj = Trajectory.load(evaluated / "trajectories" / r["sequence"] / f"{r['run']}.h5")
+        points = load_mesh(seq.mesh_file, recenter=False).vertices.astype(np.float64)
+        assert len(points) <= 2000  # all of them: no subsampling
+        tau = 0.1 * object_diameter(points)
+        gt = seq.ground_truth
+        t_traj, status = traj.t_us.numpy(), traj.status.numpy()
+        add, adds, ok = [], [], []
+        for t, T_true in zip(gt.pose_t_us.numpy(), gt.poses.numpy(), strict=True):
+            k = np.searchsorted(t_traj, t, side="right") - 1
+            if k < 0 or status[k] != 1:
+                add.append(np.inf), adds.append(np.inf), ok.append(False)
+                continue
+            T = traj.poses.numpy()[k]
+            add.append(add_distance(T, T_true, points))
+            adds.append(adds_distance(T, T_true, points))
+            angle = np.rad2deg(Rotation.from_matrix(T_true[:3, :3].T @ T[:3, :3]).magnitude())
+            ok.append(np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.05 and angle < 5.0)
+        add_auc = 100 * np.mean(np.clip(1 - np.asarray(add) / tau, 0, 1))
+        adds_auc = 100 * np.mean(np.clip(1 - np.asarray(adds) / tau, 0, 1))
+        assert float(r["add_auc_pct"]) <= float(r["adds_auc_pct"]) + 1e-9 < 100
+        positive += float(r["adds_auc_pct"]) > 0
+        assert float(r["add_auc_pct"]) == pytest.approx(add_auc, rel=1e-6)
+        assert float(r["adds_auc_pct"]) == pytest.approx(adds_auc, rel=1e-6)
+        assert float(r["within_5cm_5deg_pct"]) == pytest.approx(100 * np.mean(ok), rel=1e-9)
+        assert float(r["diameter_cm"]) == pytest.approx(1000 * tau)
+        scores = listed[(r["sequence"], r["run"])]
+        assert scores["samples"] == len(gt.pose_t_us) and scores["note"] == ""
+        assert scores["add_auc"] == pytest.approx(add_auc, rel=1e-6)
+    assert positive >= 4  # most runs score above 0: the comparison is not of zeros
+    text = (evaluated / "results.md").read_text()
+    assert "## Pose accuracy per sequence: ADD / ADD-S AUC" in text
+
+
 def test_each_run_is_reproducible_on_its_own(evaluated, tiny_benchmark, tiny_tracker_yaml,
                                              tmp_path):
     """The pose run alone (same oracle seed) gives the trajectory it gave among the others."""
@@ -203,7 +250,7 @@ def test_help_explains(capsys):
         main(["evaluate", "--help"])
     text = capsys.readouterr().out
     for word in ("--benchmark", "--ablation", "--oracle", "--weights-dir", "RMSE", "ORACLE",
-                 "results.csv", "--jobs"):
+                 "results.csv", "--jobs", "ADD-S AUC", "5 cm"):
         assert word in text
 
 

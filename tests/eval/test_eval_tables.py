@@ -12,7 +12,15 @@ import pytest
 import torch
 
 from evtrack.eval.metrics import TrackingErrors, error_summary
-from evtrack.eval.tables import Cell, average_rows, csv_table, markdown_tables, write_tables
+from evtrack.eval.pose_auc import PoseScores
+from evtrack.eval.tables import (
+    CSV_COLUMNS,
+    Cell,
+    average_rows,
+    csv_table,
+    markdown_tables,
+    write_tables,
+)
 
 
 @dataclass
@@ -22,6 +30,7 @@ class Entry:
     speed: str
     run: str
     errors: TrackingErrors
+    scores: PoseScores | None = None
 
 
 SEQUENCES = [("obj_a_regular", "obj_a", "regular"), ("obj_a_faster", "obj_a", "faster"),
@@ -163,3 +172,102 @@ def test_write_tables_writes_both_files(tmp_path):
     rows = read_csv((tmp_path / "res" / "results.csv").read_text())
     assert {r["run"] for r in rows} == {"full", "pose", "full-no-weighting"}
     assert not [p for p in (tmp_path / "res").iterdir() if p.name.startswith(".")]
+
+
+def with_scores(entries, seed: int = 0):
+    """The entries with random pose scores; the scores per (sequence, run)."""
+    rng = np.random.default_rng(seed)
+    out, scores = [], {}
+    for e in entries:
+        add, adds, within = rng.uniform(0, 100, 3)
+        diameter = {"obj_a": 0.2, "obj_b": 0.12}[e.object_name]
+        s = PoseScores(add, max(add, adds), within, diameter, e.errors.total, e.errors.samples,
+                       500)
+        out.append(Entry(e.sequence, e.object_name, e.speed, e.run, e.errors, s))
+        scores[(e.sequence, e.run)] = s
+    return out, scores
+
+
+def cells_of(line: str) -> list[str]:
+    return [c.strip() for c in line.strip("|").split("|")]
+
+
+def test_csv_carries_the_pose_scores_and_their_averages():
+    entries, scores = with_scores(make_entries()[0])
+    rows = read_csv(csv_table(entries, RUNS))
+    assert tuple(rows[0]) == CSV_COLUMNS
+    assert list(CSV_COLUMNS[-4:]) == ["add_auc_pct", "adds_auc_pct", "within_5cm_5deg_pct",
+                                      "diameter_cm"]
+    for r in (r for r in rows if r["table"] == "sequence"):
+        s = scores[(r["sequence"], r["run"])]
+        assert float(r["add_auc_pct"]) == pytest.approx(s.add_auc)
+        assert float(r["adds_auc_pct"]) == pytest.approx(s.adds_auc)
+        assert float(r["within_5cm_5deg_pct"]) == pytest.approx(s.within_5cm_5deg)
+        assert float(r["diameter_cm"]) == pytest.approx(100 * s.diameter_m)
+    for r in (r for r in rows if r["table"] == "average"):
+        names = [n for n, _, sp in SEQUENCES if r["speed"] in ("all", sp)]
+        mine = [scores[(n, r["run"])] for n in names]
+        assert float(r["add_auc_pct"]) == pytest.approx(np.mean([s.add_auc for s in mine]))
+        assert float(r["adds_auc_pct"]) == pytest.approx(np.mean([s.adds_auc for s in mine]))
+        assert float(r["within_5cm_5deg_pct"]) == pytest.approx(
+            np.mean([s.within_5cm_5deg for s in mine]))
+        assert r["diameter_cm"] == "nan"
+    # entries without scores: NaN there, the RMSE columns as before
+    plain = read_csv(csv_table(make_entries()[0], RUNS))
+    assert all(r["add_auc_pct"] == "nan" for r in plain)
+    for a, b in zip(plain, rows, strict=True):
+        assert [a[c] for c in CSV_COLUMNS[:14]] == [b[c] for c in CSV_COLUMNS[:14]]
+
+
+def test_markdown_pose_accuracy_table_and_average_columns():
+    entries, scores = with_scores(make_entries(2)[0], seed=1)
+    plain = markdown_tables(make_entries(2)[0], ["full", "pose"], {"full": "Ours (OF)"},
+                            ablations=["full-no-weighting"])
+    text = markdown_tables(entries, ["full", "pose"], {"full": "Ours (OF)"},
+                           ablations=["full-no-weighting"])
+    section = text.split("## Pose accuracy")[1].split("## Table II")[0]
+    assert "up to 10 % of the diameter" in section and "5 cm / 5°" in section
+    lines = section.splitlines()
+    head = cells_of(next(ln for ln in lines if ln.startswith("| object")))
+    assert head == ["object", "speed", "d (cm)", "Ours (OF) ADD", "Ours (OF) ADD-S",
+                    "Ours (OF) 5cm/5°", "pose ADD", "pose ADD-S", "pose 5cm/5°"]
+    row = cells_of(next(ln for ln in lines if ln.startswith("| obj_b | faster")))
+    s = scores[("obj_b_faster", "full")]
+    q = scores[("obj_b_faster", "pose")]
+    assert row[2:] == ["12.0", f"{s.add_auc:.1f}", f"{s.adds_auc:.1f}",
+                       f"{s.within_5cm_5deg:.1f}", f"{q.add_auc:.1f}", f"{q.adds_auc:.1f}",
+                       f"{q.within_5cm_5deg:.1f}"]
+    row = cells_of(next(ln for ln in lines if ln.startswith("| **average** | all")))
+    assert row[3] == f"{np.mean([scores[(n, 'full')].add_auc for n, _, _ in SEQUENCES]):.1f}"
+    # Table II and III: the RMSE columns as without scores, then the scores per speed group
+    for title in ("## Table II", "## Table III"):
+        new = text.split(title)[1].split("\n## ")[0].splitlines()
+        old = plain.split(title)[1].split("\n## ")[0].splitlines()
+        groups = ("regular", "faster", "all")
+        head = cells_of(next(ln for ln in new if ln.startswith("| run")))
+        assert head == ["run", *[f"{g} {e}" for g in groups for e in ("e_p (cm)", "e_r (deg)")],
+                        *[f"{g} {h}" for g in groups for h in ("ADD", "ADD-S", "5cm/5°")]]
+        new_full = cells_of(next(ln for ln in new if ln.startswith("| Ours (OF)")))
+        old_full = cells_of(next(ln for ln in old if ln.startswith("| Ours (OF)")))
+        assert new_full[:7] == old_full[:7] and old_full[7:] == ["—"] * 9
+        all_add = np.mean([scores[(n, "full")].adds_auc for n, _, _ in SEQUENCES])
+        assert new_full[-2] == f"{all_add:.1f}"
+    # the tables before the new one are unchanged
+    assert text.split("## Pose accuracy")[0] == plain.split("## Pose accuracy")[0]
+
+
+def test_missing_scores_show_a_dash_and_the_reason_once():
+    entries, _ = with_scores(make_entries()[0])
+    note = "the sequence names no object mesh (meta.yaml object.mesh)"
+    entries = [Entry(e.sequence, e.object_name, e.speed, e.run, e.errors,
+                     PoseScores.unavailable(e.errors.total, note))
+               if e.sequence == "obj_a_faster" else e for e in entries]
+    text = markdown_tables(entries, ["full", "pose"])
+    section = text.split("## Pose accuracy")[1].split("## Table II")[0]
+    row = cells_of(next(ln for ln in section.splitlines() if ln.startswith("| obj_a | faster")))
+    assert row[2:] == ["—"] * 7
+    assert section.count(note) == 1 and "obj_a_faster" in section
+    avgs = {(a.run, a.speed): a for a in average_rows(entries, RUNS)}
+    assert math.isnan(avgs[("full", "faster")].add_auc)
+    assert math.isnan(avgs[("full", "all")].within_5cm_5deg)
+    assert math.isfinite(avgs[("full", "regular")].adds_auc)

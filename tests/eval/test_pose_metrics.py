@@ -9,7 +9,9 @@ import pytest
 
 from evtrack.eval.pose_metrics import (
     add_distance,
+    add_distances,
     adds_distance,
+    adds_distances,
     object_diameter,
     pooled_rate_interval,
     pose_accuracy,
@@ -37,6 +39,21 @@ def test_add_and_adds_match_brute_force():
         assert adds_distance(A, B, pts) == pytest.approx(brute)
 
 
+def test_batched_add_and_adds_match_the_one_pose_functions():
+    """More poses than one chunk (256), so the chunks are joined too."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.05, 0.05, (40, 3))
+    A = np.stack([random_pose(rng) for _ in range(300)])
+    B = np.stack([random_pose(rng, 0.1) for _ in range(300)])
+    np.testing.assert_allclose(add_distances(A, B, pts),
+                               [add_distance(a, b, pts) for a, b in zip(A, B, strict=True)],
+                               rtol=1e-12)
+    np.testing.assert_allclose(adds_distances(A, B, pts, workers=2),
+                               [adds_distance(a, b, pts) for a, b in zip(A, B, strict=True)],
+                               rtol=1e-9, atol=1e-15)
+    assert add_distances(A[:0], B[:0], pts).shape == (0,)
+
+
 def test_adds_is_zero_under_a_symmetry():
     # a square's corners: rotating by 90 degrees about z maps the set onto itself
     pts = np.array([[1, 1, 0], [-1, 1, 0], [-1, -1, 0], [1, -1, 0]], float) * 0.05
@@ -52,6 +69,16 @@ def test_diameter_matches_all_pairs():
     pts = rng.normal(size=(200, 3))
     brute = max(np.linalg.norm(a - b) for a, b in itertools.combinations(pts, 2))
     assert object_diameter(pts) == pytest.approx(brute)
+
+
+def test_diameter_of_a_large_hull_matches_all_pairs():
+    """Every point on the hull (a sphere), more of them than one chunk of rows."""
+    from scipy.spatial.distance import pdist
+
+    rng = np.random.default_rng(4)
+    pts = rng.normal(size=(700, 3))
+    pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+    assert object_diameter(pts) == pytest.approx(pdist(pts).max())
 
 
 def test_pose_accuracy_counts_missed_detections_as_failures():
