@@ -33,6 +33,7 @@ from typing import Any, ClassVar
 
 from evtrack import configs
 from evtrack.configs import Config, FieldError, setting
+from evtrack.denoise import DenoiseConfig
 from evtrack.errors import ConfigError
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig, VelocityKFConfig
 from evtrack.flow.config import FlowConfig
@@ -274,6 +275,10 @@ class TrackerConfig(Config):
             search budgets, real-time load control.
         remeasure: the steps before the first pose
             (:class:`~evtrack.tracking.config_sections.RemeasureConfig`).
+        denoise: sensor noise removed from the events as they are pushed, before the gate and
+            the flow (:class:`~evtrack.denoise.DenoiseConfig`: a background-activity filter,
+            hot pixels; off by default), counted in ``TrackerStats.events_denoised``,
+            ``events_on_hot_pixels`` and ``hot_pixels``. Only for the methods that use events.
         flow: the event optical flow (:class:`~evtrack.flow.FlowConfig`); ``velocity_step_us`` must
             be a multiple of ``flow.window_us``. The tracker's defaults differ from the flow's: 1 ms
             windows, 12 px RoIs, Eq. 3 over 16 hypotheses from 32 events, triplets over at most 40
@@ -354,6 +359,7 @@ class TrackerConfig(Config):
     depth_fusion: DepthFusionConfig = field(default_factory=DepthFusionConfig)
     load: LoadConfig = field(default_factory=LoadConfig)
     remeasure: RemeasureConfig = field(default_factory=RemeasureConfig)
+    denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
     flow: FlowConfig = field(default_factory=_tracker_flow_defaults)
     velocity_kf: VelocityKFConfig = field(default_factory=VelocityKFConfig)
     pose_ukf: PoseUKFConfig = field(default_factory=_pose_ukf_defaults)

@@ -1,5 +1,8 @@
 """The event gate: which of a step group's events reach the motion source.
 
+* **Sensor noise** (``TrackerConfig.denoise``, off by default): as each packet is pushed,
+  background activity and hot pixels are removed (:class:`~evtrack.denoise.EventDenoiser`),
+  before anything else sees the events.
 * **Silhouette mask**: events within ``mask_margin_px`` of the object's silhouette swept over
   the group (the silhouette at the group's start and the one predicted at its end).
 * **Event bursts**: a step whose events outside the mask exceed ``burst_rate_hz`` per pixel
@@ -56,6 +59,7 @@ import torch
 from torch import Tensor
 
 from evtrack.camera import PinholeCamera
+from evtrack.denoise import EventDenoiser
 from evtrack.events import Events
 from evtrack.filters.scalar_lie import rotation_matrix, se3_exp
 from evtrack.flow import sampled_search
@@ -106,17 +110,22 @@ class EventGate:
         burst_rate_hz: events per pixel and second outside the mask that make a burst (0: no
             test).
         roi_size: the flow's RoI size (px); thinning cells are ``THIN_CELL_ROIS`` RoIs square.
+        denoiser: removes sensor noise from the pushed events (:meth:`denoised`); ``None``:
+            none is removed.
 
     Attributes:
         stats: the counters it adds to (``events_on_object``, ``burst_steps``,
-            ``events_in_bursts``, ``events_thinned``, ``events_unsearched``).
+            ``events_in_bursts``, ``events_thinned``, ``events_unsearched``) or sets
+            (``events_denoised``, ``events_on_hot_pixels``, ``hot_pixels``).
         burst_ends: ends (µs) of the bursts found in the last group masked.
         thin_level: thinning keeps ``THIN_RATIO ** thin_level`` of the cells.
     """
 
     def __init__(self, camera: PinholeCamera, silhouette: Silhouette, mask_margin_px: float,
-                 burst_rate_hz: float, roi_size: int) -> None:
+                 burst_rate_hz: float, roi_size: int,
+                 denoiser: EventDenoiser | None = None) -> None:
         self.camera = camera
+        self.denoiser = denoiser
         self.silhouette = silhouette
         self.mask_margin_px = mask_margin_px
         self.burst_rate_hz = burst_rate_hz
@@ -126,9 +135,23 @@ class EventGate:
         self.reset()
 
     def reset(self) -> None:
-        """Forget the thinning level and the bursts."""
+        """Forget the thinning level, the bursts and the denoiser's stream."""
         self.thin_level = 0
         self.burst_ends: list[int] = []
+        if self.denoiser is not None:
+            self.denoiser.reset()
+
+    def denoised(self, ev: Events) -> Events:
+        """A pushed packet ``ev`` (checked: sorted, inside the sensor, after the previous one)
+        without its sensor noise, in its order (itself without a denoiser); counts what went."""
+        if self.denoiser is None or not len(ev):
+            return ev
+        kept = self.denoiser(ev)
+        counts, st = self.denoiser.counts, self.stats
+        st.events_denoised = counts.removed_noise
+        st.events_on_hot_pixels = counts.removed_hot
+        st.hot_pixels = counts.hot_pixels_found
+        return kept
 
     def on_object(self, ev: Events, t0: int, t_end: int, step_us: int, pose: np.ndarray,
                   poly: SilhouettePolygon, twist: Callable[[], np.ndarray]) -> Events:

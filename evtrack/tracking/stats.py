@@ -17,6 +17,9 @@ class TrackerStats:
     Attributes:
         steps: velocity steps processed.
         events: events pushed.
+        events_denoised: of those, events removed as background activity by ``denoise.method``;
+            events_on_hot_pixels: removed on hot pixels (``denoise.hot_pixels``); hot_pixels:
+            distinct pixels found hot (see :mod:`evtrack.denoise`).
         events_on_object: events inside the predicted silhouette.
         events_in_bursts: of those, events of burst steps (not used); burst_steps: steps
             found to be event bursts (see :mod:`evtrack.tracking.tracker`).
@@ -68,6 +71,9 @@ class TrackerStats:
 
     steps: int = 0
     events: int = 0
+    events_denoised: int = 0
+    events_on_hot_pixels: int = 0
+    hot_pixels: int = 0
     events_on_object: int = 0
     events_in_bursts: int = 0
     burst_steps: int = 0

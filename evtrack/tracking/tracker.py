@@ -95,6 +95,7 @@ from evtrack.tracking.stats import TrackerStats
 from evtrack.tracking.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING, Trajectory
 from evtrack.tracking.wiring import (
     load_mesh,
+    make_denoiser,
     make_depth_fusion,
     make_depth_source,
     make_pose_gate,
@@ -177,7 +178,7 @@ class Tracker:
                                               self._past_pose)
         self._blas = BlasThreads(cfg.blas_threads)
         self.gate = EventGate(camera, self.silhouette, cfg.mask_margin_px, cfg.burst_rate_hz,
-                              cfg.flow.roi_size)
+                              cfg.flow.roi_size, make_denoiser(cfg, self.motion, camera))
         self.load = LoadController.from_config(cfg)
         self.view = ViewCheck(self.silhouette, cfg.min_visible_fraction, cfg.lost_after_ms,
                               cfg.velocity_step_us)
@@ -306,6 +307,9 @@ class Tracker:
         Raises:
             EventsError: unsorted events, events before the previous ones or before the
                 current step, events outside the sensor.
+
+        With ``TrackerConfig.denoise`` on, the packet's sensor noise is removed here
+        (:meth:`EventGate.denoised <evtrack.tracking.event_gate.EventGate.denoised>`).
         """
         if not isinstance(events, Events):
             raise EventsError(f"push_events expects an Events container, got "
@@ -325,7 +329,9 @@ class Tracker:
         self.stream.last_event_us = t_last
         self.stream.moved_by = f"push_events (events up to t={t_last} µs)"
         self.stats.events += len(events)
-        self.scheduler.buffer.append(events.to("cpu"))
+        events = self.gate.denoised(events.to("cpu"))
+        if len(events):
+            self.scheduler.buffer.append(events)
         self._advance_to(t_last)
 
     def advance(self, t_us: int) -> None:

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from evtrack.camera import PinholeCamera
+from evtrack.denoise import EventDenoiser
 from evtrack.errors import ConfigError
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.depth_fusion import DepthFusion
@@ -19,7 +20,8 @@ from evtrack.tracking.pose_flips import HalfTurnResolver
 from evtrack.tracking.pose_gate import PoseGate
 from evtrack.tracking.pose_timeline import PoseTimeline
 
-__all__ = ["load_mesh", "make_depth_fusion", "make_depth_source", "make_pose_gate"]
+__all__ = ["load_mesh", "make_denoiser", "make_depth_fusion", "make_depth_source",
+           "make_pose_gate"]
 
 
 def load_mesh(mesh: Any) -> tuple[Any, np.ndarray]:
@@ -101,3 +103,12 @@ def make_depth_fusion(config: TrackerConfig, motion: MotionSource, mesh: Any,
     to_depth = motion.depth_from_event()
     T = torch.eye(4, dtype=torch.float64) if to_depth is None else to_depth
     return DepthFusion(config, mesh, depth.camera, T.numpy(), timeline, past_pose)
+
+
+def make_denoiser(cfg: TrackerConfig, motion: MotionSource, camera: PinholeCamera
+                  ) -> EventDenoiser | None:
+    """The event denoiser of ``cfg.denoise``, or ``None`` when it removes nothing or the
+    motion source uses no events."""
+    if not (cfg.denoise.enabled and motion.uses_events):
+        return None
+    return EventDenoiser(cfg.denoise, sensor_size=camera.size)
