@@ -49,7 +49,7 @@ repository) is the pinhole rotational flow of ``-w`` as a displacement in pixels
 sample's duration (not px/s), so it agrees with ``-w`` too, but it was made from
 ``motion.txt`` and is not used here.
 
-Without the data folder the script says so and exits 0. It runs in about a minute on 2 cores.
+Without the data folder the script says so and exits 0. It runs in about 20 s on 2 cores.
 """
 
 from __future__ import annotations
