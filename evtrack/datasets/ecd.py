@@ -243,6 +243,7 @@ def import_ecd(folder: str | Path, out: str | Path, *, sensor_size: tuple[int, i
         else:
             texture_note = "the mesh's own"
         mesh_obj.export(writer.file_path(MESH_FILE))
+        # the writer writes meta.yaml from this same object when the block closes
         meta.rates.update(_frame_rate(frames))
         meta.extra.update(_extra(rec, t_first, t_last, count, window, start_pose, T_w_o, depth,
                                  plane_margin, mesh_obj, scene_mesh, texture_note))
