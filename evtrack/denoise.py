@@ -75,7 +75,10 @@ class DenoiseConfig(Config):
         method: the background-activity filter: ``"none"``, ``"background_activity"``,
             ``"knoise"`` or ``"fast_decay"`` (see :mod:`evtrack.denoise`).
         window_us: the filter's time constant, µs: the support window of
-            ``background_activity`` and ``knoise``, the half-life of ``fast_decay``.
+            ``background_activity`` and ``knoise``, the half-life of ``fast_decay``. 5 ms, not
+            dv-processing's 2 ms: on a sparse simulated stream (128x96, no noise)
+            ``background_activity`` took 17 % of the events at 2 ms and 3 % at 5 ms; on the ECD
+            DAVIS240C rotation cuts 18-40 % and 5-18 % (``benchmarks/bench_denoise.py``).
         fast_decay_subdivision: ``fast_decay``'s cells are this many pixels square.
         fast_decay_threshold: ``fast_decay`` keeps an event when its cell's decayed count
             exceeds this.
@@ -88,7 +91,7 @@ class DenoiseConfig(Config):
     """
 
     method: Literal["none", "background_activity", "knoise", "fast_decay"] = "none"
-    window_us: int = setting(2000, ge=1, unit="µs")
+    window_us: int = setting(5000, ge=1, unit="µs")
     fast_decay_subdivision: int = setting(4, ge=1, unit="px")
     fast_decay_threshold: float = setting(6.0, gt=0)
     hot_pixels: bool = False
@@ -193,6 +196,8 @@ class EventDenoiser:
         counts: :class:`DenoiseCounts` since the last :meth:`reset`.
 
     Calls take consecutive windows of one stream, in time order (see :meth:`__call__`).
+    dv-processing's filters start with every pixel last seen at t = 0: in a stream whose clock
+    starts at 0, the events of its first ``window_us`` all find support.
     """
 
     def __init__(self, config: DenoiseConfig | None = None, *,

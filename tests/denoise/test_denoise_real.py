@@ -14,7 +14,8 @@ from evtrack.io import read_events
 
 pytestmark = pytest.mark.shared
 
-CONFIG = DenoiseConfig(method="background_activity", hot_pixels=True, hot_window_us=10_000)
+CONFIG = DenoiseConfig(method="background_activity", window_us=2000, hot_pixels=True,
+                       hot_window_us=10_000)
 
 
 @pytest.fixture(scope="module")

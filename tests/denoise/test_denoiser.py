@@ -33,8 +33,8 @@ def _kept_shares(scene, out: Events) -> list[float]:
 
 
 def test_background_activity_and_hot_pixel_removed_signal_kept(scene) -> None:
-    denoiser = EventDenoiser(DenoiseConfig(method="background_activity", hot_pixels=True),
-                             sensor_size=SIZE)
+    cfg = DenoiseConfig(method="background_activity", window_us=2000, hot_pixels=True)
+    denoiser = EventDenoiser(cfg, sensor_size=SIZE)
     out = denoiser(scene.events)
     signal, noise, hot = _kept_shares(scene, out)
     assert signal > 0.98 and noise < 0.3 and hot < 0.25, (signal, noise, hot)
@@ -61,7 +61,7 @@ def test_hot_pixels_alone_touch_no_other_pixel(scene) -> None:
 
 @pytest.mark.parametrize("method", ["knoise", "fast_decay"])
 def test_other_filters_remove_most_noise(scene, method: str) -> None:
-    out = denoise_events(scene.events, DenoiseConfig(method=method))
+    out = denoise_events(scene.events, DenoiseConfig(method=method, window_us=2000))
     signal, noise, _ = _kept_shares(scene, out)
     assert noise < 0.2 and signal > 0.3, (signal, noise)
 
@@ -159,5 +159,5 @@ def test_config_section_names_the_field() -> None:
     with pytest.raises(ConfigError, match=r"denoise\.hot_percentile"):
         TrackerConfig.from_dict({"denoise": {"hot_percentile": 0}})
     cfg = TrackerConfig.from_dict({"denoise": {"method": "knoise", "hot_pixels": True}})
-    assert cfg.denoise.enabled and cfg.denoise.window_us == 2000
+    assert cfg.denoise.enabled and cfg.denoise.window_us == 5000
     assert not TrackerConfig().denoise.enabled
