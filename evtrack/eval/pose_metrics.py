@@ -59,19 +59,23 @@ def add_distances(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray) -> 
 
 
 def adds_distances(T_est: np.ndarray, T_true: np.ndarray, points: np.ndarray,
-                   workers: int = 1) -> np.ndarray:
+                   workers: int = 1, targets: np.ndarray | None = None) -> np.ndarray:
     """ADD-S of many poses: (N, 4, 4), (N, 4, 4), (M, 3) model points -> (N,) metres.
 
-    A rigid motion keeps distances, so ``min_q |T_true p - T_est q| = min_q |T_est⁻¹ T_true p -
-    q|``: one k-d tree of the model points serves every pose, queried with the points moved
-    by ``T_est⁻¹ T_true``. The same numbers as :func:`adds_distance` per pose.
+    The mean over the points ``p`` of ``min_q |T_true p - T_est q|``, ``q`` over ``targets``.
+    A rigid motion keeps distances, so that is ``min_q |T_est⁻¹ T_true p - q|``: one k-d tree
+    of the targets serves every pose, queried with the points moved by ``T_est⁻¹ T_true``.
+    With ``targets`` left out, the same numbers as :func:`adds_distance` per pose.
 
     Args:
         workers: threads of the k-d tree queries (``-1``: all cores).
+        targets: (V, 3) the model points searched for the nearest (default: ``points``); e.g.
+            all the vertices of a mesh while ``points`` are some of them, which estimates the
+            ADD-S of all the vertices at the cost of ``M`` queries per pose.
     """
     T_est, T_true = np.asarray(T_est, np.float64), np.asarray(T_true, np.float64)
     points = np.asarray(points, np.float64)
-    tree = cKDTree(points)
+    tree = cKDTree(points if targets is None else np.asarray(targets, np.float64))
     out = np.empty(len(T_est))
     for i in range(0, len(T_est), _CHUNK):
         R_e, t_e = T_est[i:i + _CHUNK, :3, :3], T_est[i:i + _CHUNK, :3, 3]

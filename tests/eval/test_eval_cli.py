@@ -96,7 +96,7 @@ def test_evaluate_pose_scores_match_an_independent_computation(evaluated, tiny_b
         seq = Sequence.load(tiny_benchmark / r["sequence"])
         traj = Trajectory.load(evaluated / "trajectories" / r["sequence"] / f"{r['run']}.h5")
         points = load_mesh(seq.mesh_file, recenter=False).vertices.astype(np.float64)
-        assert len(points) <= 2000  # all of them: no subsampling
+        assert len(points) <= 1000  # all of them: no subsampling
         tau = 0.1 * object_diameter(points)
         gt = seq.ground_truth
         t_traj, status = traj.t_us.numpy(), traj.status.numpy()

@@ -191,7 +191,7 @@ def test_model_points_are_a_deterministic_subset_and_the_diameter_uses_all_verti
     vertices[1] = [1.0, 0.0, 0.0]  # the two farthest points, skipped by the even pick
     vertices[2] = [-1.0, 0.0, 0.0]
     model = object_model(vertices, max_points=500)
-    assert len(model.points) == 500 and model.vertices == 10_000
+    assert len(model.points) == 500 and len(model.vertices) == 10_000
     assert not np.isin(model.points[:, 0], [1.0, -1.0]).any()
     assert model.diameter_m == pytest.approx(2.0)
     again = object_model(vertices, max_points=500)
@@ -240,3 +240,31 @@ def test_a_sequence_mesh_is_read_in_its_object_frame(tmp_path):
     turn[:3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
     scores = sequence_pose_scores(trajectory(gt.pose_t_us, T @ turn), _Sequence(path, gt))
     assert scores.adds_auc == 0.0 and isinstance(scores, PoseScores)
+
+
+def test_adds_searches_all_the_vertices_while_averaging_over_some():
+    """A model with fewer points than vertices: ADD averages over its points; ADD-S over its
+    points too, each one's nearest among all the vertices."""
+    from scipy.spatial.distance import cdist
+
+    rng = np.random.default_rng(6)
+    vertices = cylinder(sides=72)
+    model = object_model(vertices, max_points=40)
+    assert len(model.points) == 40
+    T = true_poses(8, seed=6)
+    est = T.copy()
+    est[:, :3, :3] = est[:, :3, :3] @ Rotation.from_rotvec(
+        rng.normal(size=(8, 3)) * 0.05).as_matrix()
+    est[:, :3, 3] += rng.normal(size=(8, 3)) * 0.005
+    gt = ground_truth(T)
+    scores = pose_scores(trajectory(gt.pose_t_us, est), gt, model)
+    add, adds = [], []
+    for E, G in zip(est, T, strict=True):
+        true_pts = model.points @ G[:3, :3].T + G[:3, 3]
+        add.append(np.linalg.norm(model.points @ E[:3, :3].T + E[:3, 3] - true_pts, axis=1).mean())
+        adds.append(cdist(true_pts, vertices @ E[:3, :3].T + E[:3, 3]).min(axis=1).mean())
+    tau = AUC_FRACTION * scores.diameter_m
+    assert scores.add_auc == pytest.approx(100 * np.mean(np.clip(1 - np.array(add) / tau, 0, 1)))
+    assert scores.adds_auc == pytest.approx(100 * np.mean(np.clip(1 - np.array(adds) / tau, 0,
+                                                                         1)))
+    assert scores.points == 40
