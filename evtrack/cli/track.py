@@ -121,7 +121,10 @@ def run(args: argparse.Namespace) -> int:
         _write_bop_results(args.bop_results, traj, seq)
     st = tracker.stats
     print(f"{args.out}: {len(traj)} samples ({cfg.method}), {int(traj.tracked.sum())} tracking; "
-          f"{st.events} events, {st.poses} poses ({st.poses_rejected} rejected), "
+          f"{st.events} events"
+          + (f" ({st.events_denoised} removed as noise, {st.events_on_hot_pixels} on "
+             f"{st.hot_pixels} hot pixels)" if tracker.gate.denoiser is not None else "")
+          + f", {st.poses} poses ({st.poses_rejected} rejected), "
           f"{st.lost} losses" + (f", {st.depth_ranges} depth ranges fused" if cfg.depth_fusion.range
                                  else "")
           + (f", {st.depth_alignments} depth alignments fused" if cfg.depth_fusion.icp else ""))

@@ -60,3 +60,18 @@ def test_tracker_removes_noise_and_a_hot_pixel_and_counts_them(fast_sequence) ->
         st.events - st.events_denoised - st.events_on_hot_pixels)
     assert float((traj.status == STATUS_TRACKING).float().mean()) > 0.8
     assert traj.meta["stats"]["events_denoised"] == st.events_denoised
+
+
+def test_track_command_prints_what_was_removed(fast_sequence, tmp_path, capsys) -> None:
+    from evtrack.cli import main
+
+    config = tmp_path / "denoise.yaml"
+    config.write_text("denoise:\n  method: background_activity\n  hot_pixels: true\n")
+    out = tmp_path / "traj.csv"
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--oracle", "--quiet",
+                 "--config", str(config)]) == 0
+    text = capsys.readouterr().out
+    assert "removed as noise" in text and "hot pixels" in text
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--method", "pose",
+                 "--oracle", "--quiet"]) == 0
+    assert "removed as noise" not in capsys.readouterr().out
