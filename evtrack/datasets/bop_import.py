@@ -233,7 +233,8 @@ def register_import(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-size", type=int, nargs=2, default=None, metavar=("W", "H"),
                    help="the event sensor's size, for an event file that does not record it")
     p.add_argument("--fps", type=float, default=30.0,
-                   help="image rate: image ID is at ID / FPS seconds (default: 30)")
+                   help="image rate: image ID is at ID / FPS seconds after image 0 "
+                        "(default: 30)")
     p.add_argument("--frame-offset-us", type=int, default=0, metavar="US",
                    help="time of image 0, µs (default: 0)")
     p.add_argument("--scene-id", type=int, default=None,

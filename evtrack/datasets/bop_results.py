@@ -22,13 +22,17 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from evtrack.errors import ConfigError, EventFileError
 from evtrack.utils import atomic_write_text
+
+if TYPE_CHECKING:
+    from evtrack.sequence import SequenceMeta
+    from evtrack.tracking.trajectory import Trajectory
 
 __all__ = [
     "BopResult",
@@ -168,7 +172,7 @@ def read_bop_results(path: str | Path) -> list[BopResult]:
 
 
 def trajectory_bop_rows(
-    trajectory: Any,
+    trajectory: Trajectory,
     image_times_us: Sequence[int] | np.ndarray,
     im_ids: Sequence[int] | np.ndarray,
     scene_id: int,
@@ -227,7 +231,7 @@ def trajectory_bop_rows(
             for k, T in zip(keep, poses, strict=True)]
 
 
-def bop_record(meta: Any) -> dict[str, Any]:
+def bop_record(meta: SequenceMeta) -> dict[str, Any]:
     """The BOP record of a sequence imported from a BOP-layout dataset, checked.
 
     ``meta.extra["bop"]`` holds ``scene_id``, ``obj_id``, ``im_ids`` (the images where the
@@ -260,7 +264,8 @@ def bop_record(meta: Any) -> dict[str, Any]:
     return record
 
 
-def sequence_bop_rows(trajectory: Any, meta: Any, score: float = 1.0) -> list[BopResult]:
+def sequence_bop_rows(trajectory: Trajectory, meta: SequenceMeta, score: float = 1.0
+                      ) -> list[BopResult]:
     """:func:`trajectory_bop_rows` for a sequence imported from a BOP-layout dataset.
 
     Reads :func:`bop_record`; for ground truth in the RGB camera (``gt_frame: rgb``) the poses
