@@ -1,1 +1,1 @@
-"""Evaluation metrics and benchmark tables (the tracker issue)."""
+"""Evaluation: accuracy metrics, benchmark runs, their tables, plots and videos."""
