@@ -203,13 +203,22 @@ class DepthRefiner:
 
     @classmethod
     def from_mesh(cls, mesh, config: DepthRefineConfig | None = None) -> DepthRefiner:
-        """From a mesh file path or a ``trimesh.Trimesh`` (object frame, metres)."""
+        """From a mesh file path or a ``trimesh.Trimesh`` (object frame, metres).
+
+        A BOP model file (``obj_XXXXXX.ply`` beside ``models_info.json``) is in millimetres:
+        it is scaled to metres and checked against its recorded diameter.
+        """
         import trimesh
 
         if isinstance(mesh, (str, Path)):
+            from evtrack.datasets.bop import MM, check_bop_model_size, is_bop_model_file
+
             if not Path(mesh).is_file():
                 raise ConfigError(f"depth refinement: mesh file {mesh} not found")
-            mesh = trimesh.load(mesh, force="mesh")
+            path, mesh = mesh, trimesh.load(mesh, force="mesh")
+            if is_bop_model_file(path):
+                mesh.apply_scale(MM)
+                check_bop_model_size(path, np.asarray(mesh.vertices))
         return cls(np.asarray(mesh.vertices), np.asarray(mesh.faces), config)
 
     # ------------------------------------------------------------------ geometry

@@ -280,3 +280,16 @@ def test_a_model_outside_a_bop_folder_keeps_its_unit(tmp_path: Path) -> None:
     assert not is_bop_model_file(folder / "obj_000001.ply")
     with pytest.raises(MeshFileError, match="object size 60 "):
         load_mesh(folder / "obj_000001.ply")
+
+
+def test_depth_refiner_reads_a_bop_model_in_metres(tmp_path: Path) -> None:
+    from evtrack.models.depth_refine import DepthRefiner
+
+    folder = write_models(tmp_path / "models", obj_id=2)
+    refiner = DepthRefiner.from_mesh(folder / "obj_000002.ply")
+    np.testing.assert_allclose(refiner.hull_points.max(0) - refiner.hull_points.min(0),
+                               [0.04, 0.06, 0.02], atol=1e-9)
+    np.testing.assert_allclose(refiner.centre, [0.005, -0.003, 0.002], atol=1e-9)
+    wrong = write_models(tmp_path / "wrong", obj_id=2, diameter_mm=0.072)
+    with pytest.raises(EventFileError, match=r"obj_000002\.ply: the mesh read as millimetres"):
+        DepthRefiner.from_mesh(wrong / "obj_000002.ply")
