@@ -11,14 +11,20 @@ those falling outside the image dropped), and the tracker is given that distorte
 with the sequence's own RGB-D camera (pinhole), whose depth frames it carries into the
 distorted image. The same sequence with its pinhole event camera runs beside it for scale.
 
+Rows (``mode``): ``compiled`` (the compiled step runs), ``per step`` (``Tracker.step_runs``
+off) and, for the distorted camera, ``per step, direct``: per step with the velocity filter's
+:class:`~evtrack.filters.interaction.UndistortionTable` taken away, so that every update
+undistorts its RoIs anew, as every distorted run did before the compiled runs took distorted
+cameras (they declined them, and no table kept the undistortion).
+
 Each setting is tracked once untimed (numba's kernels loaded), then ``--repeats`` rounds of one
 timed run per setting, interleaved so that the machine's load drifts over all alike. Oracle
 poses (1 cm / 0.03 rad noise), as in ``benchmarks/bench_tracker.py``. Printed per setting: the
-median processing time (s) and real-time factor, the velocity and pose stages' time (s), the
+median processing time (s) and real-time factor, the velocity and pose stages' time (s; a
+compiled run counts its steps' view checks in ``pose``, the step loop outside the stages), the
 share of the velocity steps done in compiled runs, the position / rotation RMSE against ground
-truth (cm / deg) and the largest difference of the outputs from the step-by-step run of the
-same camera (pose entries, twist entries). Before the distorted camera's runs were compiled
-its two rows were one: the step-by-step row.
+truth (cm / deg) and the largest difference of the outputs from the ``per step`` run of the
+same camera (pose entries, twist entries).
 """
 
 from __future__ import annotations
@@ -72,14 +78,17 @@ def distorted_events(events: Events, camera: PinholeCamera) -> Events:
 
 
 def track(seq: Sequence, camera: PinholeCamera, rgb_camera: PinholeCamera, runs: bool,
-          threads: int) -> tuple[Trajectory, Tracker, float, int]:
+          threads: int, table: bool = True) -> tuple[Trajectory, Tracker, float, int]:
     """One run: the trajectory, the tracker, the processing time (s) and the velocity steps
-    done in compiled runs."""
+    done in compiled runs. ``table=False``: without the velocity filter's undistortion
+    table."""
     cfg = TrackerConfig.from_dict({"method": "full", "torch_threads": threads})
     source = OraclePoseSource.from_sequence(seq, seed=0, **ORACLE_NOISE)
     tracker = Tracker(cfg, camera=camera, mesh=seq.mesh_file, pose_source=source,
                       rgb_camera=rgb_camera, T_event_rgb=seq.meta.T_event_rgb)
     tracker.step_runs = runs
+    if not table:
+        tracker.motion.vkf._undistortion = None  # every update undistorts its RoIs anew
     in_runs = [0]
     step_run = tracker.scheduler.step_run
 
@@ -131,16 +140,19 @@ def _compare(args: argparse.Namespace, folder: Path) -> int:
     print(f"{folder}: {len(pinhole_seq.events)} events, {len(warped)} inside the distorted "
           f"image; dist {args.dist}; {args.threads} threads, {torch.get_num_threads()} torch "
           "threads before the runs", file=sys.stderr)
-    settings = {(cam, runs): (seq, camera) for cam, seq, camera in
-                (("distorted", distorted_seq, distorted), ("pinhole", pinhole_seq, pinhole))
-                for runs in (False, True)}
-    for (_, runs), (seq, camera) in settings.items():  # untimed: numba's kernels loaded
-        track(seq, camera, rgb_camera, runs, args.threads)
-    times: dict[tuple[str, bool], list[float]] = {key: [] for key in settings}
-    last: dict[tuple[str, bool], tuple[Trajectory, Tracker, int]] = {}
+    settings = {("distorted", "per step, direct"): (distorted_seq, distorted, False, False)}
+    for cam, seq, camera in (("distorted", distorted_seq, distorted),
+                             ("pinhole", pinhole_seq, pinhole)):
+        settings[(cam, "per step")] = (seq, camera, False, True)
+        settings[(cam, "compiled")] = (seq, camera, True, True)
+    for seq, camera, runs, table in settings.values():  # untimed: numba's kernels loaded
+        track(seq, camera, rgb_camera, runs, args.threads, table)
+    times: dict[tuple[str, str], list[float]] = {key: [] for key in settings}
+    last: dict[tuple[str, str], tuple[Trajectory, Tracker, int]] = {}
     for _ in range(args.repeats):
-        for key, (seq, camera) in settings.items():
-            traj, tracker, wall, in_runs = track(seq, camera, rgb_camera, key[1], args.threads)
+        for key, (seq, camera, runs, table) in settings.items():
+            traj, tracker, wall, in_runs = track(seq, camera, rgb_camera, runs, args.threads,
+                                                 table)
             times[key].append(wall)
             last[key] = (traj, tracker, in_runs)
     _print_table(times, last, pinhole_seq)
@@ -148,20 +160,20 @@ def _compare(args: argparse.Namespace, folder: Path) -> int:
 
 
 def _print_table(times: dict, last: dict, seq: Sequence) -> None:
-    line = (f"{'camera':<10} {'step runs':<10} {'proc s':>7} {'rtf':>6} {'velocity s':>10} "
+    line = (f"{'camera':<10} {'mode':<17} {'proc s':>7} {'rtf':>6} {'velocity s':>10} "
             f"{'pose s':>7} {'in runs':>8} {'cm / deg':>12} {'max |Δ| pose, twist':>22}  runs (s)")
     print(line)
     print("-" * len(line))
-    for (cam, runs), walls in times.items():
-        traj, tracker, in_runs = last[(cam, runs)]
-        ref = last[(cam, False)][0]
+    for (cam, mode), walls in times.items():
+        traj, tracker, in_runs = last[(cam, mode)]
+        ref = last[(cam, "per step")][0]
         span = (int(traj.t_us[-1]) - int(traj.t_us[0])) * 1e-6
         wall = statistics.median(walls)
         st = tracker.stats
         err = tracking_errors(traj, seq.ground_truth)
         d_pose = float((traj.poses.nan_to_num(7.0) - ref.poses.nan_to_num(7.0)).abs().max())
         d_twist = float((traj.twists - ref.twists).abs().max())
-        print(f"{cam:<10} {'compiled' if runs else 'per step':<10} {wall:>7.2f} "
+        print(f"{cam:<10} {mode:<17} {wall:>7.2f} "
               f"{wall / span:>6.2f} {st.time_s.get('velocity', 0.0):>10.2f} "
               f"{st.time_s.get('pose', 0.0):>7.2f} {in_runs / max(st.steps, 1):>8.0%} "
               f"{err.position_rmse_cm:>5.2f} / {err.rotation_rmse_deg:>5.2f} "

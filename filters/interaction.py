@@ -15,7 +15,10 @@ projection.
 Distortion: :func:`interaction_matrix` works in the camera's measured (distorted) pixels: it
 undistorts ``uv`` and chains the ideal-pinhole matrix with the 2x2 Jacobian of the distortion.
 The filters work in ideal pinhole pixels instead; :func:`undistort_flow` maps measured flows
-there, constraint for constraint.
+there, constraint for constraint. Its per-pixel part (the iterative undistortion and the
+Jacobian, ~5 ms a call on a CPU whatever the number of points) depends on the pixel only; an
+:class:`UndistortionTable` keeps it for the pixels seen (a tracker's RoI centres are a fixed
+grid), with the same values.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from torch import Tensor
 from evtrack.camera import PinholeCamera
 
 __all__ = [
+    "UndistortionTable",
     "interaction_matrix",
     "interaction_matrix_pinhole",
     "distortion_jacobian",
@@ -108,8 +112,60 @@ def interaction_matrix(uv: Tensor, depth: Tensor, camera: PinholeCamera) -> Tens
     return J
 
 
+class UndistortionTable:
+    """The ideal pixel and the distortion Jacobian of each measured pixel a camera has been
+    asked for, computed once (by :meth:`PinholeCamera.undistort_points
+    <evtrack.camera.PinholeCamera.undistort_points>` and :func:`distortion_jacobian`, on the
+    new pixels of a call together) and looked up afterwards: the values of the direct
+    computation (each point's arithmetic does not depend on the others'), without its cost.
+
+    Args:
+        camera: a camera with distortion.
+        max_points: the table starts afresh beyond this many pixels.
+
+    Only float64 CPU pixels that are all finite, without gradients, are looked up
+    (:meth:`applies`).
+    """
+
+    def __init__(self, camera: PinholeCamera, max_points: int = 1 << 16) -> None:
+        self.camera = camera
+        self.max_points = int(max_points)
+        self._points: dict[tuple[float, float], tuple[list[float], list[list[float]]]] = {}
+
+    @staticmethod
+    def applies(uv: Tensor) -> bool:
+        """Whether :meth:`lookup` takes ``uv``: float64 on the CPU, all finite, no
+        gradient asked for."""
+        return (uv.dtype == torch.float64 and uv.device.type == "cpu" and not uv.requires_grad
+                and bool(torch.isfinite(uv).all()))
+
+    def __len__(self) -> int:
+        return len(self._points)
+
+    def lookup(self, uv: Tensor) -> tuple[Tensor, Tensor]:
+        """``(uv_ideal (*, 2), D (*, 2, 2))`` of measured pixels ``uv`` (*, 2) (see
+        :meth:`applies`), as ``camera.undistort_points(uv)`` and
+        ``distortion_jacobian(camera, uv_ideal)`` give them."""
+        keys = [(u, v) for u, v in uv.reshape(-1, 2).tolist()]
+        points = self._points
+        new = [k for k in dict.fromkeys(keys) if k not in points]
+        if new:
+            if len(points) + len(new) > self.max_points:  # afresh, with all of this call's
+                points.clear()
+                new = list(dict.fromkeys(keys))
+            ideal = self.camera.undistort_points(torch.tensor(new, dtype=torch.float64))
+            jac = distortion_jacobian(self.camera, ideal)
+            points.update(zip(new, zip(ideal.tolist(), jac.tolist(), strict=True), strict=True))
+        found = [points[k] for k in keys]
+        shape = uv.shape[:-1]
+        ideal = torch.tensor([f[0] for f in found], dtype=torch.float64).reshape(*shape, 2)
+        jac = torch.tensor([f[1] for f in found], dtype=torch.float64).reshape(*shape, 2, 2)
+        return ideal, jac
+
+
 def undistort_flow(
-    camera: PinholeCamera, uv: Tensor, flow: Tensor, normal_only: Tensor
+    camera: PinholeCamera, uv: Tensor, flow: Tensor, normal_only: Tensor,
+    table: UndistortionTable | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Map measured pixels and flows to the ideal pinhole image, constraint for constraint.
 
@@ -120,14 +176,19 @@ def undistort_flow(
 
     Args:
         uv: (*, 2) measured pixels; flow: (*, 2) px/s; normal_only: (*) bool.
+        table: the camera's :class:`UndistortionTable`, used where it applies: the same
+            results, the per-pixel part computed once per pixel.
 
     Returns:
         ``(uv_ideal, flow_ideal)``, both (*, 2).
     """
     if camera.dist is None:
         return uv, flow
-    uv_ideal = camera.undistort_points(uv)
-    D = distortion_jacobian(camera, uv_ideal)
+    if table is not None and table.applies(uv):
+        uv_ideal, D = table.lookup(uv)
+    else:
+        uv_ideal = camera.undistort_points(uv)
+        D = distortion_jacobian(camera, uv_ideal)
     full = torch.linalg.solve(D, flow.unsqueeze(-1)).squeeze(-1)
     m = flow.norm(dim=-1, keepdim=True)
     n = flow / m.clamp_min(torch.finfo(flow.dtype).tiny)

@@ -51,7 +51,7 @@ from evtrack.filters.backend_base import FilterBackend, RoiRows, VelocityModel
 from evtrack.filters.backends import as_array, as_bool_array
 from evtrack.filters.base import TrackFilter, checked
 from evtrack.filters.config import VelocityKFConfig
-from evtrack.filters.interaction import undistort_flow
+from evtrack.filters.interaction import UndistortionTable, undistort_flow
 from evtrack.filters.lie import pivot_map
 from evtrack.filters.velocity_model import measurement_rows, weighted_update
 
@@ -123,6 +123,8 @@ class VelocityKF(TrackFilter):
         super().__init__()
         self.config = config if config is not None else VelocityKFConfig()
         self.camera = camera
+        # the per-pixel part of the undistortion, kept for the pixels seen (the same values)
+        self._undistortion = None if camera.dist is None else UndistortionTable(camera)
         self._init_backend(backend, fast_path)
         cfg = self.config
         kw: dict[str, Any] = {"dtype": dtype, "device": device}
@@ -156,6 +158,17 @@ class VelocityKF(TrackFilter):
         ]
         self.register_buffer("consts", torch.tensor(consts, **kw))
         self.reset(batch_size)
+
+    def prepare_pixels(self, uv: Tensor) -> None:
+        """With a distorted camera, undistort the measured pixels ``uv`` (N, 2) px now (e.g. a
+        flow's RoI centres, where every later flow lies), so that the updates there only look
+        their undistortion up (:class:`~evtrack.filters.interaction.UndistortionTable`: the
+        same values); nothing without distortion."""
+        table = self._undistortion
+        if table is not None and uv.numel():
+            uv = uv.detach().to(device="cpu", dtype=torch.float64).reshape(-1, 2)
+            if table.applies(uv):
+                table.lookup(uv)
 
     # ------------------------------------------------------------------ state
     def reset(
@@ -249,7 +262,7 @@ class VelocityKF(TrackFilter):
         """:meth:`update` through the torch step (any batch, device and dtype)."""
         uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
-            uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
+            uv, flow = undistort_flow(self.camera, uv, flow, normal_only, self._undistortion)
         V, P, skipped = self.step_function("update_state")(
             self.twist, self.cov, self.reference, uv, depth, flow, normal_only, mask
         )
@@ -364,7 +377,8 @@ class VelocityKF(TrackFilter):
         if normal_only is None:
             normal_only = torch.full((uv.shape[0],), self.config.assume_normal, dtype=torch.bool,
                                      device=kw["device"])
-        uv, flow = undistort_flow(self.camera, uv.to(**kw), flow.to(**kw), normal_only)
+        uv, flow = undistort_flow(self.camera, uv.to(**kw), flow.to(**kw), normal_only,
+                                  self._undistortion)
         return uv, flow, normal_only
 
     # ------------------------------------------------------------------ single track (B = 1)
@@ -403,7 +417,7 @@ class VelocityKF(TrackFilter):
         self._check_inputs(uv, depth, flow, normal_only, mask)
         if self.camera.dist is not None:
             uv, depth, flow, normal_only, mask = self._inputs(uv, depth, flow, normal_only, mask)
-            uv, flow = undistort_flow(self.camera, uv, flow, normal_only)
+            uv, flow = undistort_flow(self.camera, uv, flow, normal_only, self._undistortion)
         buf = self._buffers
         twist, cov = prior if prior is not None else (buf["twist"].numpy()[0],
                                                        buf["cov"].numpy()[0])

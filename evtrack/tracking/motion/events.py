@@ -52,6 +52,7 @@ class EventMotion(MotionSource):
         camera = context.camera
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
+        self.vkf.prepare_pixels(self.flow.roi_centres())  # a distorted camera's RoIs: once
         self.events_before_pose = cfg.remeasure.before_pose
         self.remeasurer: Remeasurer | None = None
         self.flows: StepFlows | None = None
