@@ -1,4 +1,4 @@
-"""``evtrack import DATASET ...``: a recording of one of the field's datasets as sequence folders."""
+"""``evtrack import DATASET ...``: a recording of one of the field's datasets as sequences."""
 
 from __future__ import annotations
 

@@ -59,6 +59,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "challenge results CSV (scene_id,im_id,obj_id,score,R,t,time; t in mm), "
                         "in the camera frame of the BOP ground truth; for a sequence imported "
                         "from a BOP-layout dataset (evtrack import bop / ycbev)")
+    p.add_argument("--start-pose", action="store_true",
+                   help="start the track from the pose the import recorded in meta.yaml "
+                        "(extra.start_pose at extra.start_t_us; 'evtrack import ecd' writes "
+                        "it), so that '--method velocity' needs no pose source")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -77,7 +81,10 @@ def _pose_source(args: argparse.Namespace, seq):
         return OraclePoseSource.from_sequence(seq, std_translation=args.oracle_noise[0],
                                               std_rotation=args.oracle_noise[1])
     if args.weights is None:
-        raise ConfigError("a pose source is needed: --weights PATH (pose network) or --oracle")
+        if args.start_pose:
+            return None
+        raise ConfigError("a pose source is needed: --weights PATH (pose network) or --oracle "
+                          "(or --start-pose with --method velocity)")
     cam = seq.meta.rgb_camera or seq.meta.event_camera
     if args.weights.suffix.lower() == ".onnx":
         from evtrack.models import OnnxPoseEstimator
@@ -93,6 +100,26 @@ def _pose_source(args: argparse.Namespace, seq):
 
         refiner = DepthRefiner.from_mesh(seq.mesh_file)
     return NetworkPoseSource(est, seq.meta.T_event_rgb, refiner=refiner, camera=cam)
+
+
+def _start(args: argparse.Namespace, seq) -> dict:
+    """The start pose and time of ``--start-pose``, as keyword arguments of ``track``."""
+    if not args.start_pose:
+        return {}
+    import numpy as np
+
+    extra = seq.meta.extra if isinstance(seq.meta.extra, dict) else {}
+    missing = [k for k in ("start_pose", "start_t_us") if k not in extra]
+    if missing:
+        raise ConfigError(f"--start-pose: {seq.root / 'meta.yaml'} has no extra.{missing[0]} "
+                          "(written by 'evtrack import ecd'); give a pose source instead")
+    try:
+        pose = np.asarray(extra["start_pose"], np.float64).reshape(4, 4)
+        t_us = int(extra["start_t_us"])
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"--start-pose: {seq.root / 'meta.yaml'}: extra.start_pose must be "
+                          f"a 4x4 matrix and extra.start_t_us an integer ({exc})") from exc
+    return {"start_pose": pose, "start_t_us": t_us}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -114,8 +141,9 @@ def run(args: argparse.Namespace) -> int:
     if fusion:
         changes["depth_fusion"] = fusion
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
+    start = _start(args, seq)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
-    traj = tracker.track(seq, progress=not args.quiet)
+    traj = tracker.track(seq, progress=not args.quiet, **start)
     traj.save(args.out)
     if args.bop_results is not None:
         _write_bop_results(args.bop_results, traj, seq)

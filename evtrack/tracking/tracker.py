@@ -509,11 +509,15 @@ class Tracker:
         return self.outputs.sample_before(t_us)
 
     # ------------------------------------------------------------------ offline
-    def track(self, sequence, progress: bool = False) -> Trajectory:
+    def track(self, sequence, progress: bool = False,
+              start_pose: Tensor | np.ndarray | None = None,
+              start_t_us: int | None = None) -> Trajectory:
         """Track a whole :class:`~evtrack.Sequence` (events and frames in time order).
 
         The pose source runs on the frames at ``pose_rate_hz`` and its poses reach the filter
-        ``pose_latency_ms`` later, as they would live.
+        ``pose_latency_ms`` later, as they would live. With ``start_pose`` (4, 4) the track
+        starts from it at ``start_t_us`` (as :meth:`reset` does), e.g. the ``velocity`` method
+        on a recording without a pose source.
 
         Returns:
             the :class:`~evtrack.tracking.trajectory.Trajectory` (one sample per velocity step).
@@ -524,7 +528,7 @@ class Tracker:
         self.pose_calls.in_worker = self.config.pose_async
         try:
             with self._blas:  # the worker's pose calls all end inside (flush settles them)
-                self.reset()
+                self.reset(start_pose, start_t_us)
                 prepare = self.roi_depth.source.prepare if self.roi_depth.sensor else None
                 push_sequence(self, sequence, prepare, progress)
                 return self.trajectory()

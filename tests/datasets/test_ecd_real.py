@@ -74,3 +74,51 @@ def test_tracker_on_an_imported_rotation_sample(real_dir: Path, tmp_path: Path) 
     mean = omega.mean(0)
     cos = mean @ ref / (np.linalg.norm(mean) * np.linalg.norm(ref))
     assert cos > 0.5, (mean, ref)
+
+
+def test_evtrack_track_from_the_imported_start_pose(real_dir: Path, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture) -> None:
+    """'evtrack track --method velocity --start-pose' tracks an imported ECD cut with no pose
+    source, as the Python API does, and the same trajectory comes out."""
+    from evtrack import Tracker
+    from evtrack.cli import main
+    from evtrack.tracking.config import TrackerConfig
+
+    folder = import_ecd(real_dir / "ecd_shapes_rotation_sample", tmp_path / "shapes",
+                        sensor_size=DAVIS240C_SIZE)
+    out = tmp_path / "t.h5"
+    assert main(["track", str(folder), "--method", "velocity", "--start-pose", "--out",
+                 str(out), "--quiet"]) == 0
+    seq = Sequence.load(folder)
+    extra = seq.meta.extra
+    want = Tracker.for_sequence(seq, TrackerConfig(method="velocity")).track(
+        seq, start_pose=np.asarray(extra["start_pose"]), start_t_us=extra["start_t_us"])
+    assert bool((want.status == 1).all()) and len(want.t_us) >= 95
+    from evtrack.tracking.trajectory import Trajectory
+
+    got = Trajectory.load(out)
+    np.testing.assert_array_equal(got.t_us.numpy(), want.t_us.numpy())
+    np.testing.assert_allclose(got.twists.numpy(), want.twists.numpy(), rtol=0, atol=0)
+    capsys.readouterr()
+    assert main(["track", str(folder), "--out", str(tmp_path / "u.h5"), "--quiet"]) == 1
+    assert "--start-pose" in capsys.readouterr().err
+
+
+def test_start_pose_missing_from_the_sequence(tmp_path: Path, capsys) -> None:
+    from evtrack.cli import main
+
+    seq_dir = tmp_path / "seq"
+    _tiny_sequence(seq_dir)
+    assert main(["track", str(seq_dir), "--method", "velocity", "--start-pose", "--out",
+                 str(tmp_path / "t.h5"), "--quiet"]) == 1
+    assert "has no extra.start_pose" in capsys.readouterr().err
+
+
+def _tiny_sequence(folder: Path) -> None:
+    from evtrack.camera import PinholeCamera
+    from evtrack.events import Events
+    from evtrack.sequence import SequenceMeta, SequenceWriter
+
+    meta = SequenceMeta(PinholeCamera(100, 100, 20, 15, 40, 30), mesh_path=None)
+    with SequenceWriter(folder, meta) as w:
+        w.add_events(Events([1, 2], [3, 4], [10, 20], [1, -1], (40, 30)))
