@@ -52,15 +52,25 @@ class BenchmarkSequence:
 
 
 def speed_label(sequence: Sequence) -> str:
-    """The speed preset of a sequence (see the module docstring), ``""`` if unknown."""
-    config = sequence.meta.extra.get("config") if isinstance(sequence.meta.extra, dict) else None
+    """The speed preset of a sequence (see the module docstring), ``""`` if unknown.
+
+    An imported recording has no preset: it is grouped by its dataset (``meta.extra.dataset``,
+    e.g. ``"YCB-Ev"``), or as ``"recording"``.
+    """
+    extra = sequence.meta.extra if isinstance(sequence.meta.extra, dict) else {}
+    config = extra.get("config")
     trajectory = config.get("trajectory") if isinstance(config, dict) else None
     preset = trajectory.get("preset") if isinstance(trajectory, dict) else None
     if isinstance(preset, str) and preset:
         return preset
     folder = sequence.root.name if sequence.root is not None else sequence.meta.name
     tail = folder.rsplit("_", 1)[-1] if "_" in folder else ""
-    return tail if tail in SPEEDS else ""
+    if tail in SPEEDS:
+        return tail
+    if sequence.meta.source == "recording":
+        dataset = extra.get("dataset")
+        return dataset if isinstance(dataset, str) and dataset else "recording"
+    return ""
 
 
 def _sequence_folders(root: Path) -> list[Path]:
