@@ -21,7 +21,10 @@ Each setting is tracked once untimed (numba's kernels loaded), then ``--repeats`
 timed run per setting, interleaved so that the machine's load drifts over all alike. Oracle
 poses (1 cm / 0.03 rad noise), as in ``benchmarks/bench_tracker.py``. Printed per setting: the
 median processing time (s) and real-time factor, the velocity and pose stages' time (s; a
-compiled run counts its steps' view checks in ``pose``, the step loop outside the stages), the
+compiled run counts its steps' view checks in ``pose``, the step loop outside the stages; a
+view check is one compiled call where the object's bounding box projects inside the camera's
+view rectangle, :func:`~evtrack.tracking.silhouette.ideal_view_rectangle`, with or without
+distortion, and otherwise the silhouette projected through the lens), the
 share of the velocity steps done in compiled runs, the position / rotation RMSE against ground
 truth (cm / deg) and the largest difference of the outputs from the ``per step`` run of the
 same camera (pose entries, twist entries).

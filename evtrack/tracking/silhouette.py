@@ -10,11 +10,20 @@ half-planes moved outwards by ``margin``, a mitred offset, slightly generous at 
 
 The hull also gives the depth range of the object at the predicted pose, which the depth
 lookup uses to reject background and occluder pixels (:mod:`evtrack.tracking.depth_sources`).
+
+Whether the whole silhouette is in view, the tracker's question at every step, is answered
+without the hull where it can be (:meth:`Silhouette.box_in_image`): when the 8 corners of the
+hull's bounding box lie in front of the camera and their ideal (undistorted) pinhole
+projections inside a rectangle whose every point the lens maps into the image
+(:func:`ideal_view_rectangle`; without distortion, the image itself), every hull point's ideal
+projection lies in that rectangle too (the box's projection is convex), and so its distorted
+projection lies in the image.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -26,8 +35,8 @@ from evtrack.filters.scalar_lie import rotation_matrix
 from evtrack.runtime.jit import available as jit_available
 from evtrack.runtime.jit import njit
 
-__all__ = ["Silhouette", "SilhouettePolygon", "hull_vertices", "pixels_in_polygon",
-           "points_in_polygon"]
+__all__ = ["Silhouette", "SilhouettePolygon", "hull_vertices", "ideal_view_rectangle",
+           "pixels_in_polygon", "points_in_polygon"]
 
 MIN_DEPTH_M = 1e-3
 """Hull vertices closer than this to the camera plane make the projection meaningless: the
@@ -53,6 +62,149 @@ def hull_vertices(vertices: np.ndarray) -> np.ndarray:
         return np.asarray(hull.vertices, np.float64)
     except Exception:  # flat or degenerate point sets: keep every point (still a superset)
         return pts
+
+
+VIEW_INSET_PX = 0.25
+""":func:`ideal_view_rectangle` seeks its rectangle for the image shrunk by this much (pixels)
+on each side: room for its verification's bound on the lens's curvature between grid nodes."""
+
+_GRID_NODES = 257
+"""At most this many grid nodes per axis verify :func:`ideal_view_rectangle`'s rectangle."""
+
+_SHRINK_ROUNDS = 64
+"""At most this many rounds of shrinking :func:`ideal_view_rectangle`'s rectangle."""
+
+
+def ideal_view_rectangle(camera: PinholeCamera) -> tuple[float, float, float, float] | None:
+    """A rectangle of ideal (undistorted) pixels ``u = fx * x / z + cx``, ``v = fy * y / z + cy``
+    that the camera's lens maps, every point of it, inside the image
+    ``[-0.5, W - 0.5) x [-0.5, H - 0.5)``: a point projecting into it is surely in view.
+
+    Without distortion it is the image itself. With distortion, the image's boundary shrunk by
+    :data:`VIEW_INSET_PX` is undistorted (``PinholeCamera.undistort_points``, samples 1 px
+    apart) and each side of the rectangle placed at the innermost undistorted point of its
+    edge (the largest ``u`` of the left edge, ...). The rectangle is then verified: a grid of
+    up to 257 x 257 nodes over it (its sides included) is distorted
+    (``PinholeCamera.distort_points``) and every node must land at least ``e`` inside the
+    image. A point of a grid cell lands within the bilinear interpolation error of the convex
+    hull of its corners' images, at most ``(g_u² max|∂²D/∂u²| + g_v² max|∂²D/∂v²|) / 8``
+    (cell sides ``g``); ``e`` takes the largest second differences of the nodes' images
+    along each axis for ``g² |∂²D|`` and doubles that bound, plus 1e-3 px for rounding. The
+    sides nearest the nodes that fail (or do not distort to finite pixels) move inwards past
+    them, a cell at least, and the grid is checked again. Computed once per set of camera
+    parameters (cached).
+
+    Args:
+        camera: the event camera.
+
+    Returns:
+        ``(u_lo, u_hi, v_lo, v_hi)`` pixels, the rectangle ``[u_lo, u_hi) x [v_lo, v_hi)``;
+        ``None`` where no rectangle of at least one pixel a side was verified.
+    """
+    if camera.dist is None:
+        return (-0.5, camera.width - 0.5, -0.5, camera.height - 0.5)
+    return _distorted_view_rectangle(camera.fx, camera.fy, camera.cx, camera.cy, camera.width,
+                                     camera.height, tuple(float(d) for d in camera.dist))
+
+
+@lru_cache(maxsize=32)
+def _distorted_view_rectangle(fx: float, fy: float, cx: float, cy: float, w: int, h: int,
+                              dist: tuple[float, ...]
+                              ) -> tuple[float, float, float, float] | None:
+    """:func:`ideal_view_rectangle` of a camera with distortion ``dist``, by its parameters."""
+    cam = PinholeCamera(fx, fy, cx, cy, w, h, dist)
+    rect = _undistorted_edges_rectangle(cam)
+    for _ in range(_SHRINK_ROUNDS):
+        u_lo, u_hi, v_lo, v_hi = rect
+        if not (u_hi - u_lo >= 1.0 and v_hi - v_lo >= 1.0):
+            return None
+        gu = np.linspace(u_lo, u_hi, _GRID_NODES)
+        gv = np.linspace(v_lo, v_hi, _GRID_NODES)
+        nodes = np.stack(np.meshgrid(gu, gv), -1)  # (V, U, 2): row j at gv[j], column i at gu[i]
+        bad = _nodes_outside(cam, nodes)
+        if not bad.any():
+            return rect
+        rect = _shrink_past(rect, nodes[bad], gu[1] - gu[0], gv[1] - gv[0])
+    return None
+
+
+def _undistorted_edges_rectangle(cam: PinholeCamera) -> tuple[float, float, float, float]:
+    """The first guess of :func:`ideal_view_rectangle`: the innermost undistorted points of
+    the four edges of the image shrunk by :data:`VIEW_INSET_PX`. Only the points that the
+    lens maps back to within 0.01 px of their edge count (the iterative undistortion does not
+    converge where the lens model cannot reach an edge pixel, e.g. a strong barrel's
+    corners); an edge with none keeps its own position."""
+    lo_u, hi_u = -0.5 + VIEW_INSET_PX, cam.width - 0.5 - VIEW_INSET_PX
+    lo_v, hi_v = -0.5 + VIEW_INSET_PX, cam.height - 0.5 - VIEW_INSET_PX
+    us = np.linspace(lo_u, hi_u, cam.width + 1)
+    vs = np.linspace(lo_v, hi_v, cam.height + 1)
+    edges = [np.stack([np.full_like(vs, lo_u), vs], 1), np.stack([np.full_like(vs, hi_u), vs], 1),
+             np.stack([us, np.full_like(us, lo_v)], 1), np.stack([us, np.full_like(us, hi_v)], 1)]
+    pixels = np.concatenate(edges)
+    ideal = cam.undistort_points(torch.from_numpy(pixels)).numpy()
+    back = _distort(cam, ideal)
+    with np.errstate(invalid="ignore"):
+        converged = (np.abs(back - pixels) <= 0.01).all(1)
+    cuts = np.cumsum([len(e) for e in edges])[:-1]
+    sides = []
+    for ideal_k, ok, (axis, inner, own) in zip(
+            np.split(ideal, cuts), np.split(converged, cuts),
+            ((0, np.max, lo_u), (0, np.min, hi_u), (1, np.max, lo_v), (1, np.min, hi_v)),
+            strict=True):
+        sides.append(float(inner(ideal_k[ok, axis])) if ok.any() else own)
+    return sides[0], sides[1], sides[2], sides[3]
+
+
+_DISTORT_CHUNK = 16384
+"""Points per ``distort_points`` call in :func:`_distort`: below torch's size for its
+intra-op threads (which, on a busy machine, cost far more than they save here)."""
+
+
+def _distort(cam: PinholeCamera, uv: np.ndarray) -> np.ndarray:
+    """``cam.distort_points`` of (N, 2) ideal pixels -> (N, 2) float64 distorted pixels."""
+    out = np.empty_like(uv)
+    for i in range(0, len(uv), _DISTORT_CHUNK):
+        chunk = torch.from_numpy(np.ascontiguousarray(uv[i:i + _DISTORT_CHUNK]))
+        out[i:i + _DISTORT_CHUNK] = cam.distort_points(chunk).numpy()
+    return out
+
+
+def _nodes_outside(cam: PinholeCamera, nodes: np.ndarray) -> np.ndarray:
+    """(V, U) bool: the grid nodes (V, U, 2) ideal pixels whose distorted pixels are not finite
+    or lie less than the interpolation bound of :func:`ideal_view_rectangle` inside the
+    image."""
+    d = _distort(cam, nodes.reshape(-1, 2)).reshape(nodes.shape)
+    with np.errstate(invalid="ignore"):
+        along_u = np.abs(d[:, 2:] - 2.0 * d[:, 1:-1] + d[:, :-2])
+        along_v = np.abs(d[2:] - 2.0 * d[1:-1] + d[:-2])
+        if np.isfinite(along_u).all() and np.isfinite(along_v).all():
+            e = 1e-3 + 2.0 * (along_u.max() + along_v.max()) / 8.0
+        else:
+            e = np.inf  # a singular lens model within the rectangle: every node fails
+        du, dv = d[..., 0], d[..., 1]
+        inside = ((du >= -0.5 + e) & (du <= cam.width - 0.5 - e) & (dv >= -0.5 + e)
+                  & (dv <= cam.height - 0.5 - e))
+    return ~inside
+
+
+def _shrink_past(rect: tuple[float, float, float, float], bad: np.ndarray, gu: float,
+                 gv: float) -> tuple[float, float, float, float]:
+    """``rect`` ``(u_lo, u_hi, v_lo, v_hi)`` with the side nearest each of the ``bad`` (N, 2)
+    points (relative to the rectangle's half sides) moved a grid cell (``gu``, ``gv`` px)
+    past the innermost of them."""
+    u_lo, u_hi, v_lo, v_hi = rect
+    a = (bad[:, 0] - 0.5 * (u_lo + u_hi)) / (0.5 * (u_hi - u_lo))
+    b = (bad[:, 1] - 0.5 * (v_lo + v_hi)) / (0.5 * (v_hi - v_lo))
+    horizontal = np.abs(a) >= np.abs(b)
+    if (horizontal & (a < 0)).any():
+        u_lo = float(bad[horizontal & (a < 0), 0].max()) + gu
+    if (horizontal & (a >= 0)).any():
+        u_hi = float(bad[horizontal & (a >= 0), 0].min()) - gu
+    if (~horizontal & (b < 0)).any():
+        v_lo = float(bad[~horizontal & (b < 0), 1].max()) + gv
+    if (~horizontal & (b >= 0)).any():
+        v_hi = float(bad[~horizontal & (b >= 0), 1].min()) - gv
+    return u_lo, u_hi, v_lo, v_hi
 
 
 @dataclass
@@ -278,6 +430,8 @@ class Silhouette:
         w, h = camera.width, camera.height
         self._image = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5],
                                 [-0.5, h - 0.5]], np.float32)
+        self._view_rect = ideal_view_rectangle(camera)
+        """``(u_lo, u_hi, v_lo, v_hi)`` ideal pixels (:func:`ideal_view_rectangle`) or None."""
 
     def _project(self, pose: np.ndarray | torch.Tensor, points: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -296,19 +450,35 @@ class Silhouette:
             uv = self.camera.project(torch.from_numpy(P)).numpy()
         return uv, z
 
+    def _kernel_frame(self) -> tuple[float, float, float, float] | None:
+        """The view rectangle ``[u_lo, u_hi) x [v_lo, v_hi)`` as the compiled kernels' image:
+        principal point ``(cx - u_lo - 0.5, cy - v_lo - 0.5)`` and size ``(u_hi - u_lo,
+        v_hi - v_lo)`` pixels, so that their test ``-0.5 <= u' < W' - 0.5`` on
+        ``u' = u - u_lo - 0.5`` is ``u_lo <= u < u_hi`` (to rounding, ~1e-13 px, which the
+        rectangle's margin covers; exactly the image's test without distortion, whose
+        rectangle gives ``cx``, ``W`` unchanged); None without a rectangle."""
+        if self._view_rect is None:
+            return None
+        u_lo, u_hi, v_lo, v_hi = self._view_rect
+        cam = self.camera
+        return (float(cam.cx) - (u_lo + 0.5), float(cam.cy) - (v_lo + 0.5), u_hi - u_lo,
+                v_hi - v_lo)
+
     def box_in_image(self, t: tuple[float, float, float], q: tuple[float, float, float, float]
                      ) -> bool:
         """Whether the corners of the hull's bounding box lie in front of the camera and
-        project inside the image at the pose ``(t (3,) m, q (4,) unit wxyz)``, so that the
+        their ideal projections inside the view rectangle (:func:`ideal_view_rectangle`: the
+        image without distortion) at the pose ``(t (3,) m, q (4,) unit wxyz)``, so that the
         whole silhouette is in view (:meth:`visible_fraction` is 1). False: not known here
-        (a corner outside, or a distorted camera); ask :meth:`visible_fraction`. One compiled
-        call of ~2 µs: the tracker asks at every velocity step."""
-        cam = self.camera
-        if cam.dist is not None:
+        (a corner outside the rectangle, or a lens without one); ask :meth:`visible_fraction`.
+        One compiled call of ~2 µs: the tracker asks at every velocity step."""
+        frame = self._kernel_frame()
+        if frame is None:
             return False
+        cam = self.camera
+        cx, cy, w, h = frame
         return bool(_box_in_image(tuple(t), tuple(q), self._box, float(cam.fx), float(cam.fy),
-                                  float(cam.cx), float(cam.cy), float(cam.width),
-                                  float(cam.height), MIN_DEPTH_M))
+                                  cx, cy, w, h, MIN_DEPTH_M))
 
     def boxes_in_image(self, t: np.ndarray, q: np.ndarray) -> np.ndarray:
         """:meth:`box_in_image` at ``n`` poses in one compiled call: ``t`` (n, 3) m, ``q``
@@ -322,25 +492,34 @@ class Silhouette:
         if t.ndim != 2 or t.shape[1] != 3 or q.shape != (len(t), 4):
             raise ValueError(f"Silhouette.boxes_in_image: t must be (n, 3) and q (n, 4), got "
                              f"{t.shape} and {q.shape}")
-        cam = self.camera
-        if cam.dist is not None:
+        frame = self._kernel_frame()
+        if frame is None:
             return np.zeros(len(t), bool)
-        return _boxes_in_image(t, q, self._box, float(cam.fx), float(cam.fy), float(cam.cx),
-                               float(cam.cy), float(cam.width), float(cam.height),
+        cam = self.camera
+        cx, cy, w, h = frame
+        return _boxes_in_image(t, q, self._box, float(cam.fx), float(cam.fy), cx, cy, w, h,
                                MIN_DEPTH_M)
 
     def visible_fraction(self, pose: np.ndarray | torch.Tensor) -> float:
         """``polygon(pose).visible_fraction`` (0 without a polygon), in [0, 1]: 1 at once when
-        the corners of the hull's bounding box lie in front of the camera and project inside
-        the image (then so does the whole hull), without projecting the hull or building the
-        polygon; the tracker asks at every step."""
-        corners = self._project(pose, self._box) if self.camera.dist is None else None
-        if corners is not None:
-            uv = corners[0]
-            w, h = self.camera.width, self.camera.height
-            if ((uv >= -0.5).all() and (uv[:, 0] < w - 0.5).all()
-                    and (uv[:, 1] < h - 0.5).all()):
-                return 1.0
+        the corners of the hull's bounding box lie in front of the camera and their ideal
+        projections inside the view rectangle (:meth:`box_in_image`'s test, in NumPy), without
+        projecting the hull or building the polygon; the tracker asks at every step.
+
+        Args:
+            pose: (4, 4) object-to-camera transform, metres.
+        """
+        if self._view_rect is not None:
+            T = np.asarray(pose, np.float64)
+            P = self._box @ T[:3, :3].T + T[:3, 3]
+            z = P[:, 2]
+            if np.isfinite(P).all() and z.min() >= MIN_DEPTH_M:
+                u_lo, u_hi, v_lo, v_hi = self._view_rect
+                u = self.camera.fx * P[:, 0] / z + self.camera.cx
+                v = self.camera.fy * P[:, 1] / z + self.camera.cy
+                if ((u >= u_lo).all() and (u < u_hi).all() and (v >= v_lo).all()
+                        and (v < v_hi).all()):
+                    return 1.0
         poly = self.polygon(pose)
         return 0.0 if poly is None else poly.visible_fraction
 
@@ -371,12 +550,18 @@ class Silhouette:
         """(N, 2) pixels -> their convex hull, with the share of its area in the image."""
         hull = cv2.convexHull(uv.astype(np.float32)).reshape(-1, 2)
         area = abs(cv2.contourArea(hull))
-        if area > 0:
+        w, h = self.camera.width, self.camera.height
+        if area > 0 and ((hull >= -0.5).all() and (hull[:, 0] <= w - 0.5).all()
+                         and (hull[:, 1] <= h - 0.5).all()):
+            # the hull in the image's closed rectangle: all of it inside, exactly (the
+            # intersection's area below is rounded to float32, its ratio to ``area`` not 1)
+            visible = 1.0
+        elif area > 0:
             inter, _ = cv2.intersectConvexConvex(hull, self._image)
             visible = float(min(max(inter / area, 0.0), 1.0))
         else:
             cx, cy = hull.mean(0)
-            inside = -0.5 <= cx < self.camera.width - 0.5 and -0.5 <= cy < self.camera.height - 0.5
+            inside = -0.5 <= cx < w - 0.5 and -0.5 <= cy < h - 0.5
             visible = 1.0 if inside else 0.0
         return SilhouettePolygon(hull.astype(np.float64), (z_min, z_max), visible)
 

@@ -1,16 +1,32 @@
 """The object's silhouette (evtrack.tracking.silhouette): point and pixel tests against OpenCV
-and each other, coverage of the rendered mask, hulls, visible fractions, boxes in the image."""
+and each other, coverage of the rendered mask, hulls, visible fractions, boxes in the image
+(with and without lens distortion)."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 from tracker_helpers import SMALL_CAM, rigid_pose
 
 from evtrack.camera import PinholeCamera
-from evtrack.tracking.silhouette import Silhouette, pixels_in_polygon, points_in_polygon
+from evtrack.tracking.silhouette import (
+    Silhouette,
+    ideal_view_rectangle,
+    pixels_in_polygon,
+    points_in_polygon,
+)
+
+BARREL_CAM = PinholeCamera(1042.33, 1041.62, 595.39, 405.73, 1280, 720,
+                           dist=[-0.4431, 0.2566, -1.084e-3, 6.42e-4, -0.0937])
+"""A Prophesee 1280 x 720 event camera's calibration (YCB-Ev): a strong barrel, ~100 px at the
+image's sides, its corners beyond the reach of the lens model."""
+
+PINCUSHION_CAM = PinholeCamera(250.0, 240.0, 159.5, 119.5, 320, 240,
+                               dist=[0.3, 0.05, 1e-3, -1e-3, 0.0])
+"""A strong pincushion: ~20 px at the image's corners."""
 
 
 def test_points_in_polygon_against_opencv() -> None:
@@ -199,7 +215,90 @@ def test_box_in_image_against_the_projected_corners(shape) -> None:
     assert sil.boxes_in_image(np.zeros((0, 3)), np.zeros((0, 4))).shape == (0,)
     with pytest.raises(ValueError, match=r"\(n, 3\)"):
         sil.boxes_in_image(np.zeros((2, 3)), np.zeros((3, 4)))
-    distorted = PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120, dist=[0.01, 0, 0, 0, 0])
-    assert not Silhouette(points, distorted).box_in_image((0.0, 0.0, 0.5), (1.0, 0.0, 0.0, 0.0))
-    assert not Silhouette(points, distorted).boxes_in_image(
+    # a lens without a view rectangle: never True (the exact path answers)
+    distorted = Silhouette(points, PinholeCamera(120.0, 110.0, 79.5, 59.5, 160, 120,
+                                                 dist=[0.01, 0, 0, 0, 0]))
+    assert distorted.box_in_image((0.0, 0.0, 0.5), (1.0, 0.0, 0.0, 0.0))
+    distorted._view_rect = None
+    assert not distorted.box_in_image((0.0, 0.0, 0.5), (1.0, 0.0, 0.0, 0.0))
+    assert not distorted.boxes_in_image(
         np.array([[0.0, 0.0, 0.5]]), np.array([[1.0, 0.0, 0.0, 0.0]])).any()
+    assert distorted.visible_fraction(rigid_pose([0, 0, 0], [0, 0, 0.5])) == 1.0
+
+
+def test_view_rectangle_maps_inside_the_image() -> None:
+    """:func:`ideal_view_rectangle`: the image itself without distortion; with a strong barrel
+    or pincushion, dense random ideal pixels in it all distort into the image, and it spans
+    nearly the image's undistortion (wider than the image for the barrel, narrower for the
+    pincushion)."""
+    assert ideal_view_rectangle(SMALL_CAM) == (-0.5, 159.5, -0.5, 119.5)
+    rng = np.random.default_rng(5)
+    for cam in (BARREL_CAM, PINCUSHION_CAM):
+        rect = ideal_view_rectangle(cam)
+        assert rect is not None
+        u_lo, u_hi, v_lo, v_hi = rect
+        ideal = np.stack([rng.uniform(u_lo, u_hi, 200_000), rng.uniform(v_lo, v_hi, 200_000)], 1)
+        ideal[:4] = [[u_lo, v_lo], [u_hi, v_lo], [u_lo, v_hi], [u_hi, v_hi]]
+        uv = cam.distort_points(torch.from_numpy(ideal))
+        assert bool(cam.in_image(uv).all())
+        # each side's middle lands within a pixel of the image's edge
+        mid_u, mid_v = 0.5 * (u_lo + u_hi), 0.5 * (v_lo + v_hi)
+        sides = torch.tensor([[u_lo, cam.cy], [u_hi, cam.cy], [cam.cx, v_lo], [cam.cx, v_hi]],
+                             dtype=torch.float64)
+        edges = cam.distort_points(sides)
+        if cam is BARREL_CAM:
+            assert u_lo < -100 and u_hi > cam.width + 100 and v_lo < -20 and v_hi > cam.height
+            edge = torch.tensor([edges[0, 0], edges[1, 0], edges[2, 1], edges[3, 1]])
+            assert torch.allclose(edge, torch.tensor([-0.5, 1279.5, -0.5, 719.5],
+                                                     dtype=torch.float64), atol=1.0)
+        else:  # the corners bind
+            assert 0 < u_lo < mid_u < u_hi < cam.width and 0 < v_lo < mid_v < v_hi < cam.height
+            corners = cam.distort_points(torch.tensor([[u_lo, v_lo], [u_hi, v_hi]],
+                                                      dtype=torch.float64))
+            assert float((corners[0] + 0.5).min()) < 1.0
+            assert float((torch.tensor([319.5, 239.5]) - corners[1]).min()) < 1.0
+
+
+@pytest.mark.parametrize("camera", [BARREL_CAM, PINCUSHION_CAM], ids=["barrel", "pincushion"])
+def test_box_in_image_with_distortion_is_conservative(camera) -> None:
+    """With a distorted camera, ``box_in_image`` says True only where the exact silhouette
+    (hull projected through the lens) is whole in the image (visible fraction exactly 1, every
+    vertex in the image), and it does so for most poses whose silhouette lies well inside;
+    ``boxes_in_image`` says the same pose by pose; ``visible_fraction`` is that of the exact
+    path (no view rectangle) to the bit."""
+    rng = np.random.default_rng(6)
+    points = rng.normal(0, 0.03, (200, 3)) * [1.0, 2.0, 0.5]
+    sil = Silhouette(points, camera)
+    exact = Silhouette(points, camera)
+    exact._view_rect = None  # box_in_image always False: visible_fraction from the polygon
+    w, h = camera.size
+    fast_count = well_inside = well_inside_fast = partly = 0
+    ts, qs, gots = [], [], []
+    for _ in range(1500):
+        rot = Rotation.from_rotvec(rng.normal(0, 1, 3))
+        z = rng.uniform(0.3, 1.5)
+        t = [rng.uniform(-0.8, 0.8) * z, rng.uniform(-0.5, 0.5) * z, z]
+        x, y, qz, qw = rot.as_quat()
+        T = rigid_pose(rot.as_rotvec(), t)
+        fast = sil.box_in_image(tuple(t), (qw, x, y, qz))
+        ts.append(t)
+        qs.append((qw, x, y, qz))
+        gots.append(fast)
+        poly = sil.polygon(T)
+        fraction = 0.0 if poly is None else poly.visible_fraction
+        assert sil.visible_fraction(T) == exact.visible_fraction(T) == fraction
+        partly += 0.0 < fraction < 1.0
+        if fast:
+            fast_count += 1
+            assert fraction == 1.0
+            assert camera.in_image(torch.from_numpy(poly.vertices)).all()
+        if poly is not None:  # 5 % of the width inside the image, or more
+            m = 0.05 * w
+            v = poly.vertices
+            well = bool((v >= m).all() and (v[:, 0] <= w - 1 - m).all()
+                        and (v[:, 1] <= h - 1 - m).all())
+            well_inside += well
+            well_inside_fast += well and fast
+    assert fast_count > 300 and partly > 100
+    assert well_inside > 300 and well_inside_fast > 0.8 * well_inside
+    assert sil.boxes_in_image(np.array(ts), np.array(qs)).tolist() == gots
