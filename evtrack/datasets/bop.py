@@ -47,6 +47,8 @@ __all__ = [
     "read_scene_camera",
     "read_scene_gt",
     "read_models_info",
+    "read_rgb_image",
+    "read_depth_image_m",
     "bop_model_file",
     "is_bop_model_file",
     "load_bop_mesh",
@@ -430,6 +432,39 @@ def load_bop_mesh(models_dir: str | Path, obj_id: int) -> ObjectMesh:
 
 
 # ---------------------------------------------------------------------------- scenes
+def read_rgb_image(path: str | Path) -> np.ndarray:
+    """A BOP colour image (8-bit PNG or JPEG, 3 or 4 channels) as (H, W, 3) uint8 RGB.
+
+    Raises:
+        EventFileError: an unreadable file, or not an 8-bit colour image.
+    """
+    path = Path(path)
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise EventFileError(path, "cannot read the image")
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise EventFileError(path, f"expected an 8-bit RGB image, got shape {image.shape} "
+                                   f"{image.dtype}")
+    return np.ascontiguousarray(cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2RGB))
+
+
+def read_depth_image_m(path: str | Path, depth_scale: float) -> np.ndarray:
+    """A BOP depth image (single-channel uint16 PNG; value x ``depth_scale`` = millimetres) as
+    (H, W) float32 metres, 0 where missing.
+
+    Raises:
+        EventFileError: an unreadable file, or not a single-channel 16-bit image.
+    """
+    path = Path(path)
+    depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if depth is None:
+        raise EventFileError(path, "cannot read the depth image")
+    if depth.dtype != np.uint16 or depth.ndim != 2:
+        raise EventFileError(path, f"expected a single-channel uint16 depth image, got "
+                                   f"shape {depth.shape} {depth.dtype}")
+    return (depth.astype(np.float32) * np.float32(depth_scale * MM)).astype(np.float32)
+
+
 class BopScene:
     """One BOP scene folder: its images, cameras and ground-truth poses.
 
@@ -507,14 +542,7 @@ class BopScene:
         Raises:
             EventFileError: a missing or unreadable file, or not an 8-bit colour image.
         """
-        path = self.rgb_path(im_id)
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None:
-            raise EventFileError(path, "cannot read the image")
-        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
-            raise EventFileError(path, f"expected an 8-bit RGB image, got shape {image.shape} "
-                                       f"{image.dtype}")
-        return np.ascontiguousarray(cv2.cvtColor(image[..., :3], cv2.COLOR_BGR2RGB))
+        return read_rgb_image(self.rgb_path(im_id))
 
     def depth_m(self, im_id: int) -> np.ndarray:
         """The depth of image ``im_id``: (H, W) float32 metres, 0 where missing.
@@ -528,13 +556,7 @@ class BopScene:
         path = self.folder / "depth" / f"{im_id:06d}.png"
         if not path.is_file():
             raise EventFileError(path, f"depth image of image {im_id} not found")
-        depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if depth is None:
-            raise EventFileError(path, "cannot read the depth image")
-        if depth.dtype != np.uint16 or depth.ndim != 2:
-            raise EventFileError(path, f"expected a single-channel uint16 depth image, got "
-                                       f"shape {depth.shape} {depth.dtype}")
-        return (depth.astype(np.float32) * np.float32(scale * MM)).astype(np.float32)
+        return read_depth_image_m(path, scale)
 
     def __repr__(self) -> str:
         return (f"BopScene({str(self.folder)!r}, images={len(self.cameras)}, "

@@ -41,7 +41,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 
@@ -296,20 +295,6 @@ def _frame_file(folder: Path, im_id: int, suffixes: tuple[str, ...]) -> Path:
                          f"frame {im_id} of scene_gt.json has no image file")
 
 
-def _read_rgb(path: Path) -> np.ndarray:
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise EventFileError(path, "cannot read the colour image (corrupt or not an image)")
-    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-
-
-def _read_depth_m(path: Path, depth_scale: float) -> np.ndarray:
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.ndim != 2:
-        raise EventFileError(path, "cannot read the depth image (expected a 16-bit PNG)")
-    return raw.astype(np.float64) * (depth_scale / 1000.0)
-
-
 # ---------------------------------------------------------------------------- import
 @dataclass(frozen=True)
 class _Scene:
@@ -363,7 +348,7 @@ def _write_sequence(scene: _Scene, obj_id: int, out: Path, frame_offset_us: int,
                     overwrite: bool, progress: bool) -> Path:
     from tqdm.auto import tqdm
 
-    from evtrack.datasets.bop import load_bop_mesh
+    from evtrack.datasets.bop import load_bop_mesh, read_depth_image_m, read_rgb_image
     from evtrack.datasets.depth_registration import register_depth
     from evtrack.datasets.groundtruth import ground_truth_from_poses
     from evtrack.sequence import SequenceMeta, SequenceWriter
@@ -396,9 +381,10 @@ def _write_sequence(scene: _Scene, obj_id: int, out: Path, frame_offset_us: int,
         frames = tqdm(list(zip(all_ids, all_times, strict=True)), desc=name, unit="frame",
                       disable=not progress)
         for im_id, t_us in frames:
-            writer.add_rgb(int(t_us), _read_rgb(_frame_file(rgb_dir, im_id, (".png", ".jpg"))))
+            writer.add_rgb(int(t_us),
+                           read_rgb_image(_frame_file(rgb_dir, im_id, (".png", ".jpg"))))
             depth_path = _frame_file(depth_dir, im_id, (".png",))
-            depth = register_depth(_read_depth_m(depth_path, cal.depth_scale), cal.K_depth,
+            depth = register_depth(read_depth_image_m(depth_path, cal.depth_scale), cal.K_depth,
                                    cal.rgb_camera.K().numpy(), cal.T_rgb_depth,
                                    cal.rgb_camera.size)
             writer.add_depth(int(t_us), depth)
