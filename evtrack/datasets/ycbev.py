@@ -344,14 +344,15 @@ def _object_track(scene: _Scene, obj_id: int, frame_offset_us: int
     return im_ids, times, np.asarray(poses, np.float64).reshape(-1, 4, 4)
 
 
-def _write_sequence(scene: _Scene, obj_id: int, out: Path, frame_offset_us: int,
-                    overwrite: bool, progress: bool) -> Path:
-    from tqdm.auto import tqdm
+def _object_sequence(scene: _Scene, obj_id: int, frame_offset_us: int) -> tuple[Any, Any, Any]:
+    """``(meta, mesh, ground truth)`` of one object's sequence.
 
-    from evtrack.datasets.bop import load_bop_mesh, read_depth_image_m, read_rgb_image
-    from evtrack.datasets.depth_registration import register_depth
+    Raises:
+        ConfigError: the scene does not hold the object.
+    """
+    from evtrack.datasets.bop import load_bop_mesh
     from evtrack.datasets.groundtruth import ground_truth_from_poses
-    from evtrack.sequence import SequenceMeta, SequenceWriter
+    from evtrack.sequence import SequenceMeta
 
     im_ids, times, poses = _object_track(scene, obj_id, frame_offset_us)
     if not im_ids:
@@ -359,10 +360,7 @@ def _write_sequence(scene: _Scene, obj_id: int, out: Path, frame_offset_us: int,
                           f"{scene.folder / 'scene_gt.json'}; it holds obj_id "
                           f"{sorted({p.obj_id for ps in scene.gt.values() for p in ps})}")
     cal = scene.calibration
-    mesh = load_bop_mesh(scene.models_dir, obj_id)
     name = YCBV_OBJECT_NAMES[obj_id - 1]
-    all_ids = sorted(scene.gt)
-    all_times = np.asarray(all_ids, np.int64) * FRAME_PERIOD_US + int(frame_offset_us)
     meta = SequenceMeta(
         event_camera=cal.event_camera, name=f"ycbev_{scene.folder.name}_{name}",
         object_name=name, mesh_path="mesh.glb", rgb_camera=cal.rgb_camera,
@@ -374,22 +372,47 @@ def _write_sequence(scene: _Scene, obj_id: int, out: Path, frame_offset_us: int,
                        "im_ids": [int(i) for i in im_ids],
                        "im_times_us": [int(t) for t in times], "gt_frame": "rgb"},
                "frame_offset_us": int(frame_offset_us)})
+    return meta, load_bop_mesh(scene.models_dir, obj_id), ground_truth_from_poses(times, poses)
+
+
+def _write_sequences(scene: _Scene, objects: dict[int, Path], frame_offset_us: int,
+                     overwrite: bool, progress: bool) -> None:
+    """Write one sequence folder per object (``objects``: obj_id -> folder), reading and
+    registering each frame once for all of them. Every object is checked before anything is
+    written; a failure leaves no folder half-written."""
+    from contextlib import ExitStack
+
+    from tqdm.auto import tqdm
+
+    from evtrack.datasets.bop import read_depth_image_m, read_rgb_image
+    from evtrack.datasets.depth_registration import register_depth
+    from evtrack.sequence import SequenceWriter
+
+    parts = {obj_id: _object_sequence(scene, obj_id, frame_offset_us) for obj_id in objects}
+    cal = scene.calibration
+    all_ids = sorted(scene.gt)
+    all_times = np.asarray(all_ids, np.int64) * FRAME_PERIOD_US + int(frame_offset_us)
     rgb_dir, depth_dir = scene.folder / "rgb", scene.folder / "depth"
-    with SequenceWriter(out, meta, overwrite=overwrite) as writer:
-        writer.add_events(scene.events)
-        mesh.export(writer.file_path("mesh.glb"))
-        frames = tqdm(list(zip(all_ids, all_times, strict=True)), desc=name, unit="frame",
-                      disable=not progress)
+    with ExitStack() as stack:
+        writers = []
+        for obj_id, (meta, mesh, gt) in parts.items():
+            writer = stack.enter_context(SequenceWriter(objects[obj_id], meta,
+                                                        overwrite=overwrite))
+            writer.add_events(scene.events)
+            mesh.export(writer.file_path("mesh.glb"))
+            writer.set_ground_truth(gt)
+            writers.append(writer)
+        frames = tqdm(list(zip(all_ids, all_times, strict=True)), desc=scene.folder.name,
+                      unit="frame", disable=not progress)
         for im_id, t_us in frames:
-            writer.add_rgb(int(t_us),
-                           read_rgb_image(_frame_file(rgb_dir, im_id, (".png", ".jpg"))))
+            rgb = read_rgb_image(_frame_file(rgb_dir, im_id, (".png", ".jpg")))
             depth_path = _frame_file(depth_dir, im_id, (".png",))
             depth = register_depth(read_depth_image_m(depth_path, cal.depth_scale), cal.K_depth,
                                    cal.rgb_camera.K().numpy(), cal.T_rgb_depth,
                                    cal.rgb_camera.size)
-            writer.add_depth(int(t_us), depth)
-        writer.set_ground_truth(ground_truth_from_poses(times, poses))
-    return out
+            for writer in writers:
+                writer.add_rgb(int(t_us), rgb)
+                writer.add_depth(int(t_us), depth)
 
 
 def import_ycbev_scene(scene_dir: str | Path, out: str | Path,
@@ -412,7 +435,7 @@ def import_ycbev_scene(scene_dir: str | Path, out: str | Path,
         events_file: the event stream (default: :func:`find_events_file`).
         frame_offset_us: time of colour frame 0 on the event clock, µs.
         overwrite: replace existing sequence folders.
-        progress: show a progress bar per object.
+        progress: show a progress bar over the frames.
 
     Returns:
         the sequence folders written.
@@ -433,12 +456,10 @@ def import_ycbev_scene(scene_dir: str | Path, out: str | Path,
         raise ConfigError(f"{Path(scene_dir) / 'scene_gt.json'}: obj_id {unknown} is not a "
                           f"YCB-Video object (1-{len(YCBV_OBJECT_NAMES)})")
     out = Path(out)
-    written = []
-    for obj_id in ids:
-        folder = out / f"ycbev_{Path(scene_dir).name}_{YCBV_OBJECT_NAMES[obj_id - 1]}"
-        written.append(_write_sequence(scene, obj_id, folder, frame_offset_us, overwrite,
-                                       progress))
-    return written
+    folders = {obj_id: out / f"ycbev_{Path(scene_dir).name}_{YCBV_OBJECT_NAMES[obj_id - 1]}"
+               for obj_id in ids}
+    _write_sequences(scene, folders, frame_offset_us, overwrite, progress)
+    return list(folders.values())
 
 
 # ---------------------------------------------------------------------------- command

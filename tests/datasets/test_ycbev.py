@@ -199,3 +199,40 @@ def test_mesh_in_the_wrong_unit(scene: Path, tmp_path: Path, simulated: Sequence
     write_model(simulated.mesh_file, models, OBJ_ID, scale=1.0)  # metres, not millimetres
     with pytest.raises(EvtrackError, match=r"obj_000004.ply: .*wrong units"):
         import_ycbev_scene(root / SCENE, tmp_path / "o", progress=False)
+
+
+def test_several_objects_share_the_frames(scene: Path, tmp_path: Path) -> None:
+    """Every object of a scene gets its own sequence: the same events and frames, its own
+    ground truth and mesh; an object the scene lacks stops the import before any writing."""
+    root = tmp_path / "root"
+    shutil.copytree(scene.parent, root)
+    gt_path = root / SCENE / "scene_gt.json"
+    gt = json.loads(gt_path.read_text())
+    for entries in gt.values():
+        other = dict(entries[0], obj_id=5)
+        other["cam_t_m2c"] = [v + d for v, d in zip(other["cam_t_m2c"], (80.0, 0.0, 0.0),
+                                                       strict=True)]
+        entries.append(other)
+    gt_path.write_text(json.dumps(gt))
+    models = root / "ycbv_models" / "models"
+    shutil.copy(models / "obj_000004.ply", models / "obj_000005.ply")
+    info = json.loads((models / "models_info.json").read_text())
+    info["5"] = info[str(OBJ_ID)]
+    (models / "models_info.json").write_text(json.dumps(info))
+
+    with pytest.raises(ConfigError, match="002_master_chef_can.*is not in"):
+        import_ycbev_scene(root / SCENE, tmp_path / "o", [5, 1], progress=False)
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+    folders = import_ycbev_scene(root / SCENE, tmp_path / "o", progress=False)
+    assert [f.name for f in folders] == [f"ycbev_{SCENE}_{NAME}",
+                                         f"ycbev_{SCENE}_006_mustard_bottle"]
+    a, b = (Sequence.load(f) for f in folders)
+    assert a.events == b.events and a.num_rgb == b.num_rgb == a.num_depth
+    for k in (0, a.num_rgb - 1):
+        np.testing.assert_array_equal(a.rgb(k), b.rgb(k))
+        np.testing.assert_array_equal(np.nan_to_num(a.depth(k)), np.nan_to_num(b.depth(k)))
+    shift = b.ground_truth.poses[:, :3, 3] - a.ground_truth.poses[:, :3, 3]
+    cal = read_ycbev_calibration(root)
+    want = cal.T_event_rgb[:3, :3] @ np.array([0.08, 0.0, 0.0])
+    np.testing.assert_allclose(shift.numpy(), np.broadcast_to(want, shift.shape), atol=1e-9)
