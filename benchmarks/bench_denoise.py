@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 from evtrack.camera import PinholeCamera
-from evtrack.denoise import DenoiseConfig, EventDenoiser, _make_filter, to_event_store
+from evtrack.denoise import DenoiseConfig, EventDenoiser, make_noise_filter, to_event_store
 from evtrack.events import Events
 from evtrack.io import read_events
 
@@ -107,7 +107,7 @@ def throughput(ev: Events, cfg: DenoiseConfig, repeats: int) -> dict[str, float]
         store = to_event_store(*arrays)
 
         def filtered():
-            f = _make_filter(cfg, ev.sensor_size)
+            f = make_noise_filter(cfg, ev.sensor_size)
             f.accept(store)
             return f.generateEvents()
 

@@ -63,7 +63,7 @@ from evtrack.errors import EventsError
 from evtrack.events import Events
 
 __all__ = ["DenoiseConfig", "DenoiseCounts", "EventDenoiser", "denoise_events",
-           "hot_pixel_mask"]
+           "hot_pixel_mask", "make_noise_filter", "to_event_store"]
 
 METHODS = ("none", "background_activity", "knoise", "fast_decay")
 """The values of ``DenoiseConfig.method``."""
@@ -158,7 +158,7 @@ def hot_pixel_mask(counts: np.ndarray, window_us: int, percentile: float = 99.0,
     return counts > max(factor * level, min_rate_hz * window_us * 1e-6)
 
 
-def _make_filter(cfg: DenoiseConfig, sensor_size: tuple[int, int]) -> Any:
+def make_noise_filter(cfg: DenoiseConfig, sensor_size: tuple[int, int]) -> Any:
     """The dv-processing filter of ``cfg.method`` for a ``(width, height)`` sensor, or
     ``None`` for ``"none"``."""
     if cfg.method == "none":
@@ -213,7 +213,7 @@ class EventDenoiser:
     def reset(self) -> None:
         """Start a new stream: the filter's memory, the hot pixels and the counts cleared."""
         w, h = self.sensor_size
-        self._filter = _make_filter(self.config, self.sensor_size)
+        self._filter = make_noise_filter(self.config, self.sensor_size)
         self._last_t: int | None = None
         self._window: int | None = None  # index of the hot-pixel window being counted
         self._counts = np.zeros(w * h, np.int64)
