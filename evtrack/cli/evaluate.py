@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
     from evtrack.eval.benchmark import run_specs
     from evtrack.eval.pose_setup import pose_caption, resolve_weights
     from evtrack.eval.report import OUTPUT_NAMES
-    from evtrack.eval.sequences import find_sequences, require_ground_truth
+    from evtrack.eval.sequences import find_sequences, require_ground_truth, require_one_split
     from evtrack.tracking.config import TrackerConfig
     from evtrack.utils import output_folder
 
@@ -157,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
     base = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     sequences = find_sequences(args.benchmark)
     require_ground_truth(sequences)
+    require_one_split(sequences)
     objects = [s.object_name for s in sequences]
     weights = resolve_weights(spec, objects)
     caption = pose_caption(spec, weights, objects)

@@ -77,7 +77,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "Make the benchmark set of the paper's synthetic experiments: 003_cracker_box, "
             "005_tomato_soup_can, 006_mustard_bottle and 010_potted_meat_can, each with a "
             "regular and a faster trajectory (fixed seeds), 640x480, 2 s. Writes OUT/<object>_"
-            "<preset>/ folders, OUT/velocity_cdf.png and OUT/summary.yaml."
+            "<preset>/ folders, OUT/velocity_cdf.png and OUT/summary.yaml. With --split, the "
+            "held-out protocol: the tuning or the test split, the same cells with --seeds seeds "
+            "each and no seed in common between the splits, in OUT/<object>_<preset>_seed<N>/ "
+            "folders; choose settings on the tuning split and report the test split "
+            "(docs/results.md, 'Evaluation protocol')."
         ),
     )
     b.add_argument("--out", type=Path, required=True, help="folder for the eight sequences")
@@ -93,6 +97,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "regular=0.24,0.76 faster=0.8,1.0, the speeds at which the pose-only "
                         "baseline errs about as much as the paper's (see "
                         "evtrack.sim.benchmark_set.PAPER_MATCHED_SPEEDS)")
+    b.add_argument("--split", choices=("tuning", "test"), default=None,
+                   help="simulate a split of the held-out protocol instead of the fixed set "
+                        "(which is the tuning split's first seed): seeds 1000+100k+10i+j "
+                        "(tuning) or 5000+100k+10i+j (test) for object i, preset j, replicate k")
+    b.add_argument("--seeds", type=int, default=None, metavar="K",
+                   help="seeds per object and preset of the split (default 3: each column "
+                        "average then holds 12 sequences, and its spread over seeds is "
+                        "reported by 'evtrack evaluate'); needs --split")
+    b.add_argument("--replicates", type=int, nargs="+", default=None, metavar="k",
+                   help="only these replicates (0-based seed indices) of the split, e.g. to "
+                        "simulate a split in parts; needs --split")
     b.add_argument("--velocity-only", action="store_true",
                    help="only write the pixel-velocity report (velocity_cdf.png, summary.yaml) "
                         "from the trajectories, without rendering (seconds instead of minutes)")
@@ -200,25 +215,52 @@ def parse_preset_speeds(items: list[str] | None) -> dict[str, tuple[float, float
     return out
 
 
-def run_benchmark(args: argparse.Namespace) -> int:
+def _selected_entries(args: argparse.Namespace) -> list:
+    """The entries ``simulate-benchmark`` makes: the fixed set or a split's, then only the
+    ``--objects``, ``--presets`` and ``--replicates`` asked for."""
     from evtrack.sim.benchmark_set import (
+        DEFAULT_SPLIT_SEEDS,
+        MAX_SEEDS,
+        BenchmarkEntry,
         benchmark_entries,
-        make_benchmark_set,
-        velocity_report,
+        split_entries,
     )
+
+    if args.split is None:
+        for flag in ("seeds", "replicates"):
+            if getattr(args, flag) is not None:
+                raise ConfigError(f"--{flag} needs --split tuning or --split test")
+        entries = [BenchmarkEntry(*e) for e in benchmark_entries()]
+    else:
+        seeds = DEFAULT_SPLIT_SEEDS if args.seeds is None else args.seeds
+        if not 1 <= seeds <= MAX_SEEDS:
+            raise ConfigError(f"--seeds must be in 1..{MAX_SEEDS}, got {seeds}")
+        entries = split_entries(args.split, seeds)
+        if args.replicates is not None:
+            bad = sorted(k for k in set(args.replicates) if not 0 <= k < seeds)
+            if bad:
+                raise ConfigError(f"--replicates {bad}: a split of {seeds} seed(s) has "
+                                  f"replicates 0..{seeds - 1}")
+            entries = [e for e in entries if e.replicate in args.replicates]
+    if args.objects:
+        known = {e.object_name for e in entries} | {e.object_name[4:] for e in entries}
+        unknown = sorted(set(args.objects) - known)
+        if unknown:
+            raise ConfigError(f"--objects: unknown YCB object(s) {unknown}")
+        entries = [e for e in entries
+                   if e.object_name in args.objects or e.object_name[4:] in args.objects]
+    if args.presets:
+        entries = [e for e in entries if e.preset in args.presets]
+    return entries
+
+
+def run_benchmark(args: argparse.Namespace) -> int:
+    from evtrack.sim.benchmark_set import make_benchmark_set, velocity_report
 
     cfg = build_config(args)
     speeds = parse_preset_speeds(args.preset_speeds)
     _check_device(cfg.events.device)
-    entries = benchmark_entries()
-    if args.objects:
-        known = {e[0] for e in entries} | {e[0][4:] for e in entries}
-        unknown = sorted(set(args.objects) - known)
-        if unknown:
-            raise ConfigError(f"--objects: unknown YCB object(s) {unknown}")
-        entries = [e for e in entries if e[0] in args.objects or e[0][4:] in args.objects]
-    if args.presets:
-        entries = [e for e in entries if e[1] in args.presets]
+    entries = _selected_entries(args)
     if args.velocity_only:
         summary = velocity_report(args.out, cfg, ycb_dir=args.ycb_dir, entries=entries,
                                   speeds=speeds)

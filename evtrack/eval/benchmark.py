@@ -112,6 +112,8 @@ class RunResult:
         stats: the tracker's counters (:class:`~evtrack.tracking.tracker.TrackerStats` as a dict).
         scores: ADD / ADD-S AUC (%) and 5 cm / 5° share (%) over all samples, the untracked
             ones failing (:class:`~evtrack.eval.pose_auc.PoseScores`); ``None``: not measured.
+        split, replicate: the sequence's split and seed index (see
+            :class:`~evtrack.eval.sequences.BenchmarkSequence`).
     """
 
     sequence: str
@@ -125,6 +127,8 @@ class RunResult:
     cpu_seconds: float = 0.0
     stats: dict[str, Any] = field(default_factory=dict)
     scores: PoseScores | None = None
+    split: str = ""
+    replicate: int | None = None
 
 
 def trajectory_path(out_dir: str | Path, sequence: BenchmarkSequence, run: str) -> Path:
@@ -152,7 +156,7 @@ def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
     scores = sequence_pose_scores(traj, seq, workers=threads_per_job(cfg.torch_threads))
     return RunResult(sequence.name, sequence.object_name, sequence.speed, spec.name, spec.method,
                      tracking_errors(traj, seq.ground_truth), path, seconds, cpu,
-                     tracker.stats.to_dict(), scores)
+                     tracker.stats.to_dict(), scores, sequence.split, sequence.replicate)
 
 
 def _run_job(args: tuple) -> RunResult:

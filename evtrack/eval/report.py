@@ -27,7 +27,7 @@ from evtrack.eval.benchmark import ABLATIONS, RunResult, RunSpec
 from evtrack.eval.plots import SpeedErrors, plot_error_vs_speed, plot_tracking_curves
 from evtrack.eval.samples import pixel_speed_at, sample_errors
 from evtrack.eval.sequences import BenchmarkSequence
-from evtrack.eval.tables import write_tables
+from evtrack.eval.tables import seed_spreads, write_tables
 from evtrack.tracking.trajectory import Trajectory
 
 __all__ = ["ReportFiles", "OUTPUT_NAMES", "write_report", "write_manifest"]
@@ -65,7 +65,8 @@ def write_manifest(path: Path, results: Sequence[RunResult],
     data = {
         **info,
         "sequences": [{"name": s.name, "path": str(s.path), "object": s.object_name,
-                       "speed": s.speed} for s in sequences],
+                       "speed": s.speed, **({"split": s.split, "replicate": s.replicate}
+                                            if s.split else {})} for s in sequences],
         "runs": [{"name": r.name, "method": r.method, "label": r.label,
                   "overrides": r.overrides} for r in runs],
         "results": [{
@@ -77,6 +78,9 @@ def write_manifest(path: Path, results: Sequence[RunResult],
             "counters": {k: v for k, v in r.stats.items() if k != "time_s"},
         } for r in results],
     }
+    spreads = seed_spreads(results, list(dict.fromkeys(r.run for r in results)))
+    if spreads:
+        data["seed_spread"] = [sp.to_dict() for sp in spreads]
     atomic_write_text(path, yaml.safe_dump(data, sort_keys=False, allow_unicode=True))
     return path
 

@@ -9,6 +9,10 @@ Labels:
     speed: the simulator's trajectory preset (``meta.yaml`` ``extra.config.trajectory.preset``),
         else the folder name's last ``_``-separated part when it is a known preset
         (``box_faster`` -> ``faster``), else ``""`` (unknown).
+    split, replicate: the sequence's place in the held-out protocol (``meta.yaml``
+        ``extra.benchmark``, written by ``evtrack simulate-benchmark``; see
+        :mod:`evtrack.sim.benchmark_set`): ``"tuning"`` or ``"test"`` and the seed's index
+        within its object and preset; ``""`` and ``None`` for other sequences.
 """
 
 from __future__ import annotations
@@ -19,7 +23,8 @@ from pathlib import Path
 from evtrack.errors import EvtrackError
 from evtrack.sequence import GT_FILE, META_FILE, Sequence
 
-__all__ = ["SPEEDS", "BenchmarkSequence", "find_sequences", "speed_label", "require_ground_truth"]
+__all__ = ["SPEEDS", "BenchmarkSequence", "find_sequences", "speed_label", "split_label",
+           "require_ground_truth", "require_one_split"]
 
 #: The benchmark's speed presets, in table order.
 SPEEDS = ("regular", "faster")
@@ -35,12 +40,16 @@ class BenchmarkSequence:
             when the benchmark folder is the sequence itself.
         object_name: the tracked object (``meta.yaml`` ``object.name``).
         speed: ``"regular"``, ``"faster"``, another preset name, or ``""`` when unknown.
+        split: ``"tuning"``, ``"test"``, or ``""`` outside the held-out protocol.
+        replicate: the seed's index within its object and preset in the split, or ``None``.
     """
 
     path: Path
     name: str
     object_name: str
     speed: str
+    split: str = ""
+    replicate: int | None = None
 
     @property
     def file_stem(self) -> str:
@@ -71,6 +80,20 @@ def speed_label(sequence: Sequence) -> str:
         dataset = extra.get("dataset")
         return dataset if isinstance(dataset, str) and dataset else "recording"
     return ""
+
+
+def split_label(sequence: Sequence) -> tuple[str, int | None]:
+    """``(split, replicate)`` from ``meta.yaml`` ``extra.benchmark``; ``("", None)`` when the
+    sequence is not part of a split."""
+    extra = sequence.meta.extra if isinstance(sequence.meta.extra, dict) else {}
+    info = extra.get("benchmark")
+    if not isinstance(info, dict):
+        return "", None
+    split = info.get("split")
+    replicate = info.get("replicate")
+    return (split if isinstance(split, str) else "",
+            replicate if isinstance(replicate, int) and not isinstance(replicate, bool)
+            else None)
 
 
 def _sequence_folders(root: Path) -> list[Path]:
@@ -109,8 +132,21 @@ def find_sequences(root: str | Path) -> list[BenchmarkSequence]:
         seq = Sequence.load(folder)
         name = folder.name if folder == root else folder.relative_to(root).as_posix()
         out.append(BenchmarkSequence(folder, name, seq.meta.object_name or "?",
-                                     speed_label(seq)))
+                                     speed_label(seq), *split_label(seq)))
     return sorted(out, key=_sort_key)
+
+
+def require_one_split(sequences: list[BenchmarkSequence]) -> None:
+    """Raise when the sequences mix the tuning and the test split: an average over both would
+    report results partly on the sequences the settings were chosen on."""
+    splits = sorted({s.split for s in sequences if s.split})
+    if len(splits) > 1:
+        examples = {sp: next(str(s.path) for s in sequences if s.split == sp) for sp in splits}
+        raise EvtrackError(
+            "the benchmark folder mixes the splits " + ", ".join(
+                f"{sp!r} (e.g. {path})" for sp, path in examples.items())
+            + "; evaluate each split's folder on its own (tuning: where settings are chosen, "
+              "test: what is reported)")
 
 
 def require_ground_truth(sequences: list[BenchmarkSequence]) -> None:

@@ -17,6 +17,10 @@ shows ``—`` there), e.g. :class:`~evtrack.eval.benchmark.RunResult`.
 * Table II: the averages only (rows = runs, columns = speeds): the RMSEs, then the ADD AUC,
   ADD-S AUC and 5 cm / 5° share per speed.
 * Table III (ablation): the full method against its ablations, averaged, as Table II.
+* Spread over seeds (sequences of a split of the held-out protocol, see
+  :mod:`evtrack.sim.benchmark_set`): per run and speed, the average of each seed replicate
+  (the mean RMSE over that replicate's sequences), then their mean, sample standard deviation
+  and range: how much of an average is one set of seeds' luck.
 
 Conventions: σ is the population standard deviation of a sequence's per-sample errors
 (:func:`~evtrack.eval.metrics.error_summary`). An average is the arithmetic mean of the
@@ -40,8 +44,8 @@ from evtrack.eval.metrics import TrackingErrors
 from evtrack.eval.pose_auc import PoseScores
 from evtrack.eval.sequences import SPEEDS
 
-__all__ = ["ErrorEntry", "Cell", "AverageRow", "average_rows", "markdown_tables", "csv_table",
-           "write_tables", "ALL"]
+__all__ = ["ErrorEntry", "Cell", "AverageRow", "SeedSpread", "average_rows", "seed_spreads",
+           "markdown_tables", "csv_table", "write_tables", "ALL"]
 
 ALL = "all"
 """The speed group of the averages over every sequence."""
@@ -151,6 +155,88 @@ def average_rows(entries: Sequence[ErrorEntry], runs: Sequence[str]) -> list[Ave
             rows.append(_average(run, speed, [e for e in mine if e.speed == speed]))
         rows.append(_average(run, ALL, mine))
     return rows
+
+
+@dataclass(frozen=True)
+class SeedSpread:
+    """How the average of one run over one speed group varies with the seeds.
+
+    Attributes:
+        run, speed: as :class:`AverageRow`; split: the entries' split (``"tuning"``/``"test"``).
+        position, rotation: the per-replicate averages of the RMSEs (cm, deg), in replicate
+            order (a replicate's average is the mean over its sequences of the group).
+        replicates: the replicate indices.
+    """
+
+    run: str
+    speed: str
+    split: str
+    replicates: tuple[int, ...]
+    position: tuple[float, ...]
+    rotation: tuple[float, ...]
+
+    @staticmethod
+    def _stats(values: tuple[float, ...]) -> tuple[float, float, float, float]:
+        """(mean, sample sd (NaN for one value), min, max); NaN if any value is."""
+        if not values or not all(math.isfinite(v) for v in values):
+            return (math.nan,) * 4
+        mean = sum(values) / len(values)
+        sd = (math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1))
+              if len(values) > 1 else math.nan)
+        return mean, sd, min(values), max(values)
+
+    def text(self, values: tuple[float, ...]) -> str:
+        """``mean ± sd [min, max]`` (``mean`` alone for one replicate; ``—`` if undefined)."""
+        mean, sd, lo, hi = self._stats(values)
+        if not math.isfinite(mean):
+            return "—"
+        if not math.isfinite(sd):
+            return f"{mean:.2f}"
+        return f"{mean:.2f} ± {sd:.2f} [{lo:.2f}, {hi:.2f}]"
+
+    def to_dict(self) -> dict:
+        out: dict = {"run": self.run, "speed": self.speed, "split": self.split,
+                     "replicates": list(self.replicates)}
+        for name, values in (("position_cm", self.position), ("rotation_deg", self.rotation)):
+            mean, sd, lo, hi = self._stats(values)
+            out[name] = {"per_replicate": list(values), "mean": mean, "sd": sd, "min": lo,
+                         "max": hi}
+        return out
+
+
+def seed_spreads(entries: Sequence[ErrorEntry], runs: Sequence[str]) -> list[SeedSpread]:
+    """Per run and speed group (and over all), the averages of each seed replicate.
+
+    Only entries with a ``replicate`` (sequences of a split) count; empty when there are none.
+    """
+    placed = [e for e in entries if getattr(e, "replicate", None) is not None]
+    if not placed:
+        return []
+    split = "/".join(sorted({getattr(e, "split", "") or "?" for e in placed}))
+    out = []
+    for run in runs:
+        mine = [e for e in placed if e.run == run]
+        if not mine:
+            continue
+        for speed in [*_speed_groups(mine), ALL]:
+            group = [e for e in mine if speed == ALL or e.speed == speed]
+            reps = sorted({e.replicate for e in group})
+            pos, rot = [], []
+            for k in reps:
+                errs = [e.errors for e in group if e.replicate == k]
+                pos.append(_mean([x.position_rmse_cm for x in errs]))
+                rot.append(_mean([x.rotation_rmse_deg for x in errs]))
+            out.append(SeedSpread(run, speed, split, tuple(reps), tuple(pos), tuple(rot)))
+    return out
+
+
+def _spread_table(spreads: list[SeedSpread], labels: dict[str, str]) -> list[str]:
+    lines = _md_header(["run", "speed", "seeds", "e_p (cm): mean ± sd [min, max]",
+                        "e_r (deg): mean ± sd [min, max]"], [":--", ":--", "--:", "--:", "--:"])
+    for sp in spreads:
+        lines.append(_md_row([labels[sp.run], sp.speed or "?", str(len(sp.replicates)),
+                              sp.text(sp.position), sp.text(sp.rotation)]))
+    return lines
 
 
 def _sequences(entries: Sequence[ErrorEntry]) -> list[tuple[str, str, str]]:
@@ -327,6 +413,13 @@ def markdown_tables(entries: Sequence[ErrorEntry], methods: Sequence[str],
     if ablations:
         out += ["## Table III: ablation of the full method", ""]
         out += _average_table(avgs, ["full", *ablations], labels, groups) + [""]
+    spreads = seed_spreads(entries, runs)
+    if spreads:
+        out += [f"## Spread over seeds ({spreads[0].split} split)", ""]
+        out += ["Each seed replicate's average (mean of its sequences' RMSEs), then the mean, "
+                "sample standard deviation and range of those averages over the replicates.",
+                ""]
+        out += _spread_table(spreads, labels) + [""]
     return "\n".join(out)
 
 

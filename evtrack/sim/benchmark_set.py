@@ -1,13 +1,26 @@
-"""The benchmark set of the paper: four YCB objects x {regular, faster}, fixed seeds.
+"""The benchmark set of the paper: four YCB objects x {regular, faster}, fixed seeds, and its
+held-out evaluation protocol.
 
-Each sequence goes to ``<out>/<object>_<preset>/``; the folder also gets
+Each sequence goes to ``<out>/<object>_<preset>/`` (``<out>/<object>_<preset>_seed<seed>/`` in a
+split); the folder also gets
 ``velocity_cdf.png`` (cumulative distribution of the objects' pixel speed per preset, like the
 paper's figure) and ``summary.yaml`` (counts and pixel-speed percentiles per sequence).
+
+Splits (:func:`split_entries`): the **tuning** split and the **test** split hold the same
+4 objects x 2 presets, each cell simulated with ``seeds`` seeds (replicates ``k = 0, 1, ...``),
+and no seed in common: seed ``base + 100 k + 10 i + j`` for object ``i`` and preset ``j``, with
+base 1000 (tuning) or 5000 (test) and ``k`` below :data:`MAX_SEEDS`. The fixed benchmark set
+(:data:`BENCHMARK_SEEDS`) is the tuning split's replicate 0. Defaults and per-object options are
+chosen on the tuning split; the test split only reports. Each sequence's ``meta.yaml`` records
+its place under ``extra.benchmark`` (``split``, ``replicate``, ``seed``, ``seeds``), which
+``evtrack evaluate`` reads to keep the splits apart and to give each average its spread over
+seeds.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +39,8 @@ from evtrack.sim.groundtruth import plot_speed_cdf, speed_percentiles
 from evtrack.sim.objects import YCB_OBJECTS, resolve_object
 
 __all__ = ["BENCHMARK_SEEDS", "benchmark_entries", "make_benchmark_set", "velocity_report",
-           "PRESETS", "PresetSpeeds", "PAPER_MATCHED_SPEEDS"]
+           "PRESETS", "PresetSpeeds", "PAPER_MATCHED_SPEEDS", "SPLITS", "SPLIT_SEED_BASES",
+           "MAX_SEEDS", "DEFAULT_SPLIT_SEEDS", "BenchmarkEntry", "split_seed", "split_entries"]
 
 PRESETS = ("regular", "faster")
 
@@ -62,13 +76,100 @@ BENCHMARK_SEEDS: dict[tuple[str, str], int] = {
 }
 
 
+SPLITS = ("tuning", "test")
+"""The splits of the held-out protocol: defaults are chosen on ``tuning``, ``test`` reports."""
+
+SPLIT_SEED_BASES: dict[str, int] = {"tuning": 1000, "test": 5000}
+"""First seed of each split (see the module docstring for the seed of an entry)."""
+
+MAX_SEEDS = 40
+"""Most seeds per cell: ``1000 + 100 * 39 + 31 < 5000`` keeps the splits' seeds apart."""
+
+DEFAULT_SPLIT_SEEDS = 3
+"""Seeds per object and preset of a split. The four objects' errors in one column differ by a
+factor of 2-3 and one object's error by tens of per cent from seed to seed, so a column of 4
+sequences moves with a single sequence's luck; 3 seeds make each column average 12 sequences,
+and the spread of the per-seed averages says how far the average itself is to be trusted."""
+
+
+@dataclass(frozen=True)
+class BenchmarkEntry:
+    """One sequence of the benchmark set or of a split.
+
+    Attributes:
+        object_name: the YCB object; preset: ``"regular"`` or ``"faster"``; seed: the
+            simulation seed.
+        split: ``"tuning"``/``"test"``, or ``None`` for the fixed benchmark set (which is the
+            tuning split's replicate 0).
+        replicate: ``k``, the index of the seed within its cell.
+        seeds: seeds per cell of the split the entry belongs to.
+    """
+
+    object_name: str
+    preset: str
+    seed: int
+    split: str | None = None
+    replicate: int = 0
+    seeds: int = 1
+
+    @property
+    def folder_name(self) -> str:
+        """``<object>_<preset>``, and ``_seed<seed>`` in a split."""
+        base = f"{self.object_name}_{self.preset}"
+        return base if self.split is None else f"{base}_seed{self.seed}"
+
+    def describe(self) -> dict[str, Any]:
+        """What ``meta.yaml`` records under ``extra.benchmark``."""
+        return {"split": self.split or "tuning", "replicate": self.replicate, "seed": self.seed,
+                "seeds": self.seeds}
+
+
+def split_seed(split: str, object_index: int, preset_index: int, replicate: int) -> int:
+    """The seed of object ``object_index`` (in :data:`YCB_OBJECTS`), preset ``preset_index``
+    (in :data:`PRESETS`) and replicate ``k`` of ``split``.
+
+    Raises:
+        ValueError: an unknown split, or an index out of range.
+    """
+    if split not in SPLIT_SEED_BASES:
+        raise ValueError(f"unknown split {split!r} (one of {', '.join(SPLITS)})")
+    if not (0 <= object_index < 10 and 0 <= preset_index < 10):
+        raise ValueError(f"object index {object_index} and preset index {preset_index} must be "
+                         "in 0..9")
+    if not 0 <= replicate < MAX_SEEDS:
+        raise ValueError(f"replicate {replicate} out of range 0..{MAX_SEEDS - 1}")
+    return SPLIT_SEED_BASES[split] + 100 * replicate + 10 * object_index + preset_index
+
+
+def split_entries(split: str, seeds: int = DEFAULT_SPLIT_SEEDS) -> list[BenchmarkEntry]:
+    """The entries of a split: every YCB object and preset, ``seeds`` seeds each, in object,
+    preset, replicate order.
+
+    Raises:
+        ValueError: an unknown split, or ``seeds`` not in ``1..MAX_SEEDS``.
+    """
+    if not 1 <= seeds <= MAX_SEEDS:
+        raise ValueError(f"seeds per cell must be in 1..{MAX_SEEDS}, got {seeds}")
+    return [BenchmarkEntry(name, preset, split_seed(split, i, j, k), split, k, seeds)
+            for i, name in enumerate(YCB_OBJECTS)
+            for j, preset in enumerate(PRESETS)
+            for k in range(seeds)]
+
+
 def benchmark_entries() -> list[tuple[str, str, int]]:
     """The benchmark set: ``(YCB object, preset, seed)``, 4 objects x 2 presets."""
     return [(name, preset, seed) for (name, preset), seed in BENCHMARK_SEEDS.items()]
 
 
-def _prepare(out_dir: Path, entries, overwrite: bool) -> list[Path]:
-    folders = [out_dir / f"{name}_{preset}" for name, preset, _ in entries]
+def _as_entries(entries: Sequence[tuple[str, str, int] | BenchmarkEntry]
+                ) -> list[BenchmarkEntry]:
+    """Entries as :class:`BenchmarkEntry`; a ``(object, preset, seed)`` tuple is one of the
+    fixed set (its seed's replicate 0)."""
+    return [e if isinstance(e, BenchmarkEntry) else BenchmarkEntry(*e) for e in entries]
+
+
+def _prepare(out_dir: Path, entries: list[BenchmarkEntry], overwrite: bool) -> list[Path]:
+    folders = [out_dir / e.folder_name for e in entries]
     existing = [str(f) for f in folders if f.exists()]
     if existing and not overwrite:
         raise FileExistsError(f"sequence folders exist: {existing}; pass overwrite=True")
@@ -113,7 +214,7 @@ def make_benchmark_set(
     config: SimConfig | None = None,
     *,
     ycb_dir: str | Path | None = None,
-    entries: list[tuple[str, str, int]] | None = None,
+    entries: Sequence[tuple[str, str, int] | BenchmarkEntry] | None = None,
     overwrite: bool = False,
     progress: bool = True,
     speeds: PresetSpeeds | None = None,
@@ -125,7 +226,8 @@ def make_benchmark_set(
         config: base settings (default: :class:`SimConfig` defaults: 2 s, 640x480, 500 FPS);
             its seed and trajectory preset are replaced per entry.
         ycb_dir: folder of the YCB meshes (see :func:`evtrack.sim.objects.find_ycb_dir`).
-        entries: a subset of :func:`benchmark_entries` (default: all eight).
+        entries: a subset of :func:`benchmark_entries` (default: all eight), or of
+            :func:`split_entries`.
         overwrite: replace existing sequence folders.
         speeds: per preset, ``(linear m/s, angular rad/s)`` instead of the preset's mean
             speeds (same seeds, so the same waypoints, traversed at those speeds).
@@ -135,20 +237,22 @@ def make_benchmark_set(
     """
     out_dir = Path(out_dir)
     base = config or SimConfig()
-    entries = benchmark_entries() if entries is None else entries
+    entries = _as_entries(benchmark_entries() if entries is None else entries)
     folders = _prepare(out_dir, entries, overwrite)
     objects = {}
     samples: dict[str, list[np.ndarray]] = {p: [] for p in PRESETS}
     summary: dict[str, Any] = {"sequences": {}}
-    for (name, preset, seed), folder in zip(entries, folders, strict=True):
+    for entry, folder in zip(entries, folders, strict=True):
+        name, preset, seed = entry.object_name, entry.preset, entry.seed
         if name not in objects:
             objects[name] = resolve_object(name, ycb_dir=ycb_dir)
         cfg = _entry_config(base, preset, seed, speeds)
-        stats = simulate(objects[name], cfg, folder, overwrite=overwrite, progress=progress)
+        stats = simulate(objects[name], cfg, folder, overwrite=overwrite, progress=progress,
+                         extra={"benchmark": entry.describe()})
         samples.setdefault(preset, []).append(stats.pixel_speed_samples)
         summary["sequences"][folder.name] = {
-            "object": name, "preset": preset, "seed": seed, **_speeds_of(cfg), **stats.summary(),
-            "seconds": round(stats.timings["total"], 2),
+            "object": name, "preset": preset, **entry.describe(), **_speeds_of(cfg),
+            **stats.summary(), "seconds": round(stats.timings["total"], 2),
         }
     return _report(out_dir, summary, samples)
 
@@ -158,7 +262,7 @@ def velocity_report(
     config: SimConfig | None = None,
     *,
     ycb_dir: str | Path | None = None,
-    entries: list[tuple[str, str, int]] | None = None,
+    entries: Sequence[tuple[str, str, int] | BenchmarkEntry] | None = None,
     speeds: PresetSpeeds | None = None,
 ) -> dict[str, Any]:
     """The pixel-speed report of the benchmark set without rendering anything.
@@ -170,11 +274,12 @@ def velocity_report(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     base = config or SimConfig()
-    entries = benchmark_entries() if entries is None else entries
+    entries = _as_entries(benchmark_entries() if entries is None else entries)
     samples: dict[str, list[np.ndarray]] = {p: [] for p in PRESETS}
     summary: dict[str, Any] = {"sequences": {}}
     objects = {}
-    for name, preset, seed in entries:
+    for entry in entries:
+        name, preset, seed = entry.object_name, entry.preset, entry.seed
         if name not in objects:
             objects[name] = resolve_object(name, ycb_dir=ycb_dir)
         cfg = _entry_config(base, preset, seed, speeds)
@@ -183,7 +288,7 @@ def velocity_report(
         s = speed_samples(obj, sequence_trajectory(cfg, obj), times, cfg.camera.camera(),
                           cfg.ground_truth.velocity_samples)
         samples.setdefault(preset, []).append(s)
-        summary["sequences"][f"{name}_{preset}"] = {
-            "object": name, "preset": preset, "seed": seed, **_speeds_of(cfg),
+        summary["sequences"][entry.folder_name] = {
+            "object": name, "preset": preset, **entry.describe(), **_speeds_of(cfg),
             "pixel_speed_px_s": speed_percentiles(s)}
     return _report(out_dir, summary, samples)

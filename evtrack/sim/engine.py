@@ -17,7 +17,7 @@ object's mesh in the object frame the poses use.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -142,6 +142,7 @@ def simulate(
     trajectory: Trajectory | None = None,
     overwrite: bool = False,
     progress: bool | Callable[[int], None] = False,
+    extra: Mapping[str, Any] | None = None,
 ) -> SimulationStats:
     """Simulate one sequence and write it to ``out_dir`` (a sequence folder).
 
@@ -154,15 +155,24 @@ def simulate(
         overwrite: replace an existing folder.
         progress: show a tqdm bar (``True``) or call ``progress(n)`` after ``n`` more
             base renders.
+        extra: more entries of ``meta.yaml``'s ``extra`` (e.g. ``benchmark``: the sequence's
+            place in a benchmark split); they may not replace the simulator's own entries.
 
     Returns:
         counts, pixel-speed statistics and stage timings (seconds).
+
+    Raises:
+        ValueError: ``extra`` names an entry the simulator writes itself.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise FileExistsError(f"{out_dir} exists; pass overwrite=True to replace it")
+    clash = sorted(set(extra or {}) & set(SIM_EXTRA_KEYS))
+    if clash:
+        raise ValueError(f"extra entries {clash} are the simulator's own meta.yaml entries")
     t_start = time.perf_counter()
     run = _Simulation(obj, config, name or out_dir.name, trajectory)
+    run.more_extra = dict(extra or {})
     bar = None
     if progress is True:
         from tqdm import tqdm
@@ -227,6 +237,7 @@ class _Simulation:
                                    "rgb_hz": config.frames.rgb_hz,
                                    "depth_hz": config.frames.rgb_hz},
             depth_unit="mm_png16", source="simulation")
+        self.more_extra: dict[str, Any] = {}
         self.renderer: Renderer
         self.writer: SequenceWriter
 
@@ -254,6 +265,7 @@ class _Simulation:
         self.flush()
         self.write_ground_truth()
         self.meta.extra = _extra(self.config, self.obj, self.trajectory, self.scene, self.stats)
+        self.meta.extra.update(self.more_extra)
         with self.timer("write"):
             self.obj.export(writer.file_path(MESH_FILE))
 
@@ -377,6 +389,11 @@ def speed_samples(obj: ObjectMesh, trajectory: Trajectory, t_us: np.ndarray, cam
     idx = np.linspace(0, len(obj.vertices) - 1, min(count, len(obj.vertices))).astype(int)
     return pixel_speeds(trajectory, np.asarray(t_us) * 1e-6,
                         obj.vertices[idx].astype(np.float64), camera)
+
+
+SIM_EXTRA_KEYS = ("generator", "seed", "config", "object", "trajectory", "scene",
+                  "rgb_timestamps", "depth_timestamps", "event_order", "event_flow", "stats")
+"""The entries of ``meta.yaml``'s ``extra`` the simulator writes (see :func:`_extra`)."""
 
 
 def _extra(config: SimConfig, obj: ObjectMesh, trajectory: Trajectory, scene,

@@ -271,3 +271,52 @@ def test_missing_scores_show_a_dash_and_the_reason_once():
     assert math.isnan(avgs[("full", "faster")].add_auc)
     assert math.isnan(avgs[("full", "all")].within_5cm_5deg)
     assert math.isfinite(avgs[("full", "regular")].adds_auc)
+
+
+@dataclass
+class PlacedEntry(Entry):
+    split: str = "test"
+    replicate: int | None = None
+
+
+def test_seed_spread_against_a_direct_computation() -> None:
+    from evtrack.eval.tables import ALL, seed_spreads
+
+    rng = np.random.default_rng(3)
+    entries = []
+    for obj in ("a", "b"):
+        for speed in ("regular", "faster"):
+            for k in range(3):
+                p, r = rng.uniform(0.5, 5.0), rng.uniform(2.0, 20.0)
+                err = TrackingErrors(p, 0.1, r, 0.2, 10, 10)
+                entries.append(PlacedEntry(f"{obj}_{speed}_{k}", obj, speed, "full", err,
+                                           replicate=k))
+    spreads = {(s.run, s.speed): s for s in seed_spreads(entries, ["full", "absent"])}
+    assert set(spreads) == {("full", "regular"), ("full", "faster"), ("full", ALL)}
+    for (_, speed), sp in spreads.items():
+        group = [e for e in entries if speed == ALL or e.speed == speed]
+        per_k = [np.mean([e.errors.rotation_rmse_deg for e in group if e.replicate == k])
+                 for k in range(3)]
+        assert sp.replicates == (0, 1, 2) and sp.split == "test"
+        np.testing.assert_allclose(sp.rotation, per_k)
+        d = sp.to_dict()["rotation_deg"]
+        np.testing.assert_allclose([d["mean"], d["sd"], d["min"], d["max"]],
+                                   [np.mean(per_k), np.std(per_k, ddof=1), min(per_k),
+                                    max(per_k)])
+        assert sp.text(sp.rotation) == (f"{np.mean(per_k):.2f} ± {np.std(per_k, ddof=1):.2f} "
+                                        f"[{min(per_k):.2f}, {max(per_k):.2f}]")
+    md = markdown_tables(entries, ["full"])
+    assert "## Spread over seeds (test split)" in md
+    assert "| full | faster | 3 |" in md
+
+
+def test_seed_spread_is_absent_outside_a_split_and_plain_for_one_seed() -> None:
+    from evtrack.eval.tables import seed_spreads
+
+    entries, _ = make_entries()
+    assert seed_spreads(entries, RUNS) == []
+    assert "Spread over seeds" not in markdown_tables(entries, ["full"])
+    err = TrackingErrors(1.5, 0.1, 7.25, 0.2, 10, 10)
+    one = [PlacedEntry("s", "o", "faster", "full", err, replicate=0)]
+    sp = seed_spreads(one, ["full"])[0]
+    assert sp.text(sp.rotation) == "7.25" and math.isnan(sp.to_dict()["rotation_deg"]["sd"])
