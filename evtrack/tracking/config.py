@@ -225,8 +225,14 @@ class TrackerConfig(Config):
             (flicker, a sensor glitch): its events are not used and the velocity filter only
             predicts; 0 disables. The object's own events cannot reach it (at 640x480 a fast object
             gives ~6 events per pixel per second over the whole image); sensor background activity
-            is 0.1 to a few Hz per pixel. Assumes a static camera: a moving camera's textured
-            background can reach it by itself (set 0 then).
+            is 0.1 to a few Hz per pixel. A step is a burst only when its rate is also above
+            ``burst_factor`` times the median rate of the last ``burst_baseline_ms`` of steps.
+        burst_baseline_ms: the window (ms) of that median, the stream's background activity
+            outside the object. A moving camera's textured background fires above
+            ``burst_rate_hz`` all the time: the median rises with it (within half the window),
+            so its steps are not bursts, while a flicker on top of it still is. 0: the absolute
+            rate alone (the test then assumes a static camera).
+        burst_factor: how far above that median a burst step's rate is (a sudden rise).
         lost_after_ms: the object counts as lost when its predicted silhouette has stayed outside
             the image (less than ``min_visible_fraction`` of its hull area inside) for this long;
             the pose filter then waits for the next pose to re-initialise.
@@ -345,6 +351,8 @@ class TrackerConfig(Config):
     flow_batch_steps: int = setting(40, ge=1)
     mask_margin_px: float = setting(32.0, ge=0, unit="px")
     burst_rate_hz: float = setting(100.0, ge=0, unit="Hz")
+    burst_baseline_ms: float = setting(100.0, ge=0, unit="ms")
+    burst_factor: float = setting(4.0, ge=1)
     lost_after_ms: float = setting(100.0, ge=0, unit="ms")
     min_visible_fraction: float = setting(0.05, ge=0, le=1)
     lost_after_misses: int = setting(3, ge=0)

@@ -6,11 +6,16 @@
 * **Silhouette mask**: events within ``mask_margin_px`` of the object's silhouette swept over
   the group (the silhouette at the group's start and the one predicted at its end).
 * **Event bursts**: a step whose events outside the mask exceed ``burst_rate_hz`` per pixel
-  over the image outside it is an event burst (flicker, a sensor glitch): none of its events
-  is used, and the step's end starts a re-synchronisation of the flow's burst filter. The test
-  needs at least ``BURST_MIN_OUTSIDE`` of the image outside the mask, and assumes a static
-  camera (as the method does): a moving camera's textured background can exceed the rate by
-  itself, and then ``burst_rate_hz: 0`` turns the test off.
+  over the image outside it, and ``burst_factor`` times the median of that rate over the
+  steps of the last ``burst_baseline_ms`` (this one included), is an event burst (flicker, a
+  sensor glitch): none of its events is used, and the step's end starts a
+  re-synchronisation of the flow's burst filter. A burst is a sudden rise over the stream's
+  own background activity: a static camera's background is quiet (the median near the
+  sensor's noise, so the absolute rate decides), while a moving camera's textured background
+  fires all the time, its median rises with it within half the baseline window, and only a
+  rise well above it is a burst (a burst longer than half the window then counts as the
+  background). ``burst_baseline_ms: 0`` keeps the absolute test alone. The test needs at least
+  ``BURST_MIN_OUTSIDE`` of the image outside the mask.
 * **Thinning**: at most ``load.max_events_per_step`` events per step (on average over a group)
   enter the flow. Above it the group's events are thinned by cells of 2 x 2 RoIs (squares of
   ``2 * flow.roi_size`` pixels), deterministically and independently of how the events were
@@ -109,6 +114,9 @@ class EventGate:
         mask_margin_px: margin around the silhouette (px).
         burst_rate_hz: events per pixel and second outside the mask that make a burst (0: no
             test).
+        burst_baseline_us: the window of the background rate's running median (µs; 0: the
+            absolute test alone).
+        burst_factor: a burst step's rate is also above this times that median.
         roi_size: the flow's RoI size (px); thinning cells are ``THIN_CELL_ROIS`` RoIs square.
         denoiser: removes sensor noise from the pushed events (:meth:`denoised`); ``None``:
             none is removed.
@@ -123,12 +131,15 @@ class EventGate:
 
     def __init__(self, camera: PinholeCamera, silhouette: Silhouette, mask_margin_px: float,
                  burst_rate_hz: float, roi_size: int,
-                 denoiser: EventDenoiser | None = None) -> None:
+                 denoiser: EventDenoiser | None = None, *, burst_baseline_us: int = 0,
+                 burst_factor: float = 1.0) -> None:
         self.camera = camera
         self.denoiser = denoiser
         self.silhouette = silhouette
         self.mask_margin_px = mask_margin_px
         self.burst_rate_hz = burst_rate_hz
+        self.burst_baseline_us = int(burst_baseline_us)
+        self.burst_factor = float(burst_factor)
         self.roi_size = roi_size
         self._cell_order: np.ndarray | None = None
         self.stats = TrackerStats()
@@ -138,6 +149,10 @@ class EventGate:
         """Forget the thinning level, the bursts and the denoiser's stream."""
         self.thin_level = 0
         self.burst_ends: list[int] = []
+        # the outside rates (events/px/s) of the last burst_baseline_us of steps, and their
+        # steps' start times (µs)
+        self._rate_t = np.zeros(0, np.int64)
+        self._rate = np.zeros(0, np.float64)
         if self.denoiser is not None:
             self.denoiser.reset()
 
@@ -199,6 +214,8 @@ class EventGate:
                         for a, b in zip(cuts[:-1], cuts[1:], strict=True)], np.float64)
         rate = off / (outside * step_us * 1e-6)
         burst = rate > self.burst_rate_hz
+        if self.burst_baseline_us > 0:
+            burst = self._above_background(rate, t0 + step_us * np.arange(steps), burst)
         if not burst.any():
             return none
         hit = np.repeat(burst, np.diff(cuts))
@@ -208,6 +225,22 @@ class EventGate:
         self.stats.burst_steps += int(burst.sum())
         self.stats.events_in_bursts += int((hit & on_object).sum())
         return hit
+
+    def _above_background(self, rate: np.ndarray, start: np.ndarray, over: np.ndarray
+                          ) -> np.ndarray:
+        """``over`` (steps above the absolute rate) where the rate is also above
+        ``burst_factor`` times the median rate of the steps starting in the last
+        ``burst_baseline_us`` (this one included); records the steps' rates."""
+        rates = np.concatenate([self._rate, rate])
+        times = np.concatenate([self._rate_t, start])
+        seen = len(self._rate)
+        burst = over.copy()
+        for i in np.flatnonzero(over):
+            lo = np.searchsorted(times, start[i] - self.burst_baseline_us, side="right")
+            burst[i] = rate[i] > self.burst_factor * np.median(rates[lo:seen + i + 1])
+        keep = times > start[-1] - self.burst_baseline_us
+        self._rate, self._rate_t = rates[keep], times[keep]
+        return burst
 
     def _mask_area(self, poly: SilhouettePolygon) -> float:
         """Area (px²) of the mask in the image: the silhouette grown by the margin (Steiner's

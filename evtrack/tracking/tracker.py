@@ -178,7 +178,9 @@ class Tracker:
                                               self._past_pose)
         self._blas = BlasThreads(cfg.blas_threads)
         self.gate = EventGate(camera, self.silhouette, cfg.mask_margin_px, cfg.burst_rate_hz,
-                              cfg.flow.roi_size, make_denoiser(cfg, self.motion, camera))
+                              cfg.flow.roi_size, make_denoiser(cfg, self.motion, camera),
+                              burst_baseline_us=int(round(cfg.burst_baseline_ms * 1e3)),
+                              burst_factor=cfg.burst_factor)
         self.load = LoadController.from_config(cfg)
         self.view = ViewCheck(self.silhouette, cfg.min_visible_fraction, cfg.lost_after_ms,
                               cfg.velocity_step_us)

@@ -186,3 +186,99 @@ def test_moved_pose_equals_integrate_twist() -> None:
             twist = rng.normal(size=6) * np.array([1, 1, 1, scale, scale, scale])
             ref = integrate_twist(torch.from_numpy(T), torch.from_numpy(twist), dt).numpy()
             np.testing.assert_allclose(moved_pose(T, twist, dt), ref, rtol=0, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- event bursts
+STEP = 1000  # µs
+
+
+def _burst_gate(baseline_us: int, factor: float = 4.0) -> tuple[EventGate, object]:
+    cam = PinholeCamera(100.0, 100.0, 63.5, 47.5, 128, 96)
+    gate = EventGate(cam, Silhouette(CUBE, cam), mask_margin_px=4.0, burst_rate_hz=100.0,
+                     roi_size=8, burst_baseline_us=baseline_us, burst_factor=factor)
+    poly = gate.silhouette.polygon(_pose([0, 0, 0], [0, 0, 1.0]))
+    return gate, poly
+
+
+def _outside_per_step(gate: EventGate, poly) -> float:
+    w, h = gate.camera.size
+    return w * h - gate._mask_area(poly)
+
+
+def _step_events(counts: np.ndarray, t0: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Times of ``counts[k]`` off-object events in each step ``k`` from ``t0``, all off the
+    object (the burst test only counts them)."""
+    rng = np.random.default_rng(seed)
+    t = np.concatenate([np.sort(rng.integers(t0 + k * STEP, t0 + (k + 1) * STEP, n))
+                        for k, n in enumerate(counts)]).astype(np.int64)
+    return t, np.zeros(len(t), bool)
+
+
+def _bursts(gate: EventGate, poly, rates_hz: np.ndarray, group_steps: int) -> np.ndarray:
+    """The burst decision of every step for per-step off-object rates (events/px/s), fed in
+    groups of ``group_steps`` steps."""
+    per_step = _outside_per_step(gate, poly) * STEP * 1e-6
+    counts = np.round(np.asarray(rates_hz) * per_step).astype(int)
+    out = []
+    for g in range(0, len(counts), group_steps):
+        c = counts[g:g + group_steps]
+        t, on_obj = _step_events(c, g * STEP, seed=g)
+        hit = gate.in_burst(t, on_obj, poly, g * STEP, (g + len(c)) * STEP, STEP)
+        cuts = np.cumsum([0, *c])
+        out += [bool(hit[a:b].all()) if b > a else False
+                for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    return np.array(out)
+
+
+def test_a_flicker_over_a_quiet_background_is_a_burst() -> None:
+    rates = np.full(200, 1.0)
+    rates[120:125] = 400.0
+    for baseline in (100_000, 0):
+        gate, poly = _burst_gate(baseline)
+        burst = _bursts(gate, poly, rates, 40)
+        assert np.flatnonzero(burst).tolist() == list(range(120, 125))
+
+
+def test_a_moving_cameras_background_is_not_a_burst_but_a_flicker_on_it_is() -> None:
+    """Off-object activity at 300 events/px/s all the time (a moving camera's textured
+    background): not a burst, from the first step on; the absolute test alone
+    (``burst_baseline_ms: 0``) drops every step. A 2,000 events/px/s flicker on top of it is
+    a burst."""
+    rates = np.full(240, 300.0)
+    rates[150:154] = 2000.0
+    gate, poly = _burst_gate(100_000)
+    burst = _bursts(gate, poly, rates, 40)
+    assert np.flatnonzero(burst).tolist() == [150, 151, 152, 153]
+    absolute, poly = _burst_gate(0)
+    assert _bursts(absolute, poly, rates, 40).all()
+
+
+def test_burst_decisions_match_a_running_median_reference_in_any_grouping() -> None:
+    """Random background changes and flickers: each step's decision equals the reference
+    (rate > 100 and rate > 4 x the median of the steps starting in the last 100 ms, this one
+    included), whether the steps come in groups of 40, 10 or 7."""
+    rng = np.random.default_rng(7)
+    levels = np.repeat(rng.choice([0.5, 80.0, 300.0, 900.0], 8), 60)
+    rates = levels * rng.uniform(0.7, 1.3, len(levels))
+    flick = rng.choice(len(rates), 25, replace=False)
+    rates[flick] *= rng.uniform(2.0, 12.0, len(flick))
+    gate, poly = _burst_gate(100_000)
+    per_step = _outside_per_step(gate, poly) * STEP * 1e-6
+    measured = np.round(rates * per_step) / per_step  # the rates the gate sees
+    ref = np.array([measured[k] > 100.0
+                    and measured[k] > 4.0 * np.median(measured[max(0, k - 99):k + 1])
+                    for k in range(len(measured))])
+    assert 10 < ref.sum() < len(ref) - 10
+    for group in (40, 10, 7):
+        gate, poly = _burst_gate(100_000)
+        np.testing.assert_array_equal(_bursts(gate, poly, rates, group), ref)
+
+
+def test_reset_forgets_the_background() -> None:
+    gate, poly = _burst_gate(100_000)
+    _bursts(gate, poly, np.full(80, 300.0), 40)
+    gate.reset()
+    assert len(gate._rate) == 0
+    rates = np.full(20, 1.0)
+    rates[10] = 300.0  # without the reset, the 300s before would still be the background
+    assert np.flatnonzero(_bursts(gate, poly, rates, 40)).tolist() == [10]
