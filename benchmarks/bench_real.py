@@ -29,7 +29,9 @@ the recording (the filters start from rest):
   rad/s): the reference is ``-w``, since a camera turning with ``w`` sees the static scene turn
   with ``-w`` (``dP/dt = -w × P`` for a scene point ``P`` in the camera frame). ``cos`` and
   ``ratio`` compare the mean ``ω`` with ``-w`` (cosine of the angle, ``|mean| / |w|``); ``RMSE``
-  is over the steps, ``sqrt(mean |ω_k + w|²)`` in rad/s.
+  is over the steps, ``sqrt(mean |ω_k + w|²)`` in rad/s. ``target``: whether the row meets
+  the tracker's target on these samples, cosine >= 0.9 and ratio in [0.8, 1.25]
+  (``met``/``missed``); a last line counts the tracker's rows that meet it.
 * the slider (``groundtruth.txt``: camera poses): the reference is the ground-truth twist of
   the scene (``v_o`` ≈ (-0.307, 0, 0) m/s: the camera slides along its ``+x``, ``ω`` = 0) at
   each step's time. ``cos``/``ratio`` compare mean ``v_o`` with the mean ground-truth
@@ -68,6 +70,8 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = REPO.parent / "shared" / "data" / "real"
 FLOW_KF_DEPTH_M = 0.7  # the constant depth of the flow+kf rows
+TARGET_MIN_COS = 0.9  # the target on the rotation samples: cosine at least this
+TARGET_RATIO = (0.8, 1.25)  # ... and the magnitude ratio within this range
 
 
 @dataclass
@@ -167,8 +171,14 @@ def rotation_rows(name: str, seq, estimates: list[Estimate]) -> list[list[str]]:
         cos, ratio, rmse = _compare(omega, np.broadcast_to(ref, omega.shape))
         rows.append([name, est.method, "ω rad/s", _vec(ref),
                      _vec(omega.mean(0)) if len(omega) else "-", _num(cos, "+.3f"),
-                     _num(ratio, ".3f"), _num(rmse, ".3f"), str(len(omega))])
+                     _num(ratio, ".3f"), _num(rmse, ".3f"), str(len(omega)),
+                     "met" if meets_target(cos, ratio) else "missed"])
     return rows
+
+
+def meets_target(cos: float, ratio: float) -> bool:
+    """Cosine >= :data:`TARGET_MIN_COS` and ratio within :data:`TARGET_RATIO` (NaN: no)."""
+    return cos >= TARGET_MIN_COS and TARGET_RATIO[0] <= ratio <= TARGET_RATIO[1]
 
 
 def slider_rows(name: str, seq, estimates: list[Estimate]) -> list[list[str]]:
@@ -187,14 +197,14 @@ def slider_rows(name: str, seq, estimates: list[Estimate]) -> list[list[str]]:
                          _vec(ref[:, part].mean(0)) if len(ref) else "-",
                          _vec(tw[:, part].mean(0)) if len(tw) else "-",
                          _num(cos, "+.3f"), _num(ratio, ".3f"), _num(rmse, ".3f"),
-                         str(len(tw))])
+                         str(len(tw)), "-"])
         if est.last_pose is not None:
             T_gt = gt.pose_at(est.last_t_us).numpy()
             D = inverse(torch.from_numpy(T_gt)).numpy() @ est.last_pose
             dpos = np.linalg.norm(est.last_pose[:3, 3] - T_gt[:3, 3]) * 1e3
             dang = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(D[:3, :3]) - 1) / 2))))
             rows.append([name, est.method, "last pose", "ground truth",
-                         f"Δp {dpos:.1f} mm, Δθ {dang:.2f}°", "-", "-", "-", "1"])
+                         f"Δp {dpos:.1f} mm, Δθ {dang:.2f}°", "-", "-", "-", "1", "-"])
     return rows
 
 
@@ -275,8 +285,11 @@ def run(data: Path, plane_depth: float | None, work: Path) -> int:
           "Second half of each recording; reference: -w (rotation samples) or the ground-"
           "truth twist (slider).\n")
     print(_table(rows, ["recording", "method", "quantity", "reference", "estimate (mean)",
-                        "cos", "ratio", "RMSE", "n"]))
+                        "cos", "ratio", "RMSE", "n", "target"]))
     print("\nn: samples compared (tracker: 1 ms steps; flow+kf: 2 ms flow windows).")
+    targets = [r[-1] for r in rows if r[1] == "tracker" and r[-1] != "-"]
+    print(f"target (cos >= {TARGET_MIN_COS}, ratio {TARGET_RATIO[0]}-{TARGET_RATIO[1]}): the "
+          f"tracker meets it on {targets.count('met')} of {len(targets)} rotation samples")
     print("\nsign check (contrast of events warped by the rotational flow of ω; the sharpest "
           "image has the largest variance):")
     for line in checks:
