@@ -142,8 +142,9 @@ class DecodeConfig(Config):
             of an AMD EPYC, 2026-11-29): mustard bottle 6.86 -> 5.72 / 6.44 -> 5.83, tomato
             can 5.52 -> 6.10 / 7.01 -> 6.39, potted meat can 3.34 -> 5.03 / 4.33 -> 4.73 (its
             first pass errs 8.3 / 6.2 deg), cracker box 3.17 -> 3.63 / 3.47 -> 3.57, coded box
-            2.20 -> 2.25 / 3.04 -> 2.82 (regular ADD 0.942 -> 0.925). The mustard bottle's
-            shipped record turns it on (``WeightsRecord.decode``; its model card, "Decoding").
+            2.20 -> 2.25 / 3.04 -> 2.82 (regular ADD 0.942 -> 0.925). No shipped record
+            turns it on: the mustard bottle's gain did not carry over to the tracker on the
+            benchmark's test split (its model card, "Decoding").
             Check a network on such renders before turning it on; beyond ~40 deg two poses are
             different answers (a half turn, a corner swap) and their mean is neither.
         crop_margin: side of that crop / longer side of the projected cuboid's bounding box
