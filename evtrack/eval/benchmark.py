@@ -57,17 +57,17 @@ class RunSpec:
         return TrackerConfig.from_dict(changes, f"run {self.name}", base=base)
 
 
-#: Ablations of the full method (the paper's Table III, and without the pose filter's velocity
-#: bias, which the paper's filter does not have), and two extensions (not in the paper): the
-#: range of every depth frame fused into the pose filter (``depth_fusion.range``), and the
-#: mesh aligned with the depth frames (``depth_fusion.icp``).
+#: Ablations of the full method (the paper's Table III), and three extensions (not in the
+#: paper): the pose filter's velocity bias (``pose_ukf.velocity_bias``), the range of every
+#: depth frame fused into the pose filter (``depth_fusion.range``), and the mesh aligned with
+#: the depth frames (``depth_fusion.icp``).
 ABLATIONS = (
     RunSpec("full-no-normal-flow", "full", "full w/o normal-flow constraint",
             {"velocity_kf": {"normal_flow": False}}),
     RunSpec("full-no-weighting", "full", "full w/o measurement weighting",
             {"velocity_kf": {"weighting": False}}),
-    RunSpec("full-no-velocity-bias", "full", "full w/o velocity bias (the paper's pose filter)",
-            {"pose_ukf": {"velocity_bias": False}}),
+    RunSpec("full-velocity-bias", "full", "full + velocity bias (not in the paper)",
+            {"pose_ukf": {"velocity_bias": True}}),
     RunSpec("full-depth-range", "full", "full + depth range (not in the paper)",
             {"depth_fusion": {"range": True}}),
     RunSpec("full-depth-icp", "full", "full + depth alignment (not in the paper)",

@@ -21,10 +21,10 @@ depth fusions (:mod:`~evtrack.tracking.depth_fusion`) and the outputs
 
 The methods (``TrackerConfig.method``, one motion source each):
 
-* ``full``: as above (the paper), with one addition by default: the pose filter learns a bias
-  of the twist's velocity that grows with the object's speed from the pose innovations
-  (``pose_ukf.velocity_bias``; the twists the tracker outputs are the velocity filter's,
-  without it).
+* ``full``: as above (the paper). Optionally the pose filter learns a bias of the twist's
+  velocity that grows with the object's speed from the pose innovations
+  (``pose_ukf.velocity_bias``, off by default; the twists the tracker outputs are the velocity
+  filter's, without it).
 * ``velocity``: the same velocity pipeline; poses are used only to initialise (and to
   re-initialise after the object was lost).
 * ``pose``: no velocity; the pose UKF (``pose_only_ukf``, random-walk process noise) with poses.

@@ -40,7 +40,7 @@ def test_evaluate_writes_everything(evaluated, tiny_benchmark):
     out = evaluated
     for name in ("results.md", "results.csv", "results.yaml"):
         assert (out / name).stat().st_size > 100
-    runs = {"full", "pose", "full-no-normal-flow", "full-no-weighting", "full-no-velocity-bias",
+    runs = {"full", "pose", "full-no-normal-flow", "full-no-weighting", "full-velocity-bias",
             "full-depth-range", "full-depth-icp"}
     for seq in ("box_regular", "box_faster"):
         assert {p.stem for p in (out / "trajectories" / seq).glob("*.h5")} == runs
