@@ -84,7 +84,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "(docs/results.md, 'Evaluation protocol')."
         ),
     )
-    b.add_argument("--out", type=Path, required=True, help="folder for the sequences (eight for the fixed set)")
+    b.add_argument("--out", type=Path, required=True,
+                   help="folder for the sequences (eight for the fixed set)")
     b.add_argument("--objects", nargs="+", default=None, metavar="NAME",
                    help="only these YCB objects (default: all four)")
     b.add_argument("--presets", nargs="+", choices=("regular", "faster"), default=None,
