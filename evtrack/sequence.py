@@ -357,15 +357,25 @@ def _read_rgb(path: Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def read_uint16_depth_png(path: str | Path) -> np.ndarray:
+    """A single-channel 16-bit depth PNG as it is stored: (H, W) uint16.
+
+    Raises:
+        EventFileError: naming ``path``: unreadable (missing, truncated, corrupt), or not a
+            single-channel uint16 image.
+    """
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise EventFileError(path, "unreadable depth PNG (truncated or corrupt)")
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise EventFileError(path, f"expected a single-channel uint16 depth image, got "
+                                   f"shape {raw.shape} {raw.dtype}")
+    return raw
+
+
 def _read_depth(path_png: Path, path_tiff: Path) -> np.ndarray:
     if path_png.is_file():
-        raw = cv2.imread(str(path_png), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise EventFileError(path_png, "unreadable depth PNG (truncated or corrupt)")
-        if raw.dtype != np.uint16 or raw.ndim != 2:
-            raise EventFileError(path_png, f"depth PNG must be single-channel uint16 (mm), "
-                                           f"got {raw.dtype} {raw.shape}")
-        depth = raw.astype(np.float32) * 1e-3
+        depth = read_uint16_depth_png(path_png).astype(np.float32) * 1e-3  # mm -> m
     elif path_tiff.is_file():
         depth = cv2.imread(str(path_tiff), cv2.IMREAD_UNCHANGED)
         if depth is None:

@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 
 from evtrack.errors import ConfigError, EventFileError
+from evtrack.sequence import read_uint16_depth_png
 
 if TYPE_CHECKING:
     from evtrack.sim.objects import ObjectMesh
@@ -455,13 +456,7 @@ def read_depth_image_m(path: str | Path, depth_scale: float) -> np.ndarray:
     Raises:
         EventFileError: an unreadable file, or not a single-channel 16-bit image.
     """
-    path = Path(path)
-    depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if depth is None:
-        raise EventFileError(path, "cannot read the depth image")
-    if depth.dtype != np.uint16 or depth.ndim != 2:
-        raise EventFileError(path, f"expected a single-channel uint16 depth image, got "
-                                   f"shape {depth.shape} {depth.dtype}")
+    depth = read_uint16_depth_png(Path(path))
     return (depth.astype(np.float32) * np.float32(depth_scale * MM)).astype(np.float32)
 
 
