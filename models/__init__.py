@@ -11,12 +11,19 @@ Example::
     onnx_estimator = OnnxPoseEstimator("pose.onnx", camera)        # same interface
     refiner = DepthRefiner.from_mesh("object.glb")                  # RGB-D: ICP on the depth
     poses = refiner.refine_detections(estimator(rgb), depth, camera.K())
+    appearance = AppearanceRefiner(load_mesh("object.glb", recenter=False), camera)
+    result = appearance.refine(predicted_pose, rgb)                # render-and-compare
 """
 
 from __future__ import annotations
 
 from evtrack.models import dope_lite  # noqa: F401  (registers the DOPE-Lite models)
 from evtrack.models._registry import is_model, list_models, model_entrypoint, register_model
+from evtrack.models.appearance_refine import (
+    AppearanceRefineConfig,
+    AppearanceRefiner,
+    AppearanceResult,
+)
 from evtrack.models.averaging import average_weights
 from evtrack.models.cuboid import CENTROID_INDEX, NUM_KEYPOINTS, Cuboid
 from evtrack.models.decode import (
@@ -50,6 +57,9 @@ from evtrack.models.weights import (
 )
 
 __all__ = [
+    "AppearanceRefineConfig",
+    "AppearanceRefiner",
+    "AppearanceResult",
     "CENTROID_INDEX",
     "NUM_KEYPOINTS",
     "Cuboid",

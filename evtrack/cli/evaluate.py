@@ -35,6 +35,10 @@ ORACLE); or --oracle-where-missing: the network for the objects that have weight
 for the others (the caption names them). The networks run in torch (*.pt weights), or with
 --backend onnxruntime as deployed (*.onnx models from 'evtrack export pose', searched the
 same way). Each method on a sequence is tracked independently with the same pose-source seed.
+Or --mesh-only: nothing trained, the full method corrects its pose with the object's mesh alone
+(pose_source: model: the mesh aligned with the depth frames and its textured render with the
+RGB frames), started from the ground truth's first pose; two columns, full-model (RGB-D) and
+full-model-rgb (RGB frames only, the RoIs' depth rendered from the mesh).
 """
 
 EPILOG = """\
@@ -45,6 +49,7 @@ examples:
   evtrack evaluate --benchmark bench --oracle-where-missing --jobs 2
   evtrack export pose --weights runs/pose/box.pt --out onnx/box.onnx
   evtrack evaluate --benchmark bench --weights-dir onnx --backend onnxruntime
+  evtrack evaluate --benchmark bench --out bench-mesh --mesh-only
 """
 
 
@@ -59,7 +64,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--benchmark", type=Path, required=True, metavar="DIR",
                    help="a sequence folder or a folder of sequence folders")
-    p.add_argument("--methods", nargs="+", choices=METHODS, default=list(DEFAULT_METHODS),
+    p.add_argument("--methods", nargs="+", choices=METHODS, default=None,
                    metavar="METHOD",
                    help=f"methods (table columns, in this order); default: "
                         f"{' '.join(DEFAULT_METHODS)}")
@@ -69,6 +74,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "bias (the paper's pose filter), with the range of every depth "
                         "frame fused (depth_fusion.range) and with the mesh aligned with the depth "
                         "frames (depth_fusion.icp), both not in the paper (Table III)")
+    p.add_argument("--mesh-only", action="store_true",
+                   help="no pose network: the full method with poses from the object's mesh "
+                        "alone (pose_source: model), from the ground truth's first pose, with "
+                        "RGB-D frames (full-model) and RGB frames only (full-model-rgb); "
+                        "instead of --methods, --ablation and the pose-source options")
     p.add_argument("--out", type=Path, default=None, metavar="RESULTS_DIR",
                    help="results folder (default: <DIR>-results beside the benchmark)")
     src = p.add_mutually_exclusive_group()
@@ -140,8 +150,26 @@ def pose_spec(args: argparse.Namespace):
                           oracle_fallback=fallback, backend=backend)
 
 
+def _check_mesh_only(args: argparse.Namespace) -> None:
+    """Refuse the options --mesh-only replaces.
+
+    Raises:
+        ConfigError: naming the first such option.
+    """
+    clashes = {"--methods": args.methods is not None, "--ablation": args.ablation,
+               "--oracle": args.oracle, "--oracle-where-missing": args.oracle_where_missing,
+               "--weights-dir": args.weights_dir is not None,
+               "--depth-refine": getattr(args, "depth_refine", False),
+               "--backend onnxruntime": getattr(args, "backend", "torch") != "torch"}
+    for option, given in clashes.items():
+        if given:
+            raise ConfigError(f"--mesh-only runs full-model and full-model-rgb without a pose "
+                              f"source; {option} does not apply (evaluate the networks in a "
+                              "run of their own)")
+
+
 def run(args: argparse.Namespace) -> int:
-    from evtrack.eval.benchmark import run_specs
+    from evtrack.eval.benchmark import DEFAULT_METHODS, MESH_ONLY_RUNS, run_specs
     from evtrack.eval.pose_setup import pose_caption, resolve_weights
     from evtrack.eval.report import OUTPUT_NAMES
     from evtrack.eval.sequences import find_sequences, require_ground_truth, require_one_split
@@ -153,14 +181,23 @@ def run(args: argparse.Namespace) -> int:
     if args.jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {args.jobs}")
     spec = pose_spec(args)
-    runs = run_specs(args.methods, args.ablation)
+    if args.mesh_only:
+        _check_mesh_only(args)
+        runs = list(MESH_ONLY_RUNS)
+    else:
+        runs = run_specs(args.methods or DEFAULT_METHODS, args.ablation)
     base = TrackerConfig.from_yaml(args.config) if args.config else TrackerConfig()
     sequences = find_sequences(args.benchmark)
     require_ground_truth(sequences)
     require_one_split(sequences)
     objects = [s.object_name for s in sequences]
-    weights = resolve_weights(spec, objects)
-    caption = pose_caption(spec, weights, objects)
+    if args.mesh_only:
+        weights: dict = {}
+        caption = ("no pose network: poses from the object's mesh alone (pose_source: model), "
+                   "from the ground truth's first pose")
+    else:
+        weights = resolve_weights(spec, objects)
+        caption = pose_caption(spec, weights, objects)
     bench = args.benchmark.resolve()
     out = args.out or bench.parent / f"{bench.name}-results"
     # a failed, interrupted or terminated evaluation leaves no half-written results
@@ -183,7 +220,8 @@ def _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out:
                             torch_threads=args.threads, progress=not args.quiet)
     info = {"benchmark": str(args.benchmark), "tracker_config": base.to_dict(),
             "weights": {k: str(weights[k]) if k in weights else "oracle"
-                        for k in sorted(set(objects))} if spec.kind == "network" else {}}
+                        for k in sorted(set(objects))}
+            if spec.kind == "network" and not getattr(args, "mesh_only", False) else {}}
     files = write_report(results, sequences, runs, out, caption=caption, info=info,
                          video=args.video, progress=not args.quiet)
     print()

@@ -63,6 +63,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="start the track from the pose the import recorded in meta.yaml "
                         "(extra.start_pose at extra.start_t_us; 'evtrack import ecd' writes "
                         "it), so that '--method velocity' needs no pose source")
+    p.add_argument("--start-from-ground-truth", action="store_true",
+                   help="start the track from the ground truth's first pose (groundtruth.h5), "
+                        "as a benchmark gives a tracker its start")
+    p.add_argument("--mesh-only", action="store_true",
+                   help="no pose network: correct the pose with the object's mesh alone "
+                        "(pose_source: model: the mesh aligned with the depth frames, its "
+                        "textured render with the RGB frames); needs a start pose "
+                        "(--start-pose or --start-from-ground-truth). Not in the paper")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -70,6 +78,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _pose_source(args: argparse.Namespace, seq):
     from evtrack.tracking.pose_sources import NetworkPoseSource, OraclePoseSource
 
+    if getattr(args, "mesh_only", False):
+        given = [o for o, v in (("--weights", args.weights is not None), ("--oracle", args.oracle),
+                                ("--depth-refine", args.depth_refine)) if v]
+        if given:
+            raise ConfigError(f"--mesh-only takes its poses from the mesh; {given[0]} gives "
+                              "another pose source")
+        return None
     if args.oracle and args.weights is not None:
         raise ConfigError("give either --weights or --oracle, not both")
     if args.oracle and args.depth_refine:
@@ -103,7 +118,20 @@ def _pose_source(args: argparse.Namespace, seq):
 
 
 def _start(args: argparse.Namespace, seq) -> dict:
-    """The start pose and time of ``--start-pose``, as keyword arguments of ``track``."""
+    """The start pose and time of ``--start-pose`` or ``--start-from-ground-truth``, as
+    keyword arguments of ``track``."""
+    from_truth = getattr(args, "start_from_ground_truth", False)
+    if args.start_pose and from_truth:
+        raise ConfigError("give either --start-pose or --start-from-ground-truth, not both")
+    if from_truth:
+        gt = seq.ground_truth
+        if gt is None:
+            raise ConfigError(f"--start-from-ground-truth: {seq.root} has no groundtruth.h5")
+        t0 = int(gt.pose_t_us[0])
+        return {"start_pose": gt.pose_at(t0), "start_t_us": t0}
+    if getattr(args, "mesh_only", False) and not args.start_pose:
+        raise ConfigError("--mesh-only needs a start pose: --start-pose (recorded by the import) "
+                          "or --start-from-ground-truth")
     if not args.start_pose:
         return {}
     import numpy as np
@@ -140,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
     fusion = {k: True for k, v in (("range", args.depth_range), ("icp", args.depth_icp)) if v}
     if fusion:
         changes["depth_fusion"] = fusion
+    if getattr(args, "mesh_only", False):
+        changes["pose_source"] = "model"
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
     start = _start(args, seq)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
@@ -155,7 +185,9 @@ def run(args: argparse.Namespace) -> int:
           + f", {st.poses} poses ({st.poses_rejected} rejected), "
           f"{st.lost} losses" + (f", {st.depth_ranges} depth ranges fused" if cfg.depth_fusion.range
                                  else "")
-          + (f", {st.depth_alignments} depth alignments fused" if cfg.depth_fusion.icp else ""))
+          + (f", {st.depth_alignments} depth alignments fused" if cfg.uses_depth_icp else "")
+          + (f", {st.appearance_alignments} appearance alignments fused"
+             if cfg.uses_appearance else ""))
     if st.roi_flows and st.depth_fallbacks > 0.5 * st.roi_flows:
         print(f"warning: {st.depth_fallbacks} of {st.roi_flows} RoI flows had no depth from the "
               "depth frames and took the fallback (the predicted depth of the object's centre); "

@@ -26,8 +26,8 @@ from evtrack.eval.sequences import BenchmarkSequence
 from evtrack.tracking.config import METHODS, TrackerConfig
 from evtrack.utils import threads_per_job
 
-__all__ = ["RunSpec", "RunResult", "ABLATIONS", "DEFAULT_METHODS", "run_specs", "run_one",
-           "run_benchmark", "trajectory_path", "pose_warnings"]
+__all__ = ["RunSpec", "RunResult", "ABLATIONS", "DEFAULT_METHODS", "MESH_ONLY_RUNS", "run_specs",
+           "run_one", "run_benchmark", "trajectory_path", "pose_warnings", "start_pose"]
 
 #: Methods in the default column order (the paper's "Ours (OF)" first).
 DEFAULT_METHODS = ("full", "velocity", "pose", "ge", "frame-flow")
@@ -73,6 +73,29 @@ ABLATIONS = (
     RunSpec("full-depth-icp", "full", "full + depth alignment (not in the paper)",
             {"depth_fusion": {"icp": True}}),
 )
+
+
+#: The full method with poses from the object's mesh alone (``pose_source: model``, nothing
+#: trained, not in the paper), started from the ground truth's first pose: with the RGB-D
+#: frames (depth alignment and appearance), and with the RGB frames only (appearance, the RoIs'
+#: depth rendered from the mesh).
+MESH_ONLY_RUNS = (
+    RunSpec("full-model", "full", "full, mesh only (RGB-D; not in the paper)",
+            {"pose_source": "model"}),
+    RunSpec("full-model-rgb", "full", "full, mesh only (RGB; not in the paper)",
+            {"pose_source": "model", "depth": {"source": "model"}}),
+)
+
+
+def start_pose(spec: RunSpec, base: TrackerConfig, sequence) -> tuple[Any, int | None]:
+    """``(pose (4, 4), t_us)`` a run starts from: the ground truth's first pose for a run
+    whose poses come from the mesh (``pose_source: model``: a user gives it the start pose),
+    ``(None, None)`` for the others (they start on their first pose)."""
+    if spec.config(base).pose_source != "model":
+        return None, None
+    gt = sequence.ground_truth
+    t0 = int(gt.pose_t_us[0])
+    return gt.pose_at(t0), t0
 
 
 def run_specs(methods: Iterable[str] = DEFAULT_METHODS, ablation: bool = False
@@ -145,12 +168,16 @@ def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
 
     seq = sequence.load()
     cfg = spec.config(base, torch_threads)
-    source = make_pose_source(pose, seq, weights, threads=cfg.torch_threads or None)
+    source = (None if cfg.pose_source == "model"
+              else make_pose_source(pose, seq, weights, threads=cfg.torch_threads or None))
     tracker = Tracker.for_sequence(seq, cfg, source)
+    start, start_t = start_pose(spec, base, seq)
     t0, c0 = time.perf_counter(), time.process_time()
-    traj = tracker.track(seq)
+    traj = tracker.track(seq, start_pose=start, start_t_us=start_t)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-    traj.meta.update({"sequence": sequence.name, "run": spec.name, "pose_source": pose.label})
+    label = ("the object's mesh, from the ground truth's first pose"
+             if cfg.pose_source == "model" else pose.label)
+    traj.meta.update({"sequence": sequence.name, "run": spec.name, "pose_source": label})
     path = trajectory_path(out_dir, sequence, spec.name)
     traj.save(path)
     scores = sequence_pose_scores(traj, seq, workers=threads_per_job(cfg.torch_threads))

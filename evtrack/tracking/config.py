@@ -29,7 +29,7 @@ import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 from evtrack import configs
 from evtrack.configs import Config, FieldError, setting
@@ -38,6 +38,7 @@ from evtrack.errors import ConfigError
 from evtrack.filters.config import PoseTwistUKFConfig, PoseUKFConfig, VelocityKFConfig
 from evtrack.flow.config import FlowConfig
 from evtrack.tracking.config_sections import (
+    AppearanceConfig,
     DepthConfig,
     DepthFusionConfig,
     FrameFlowConfig,
@@ -50,6 +51,7 @@ from evtrack.tracking.methods import METHODS, method_names
 
 __all__ = [
     "METHODS",
+    "AppearanceConfig",
     "DepthConfig",
     "DepthFusionConfig",
     "FrameFlowConfig",
@@ -186,6 +188,14 @@ class TrackerConfig(Config):
             ``"velocity"`` (the twist integrated after the first pose only), ``"pose"`` (UKF with
             poses only), ``"frame-flow"`` (ROFT-like: dense RGB flow -> twist measurements of a
             constant-velocity pose UKF), ``"ge"`` (1-DoF generative event model).
+        pose_source: where the absolute poses come from. ``"network"``: the pose source handed to
+            the tracker (a trained pose network, :mod:`evtrack.tracking.pose_sources`), or poses
+            pushed by the caller. ``"model"``: the object's mesh alone, nothing trained: from a
+            start pose (:meth:`Tracker.reset`), the tracker corrects its pose with the mesh
+            aligned to the depth frames (``depth_fusion``'s ICP, where ``depth.source`` is
+            ``"sensor"``) and its textured render aligned to the RGB frames (``appearance``). A
+            track that is lost stays lost until the next :meth:`Tracker.reset`. Not for
+            ``"velocity"`` (its poses only initialise).
         device: torch device of the flow and the filters (``"cpu"``, ``"cuda"``).
         torch_threads: CPU threads torch (and the flow's compiled kernels, which follow torch's
             count) use during :meth:`Tracker.track`, restored after; never more than the cores this
@@ -282,6 +292,8 @@ class TrackerConfig(Config):
         depth_fusion: the RGB-D extensions
             (:class:`~evtrack.tracking.config_sections.DepthFusionConfig`): range and ICP
             measurements from the depth frames.
+        appearance: poses from the RGB frames aligned with the textured mesh's render
+            (:class:`~evtrack.tracking.config_sections.AppearanceConfig`).
         load: the work per step (:class:`~evtrack.tracking.config_sections.LoadConfig`): event and
             search budgets, real-time load control.
         remeasure: the steps before the first pose
@@ -349,6 +361,7 @@ class TrackerConfig(Config):
     """The flat keys of earlier versions -> their place in the sections."""
 
     method: str = "full"
+    pose_source: Literal["network", "model"] = "network"
     device: str = "cpu"
     torch_threads: int = setting(2, ge=0)
     blas_threads: int = setting(1, ge=0)
@@ -370,6 +383,7 @@ class TrackerConfig(Config):
     pose_gate: PoseGateConfig = field(default_factory=PoseGateConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     depth_fusion: DepthFusionConfig = field(default_factory=DepthFusionConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
     load: LoadConfig = field(default_factory=LoadConfig)
     remeasure: RemeasureConfig = field(default_factory=RemeasureConfig)
     denoise: DenoiseConfig = field(default_factory=DenoiseConfig)
@@ -388,6 +402,10 @@ class TrackerConfig(Config):
         if self.method not in method_names():
             raise FieldError(self, "method", f"must be one of {method_names()}, got "
                              f"{self.method!r}")
+        if self.pose_source == "model" and self.method == "velocity":
+            raise FieldError(self, "pose_source",
+                             "'model' corrects the pose all along; the 'velocity' method takes "
+                             "poses only to start (give it a start pose with Tracker.reset)")
         for name in ("range", "icp"):
             if getattr(self.depth_fusion, name) and self.depth.source != "sensor":
                 raise FieldError(self, f"depth_fusion.{name}",
@@ -430,6 +448,19 @@ class TrackerConfig(Config):
             object.__setattr__(self, f.name, value)
 
     # ------------------------------------------------------------------ derived values
+    @property
+    def uses_depth_icp(self) -> bool:
+        """Whether the depth frames are aligned with the mesh: ``depth_fusion.icp``, or
+        ``pose_source: model`` with sensor depth."""
+        return self.depth_fusion.icp or (self.pose_source == "model"
+                                         and self.depth.source == "sensor")
+
+    @property
+    def uses_appearance(self) -> bool:
+        """Whether the RGB frames are aligned with the textured mesh: ``appearance.enabled``,
+        or ``pose_source: model``."""
+        return self.appearance.enabled or self.pose_source == "model"
+
     @property
     def pose_period_us(self) -> int:
         """The pose source's period in µs."""

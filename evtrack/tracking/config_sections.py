@@ -1,6 +1,6 @@
 """The sections of :class:`~evtrack.tracking.config.TrackerConfig`: the pose gate, the depth at
-the RoIs, the RGB-D depth fusions, the work per step (and real-time load control), the steps
-before the first pose, and the frame-flow and GE baselines.
+the RoIs, the RGB-D depth fusions, the appearance alignment, the work per step (and real-time
+load control), the steps before the first pose, and the frame-flow and GE baselines.
 
 Each is a :class:`~evtrack.configs.Config` dataclass: its ranges and units are declared on its
 fields and checked whether it is built in code or read from YAML.
@@ -17,6 +17,7 @@ from evtrack.configs import Config, FieldError, setting
 from evtrack.tracking.pose_flips import HalfTurnResolver
 
 __all__ = [
+    "AppearanceConfig",
     "DepthConfig",
     "DepthFusionConfig",
     "FrameFlowConfig",
@@ -245,6 +246,57 @@ class DepthFusionConfig(Config):
     icp_scene_points: int = setting(3000, gt=0)
     icp_std_m: float = setting(0.002, gt=0, unit="m")
     icp_std_deg: float = setting(1.0, gt=0, unit="deg")
+
+
+@dataclass
+class AppearanceConfig(Config):
+    """Poses measured from the RGB frames with the textured mesh, nothing trained
+    (:mod:`evtrack.tracking.appearance_fusion`, :class:`~evtrack.models.AppearanceRefiner`):
+    the mesh is rendered at the filter's pose of a frame's time and the frame aligned with the
+    render; the aligned pose is fused with the fit's covariance. It sees what depth cannot (a
+    can's turn about its axis shows only in its label) and little of the distance along the
+    viewing ray (the depth's part). Part of ``TrackerConfig.pose_source: model``; with a pose
+    network it can be turned on alone (``enabled``).
+
+    Attributes:
+        enabled: align RGB frames with the mesh's render and fuse the result (on whenever
+            ``TrackerConfig.pose_source`` is ``"model"``). Needs the object's textured mesh.
+        rate_hz: at most this many RGB frames per second are aligned. Each alignment costs
+            about 60-110 ms of one CPU core for a YCB object at 640x480 (2 renders with Mesa's
+            CPU OpenGL, 3 blur levels).
+        levels: the Gaussian blurs (px) of the coarse-to-fine passes; the first sets how far the
+            fit reaches.
+        iterations: Levenberg-Marquardt steps per pass at most.
+        max_pixels: template pixels per pass at most (the strongest texture gradients).
+        min_correlation: the frame's and the render's luminance must correlate at least this
+            well after the fit, or the fit is refused (counted as ``"low correlation"``).
+        max_rotation_deg, max_translation_m: larger corrections are refused: past the fit's
+            reach, it finds another minimum.
+        cov_scale: the fit's covariance (residual variance x the inverse of its normal
+            matrix) is multiplied by this: neighbouring pixels' errors are not independent (the
+            blur, the frame's motion blur, the texture's resampling). On the simulator's
+            `faster` sequences the normalised squared errors of fits from 5-30° off were ~25x
+            their expected value (median 150-220 for 6 degrees of freedom).
+        std_m, std_deg: floors added to the fit's translation and rotation standard
+            deviations (m, degrees).
+    """
+
+    enabled: bool = False
+    rate_hz: float = setting(10.0, gt=0, unit="Hz")
+    levels: tuple[float, ...] = setting((4.0, 2.0, 1.0), gt=0, unit="px")
+    iterations: int = setting(10, ge=1)
+    max_pixels: int = setting(3000, ge=1)
+    min_correlation: float = setting(0.5, ge=-1, le=1)
+    max_rotation_deg: float = setting(45.0, gt=0, unit="deg")
+    max_translation_m: float = setting(0.1, gt=0, unit="m")
+    cov_scale: float = setting(25.0, gt=0)
+    std_m: float = setting(0.003, gt=0, unit="m")
+    std_deg: float = setting(1.0, gt=0, unit="deg")
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.levels:
+            raise FieldError(self, "levels", "must name at least one blur (px)")
 
 
 @dataclass

@@ -80,7 +80,7 @@ class DepthFusion:
         if config.depth_fusion.range:
             self.depth_range = DepthRange(mesh, depth_camera, std_m=config.depth_fusion.range_std_m)
         self.depth_icp: DepthRefiner | None = None
-        if config.depth_fusion.icp:
+        if config.uses_depth_icp:
             self.depth_icp = DepthRefiner.from_mesh(mesh, DepthRefineConfig(
                 model_points=config.depth_fusion.icp_points,
                 max_scene_points=config.depth_fusion.icp_scene_points))

@@ -4,6 +4,7 @@ motion source where it uses images, and the pose source called on the frames of 
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -11,7 +12,14 @@ import numpy as np
 
 from evtrack.camera import PinholeCamera
 from evtrack.models.estimator import check_rgb
-from evtrack.tracking.inputs import DepthFrame, FrameInput, FrameQueue, PendingPoseCall, PoseMiss
+from evtrack.tracking.inputs import (
+    DepthFrame,
+    FrameInput,
+    FrameQueue,
+    PendingPoseCall,
+    PoseMiss,
+    RgbFrame,
+)
 from evtrack.tracking.offline import PreparedDepth
 from evtrack.tracking.stats import StageTimer
 
@@ -75,9 +83,11 @@ class FrameIntake:
         depth_map = self._take_depth(t_us, depth)
         if rgb is None:
             return
-        get_rgb: Callable[[], np.ndarray] = (
+        get_rgb: Callable[[], np.ndarray] = functools.cache(
             (lambda: checked_rgb(t_us, rgb(), tr.rgb_camera)) if callable(rgb) else (lambda: rgb))
         image = tr.motion.on_rgb(t_us, get_rgb) if tr.motion.uses_rgb else None
+        if tr.appearance is not None and tr.appearance.due(t_us):
+            tr.fusion.schedule(t_us, RgbFrame(t_us, get_rgb))
         if not self._wants_pose(t_us):
             return
         tr.stats.pose_calls += 1

@@ -13,6 +13,7 @@ from evtrack.tracking.inputs import (
     Measurement,
     PendingPoseCall,
     PoseMiss,
+    RgbFrame,
     TwistMeasurement,
 )
 from evtrack.tracking.pose_sources import PoseMeasurement
@@ -66,6 +67,12 @@ class MeasurementFusion:
             tr.depth_fusion.fuse_range(item)
         if tr.initialized:
             tr.depth_fusion.fuse_alignment(item)
+
+    @_apply.register
+    def _(self, item: RgbFrame, available: int, t_now: int) -> None:
+        tr = self.tracker
+        if tr.initialized and tr.appearance is not None:
+            tr.appearance.fuse(item)
 
     @_apply.register
     def _(self, item: PoseMiss, available: int, t_now: int) -> None:

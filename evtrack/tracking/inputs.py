@@ -26,6 +26,7 @@ __all__ = [
     "MeasurementQueue",
     "PendingPoseCall",
     "PoseMiss",
+    "RgbFrame",
     "StreamClock",
     "TwistMeasurement",
 ]
@@ -60,6 +61,15 @@ class DepthFrame:
 
 
 @dataclass
+class RgbFrame:
+    """An RGB frame at ``t_us`` (µs) waiting for the appearance alignment (``appearance``):
+    ``image()`` gives it, (H, W, 3) uint8, read only when it is aligned."""
+
+    t_us: int
+    image: Callable[[], np.ndarray]
+
+
+@dataclass
 class TwistMeasurement:
     """A twist measured between two frames (frame-flow): ``twist`` (1, 6) ``[v_o, ω]`` and its
     covariance ``cov`` (1, 6, 6), event camera frame, at ``t_us`` (µs)."""
@@ -69,7 +79,8 @@ class TwistMeasurement:
     cov: Tensor
 
 
-Measurement = PoseMeasurement | PoseMiss | PendingPoseCall | DepthFrame | TwistMeasurement
+Measurement = (PoseMeasurement | PoseMiss | PendingPoseCall | DepthFrame | RgbFrame
+               | TwistMeasurement)
 
 
 class MeasurementQueue:

@@ -94,6 +94,18 @@ class _EventPusher:
         if len(chunk):
             self.last_event_us = chunk.t_end
 
+    def skip_before(self, t_start: int) -> None:
+        """Leave out the events before ``t_start`` (the stream starts there)."""
+        while True:
+            chunk = self.carry if self.carry is not None else next(self.events, None)
+            self.carry = None
+            if chunk is None:
+                return
+            k = int(torch.searchsorted(chunk.t, torch.tensor([t_start]))[0])
+            if k < len(chunk):
+                self.carry = chunk[k:]
+                return
+
     def until(self, t_stop: int | None) -> None:
         """Push the events before ``t_stop`` (``None``: all the rest)."""
         while True:
@@ -113,20 +125,25 @@ class _EventPusher:
 
 
 def push_sequence(tracker: Tracker, sequence: Any, prepare_depth: Callable | None,
-                  progress: bool) -> None:
+                  progress: bool, start_us: int | None = None) -> None:
     """Push every event and frame of ``sequence`` into ``tracker`` in time order, then flush.
 
     Args:
         prepare_depth: ``(t_us, raw) -> event map`` run in a reader thread ahead of time (the
             tracker's sensor depth), or ``None`` (depth frames read when processed).
         progress: show a progress bar over the frames.
+        start_us: push only the events and frames from this time on (the track starts
+            there); ``None``: all.
     """
     rgb_t = sequence.rgb_times_us.tolist()
     depth_t = sequence.depth_times_us.tolist()
     depth_index = {t: i for i, t in enumerate(depth_t)}
     rgb_index = {t: i for i, t in enumerate(rgb_t)}
-    frame_times = sorted(set(rgb_t) | set(depth_t))
+    frame_times = sorted(t for t in set(rgb_t) | set(depth_t)
+                         if start_us is None or t >= start_us)
     pusher = _EventPusher(tracker, sequence.iter_events(window_us=EVENTS_CHUNK_US))
+    if start_us is not None:
+        pusher.skip_before(start_us)
     bar = None
     if progress:
         from tqdm import tqdm

@@ -66,6 +66,11 @@ class TrackerStats:
             (``depth_fusion.icp``); depth_alignments_skipped: aligned frames without one, by reason
             (``"few depth pixels"``, ``"few fit"``: too few depth pixels fit the mesh,
             ``"correction too large"``).
+        appearance_alignments: poses aligned with RGB frames given to the pose filter
+            (``appearance``); appearance_alignments_skipped: aligned frames without one, by
+            reason (:class:`~evtrack.models.AppearanceResult`'s ``refusal``: ``"not visible"``,
+            ``"few pixels"``, ``"low correlation"``, ``"correction too large"``,
+            ``"diverged"``).
         time_s: processing time per stage (flow, velocity, pose, frames, other).
     """
 
@@ -108,6 +113,8 @@ class TrackerStats:
     depth_ranges_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     depth_alignments: int = 0
     depth_alignments_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
+    appearance_alignments: int = 0
+    appearance_alignments_skipped: dict[str, int] = dataclasses.field(default_factory=dict)
     time_s: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:

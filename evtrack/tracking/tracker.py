@@ -95,6 +95,7 @@ from evtrack.tracking.stats import TrackerStats
 from evtrack.tracking.trajectory import STATUS_LOST, STATUS_TRACKING, STATUS_WAITING, Trajectory
 from evtrack.tracking.wiring import (
     load_mesh,
+    make_appearance_fusion,
     make_denoiser,
     make_depth_fusion,
     make_depth_source,
@@ -103,6 +104,19 @@ from evtrack.tracking.wiring import (
 from evtrack.utils import threads_per_job
 
 __all__ = ["Tracker", "TrackerStats"]
+
+
+def _check_pose_source(config: TrackerConfig, source: PoseSource | None) -> None:
+    """Refuse a pose source where ``config.pose_source`` is ``"model"``.
+
+    Raises:
+        ConfigError: saying what to do instead.
+    """
+    if source is not None and config.pose_source == "model":
+        raise ConfigError("TrackerConfig.pose_source is 'model' (poses from the mesh alone), "
+                          f"but a pose source ({type(source).__name__}) was given: pass none, "
+                          "or set pose_source: network and appearance.enabled: true to use "
+                          "both")
 
 
 class Tracker:
@@ -115,7 +129,8 @@ class Tracker:
             own frame, which must be the poses' object frame), or (V, 3) vertices (enough for
             everything but ``depth.source: model``).
         pose_source: gives absolute poses from RGB frames (:mod:`evtrack.tracking.pose_sources`);
-            ``None``: poses only through :meth:`push_pose` or :meth:`reset`.
+            ``None``: poses only through :meth:`push_pose` or :meth:`reset`. None with
+            ``config.pose_source: model`` (the mesh is the pose source there).
         rgb_camera: the RGB-D camera (default: the event camera).
         T_event_rgb: (4, 4) maps RGB-camera points into the event camera (default identity).
 
@@ -127,8 +142,9 @@ class Tracker:
             (:class:`~evtrack.tracking.motion.MotionSource`; e.g. ``motion.flow``, ``motion.vkf``
             for the event methods).
         ukf: the pose filter; timeline: its rolling past (:mod:`~evtrack.tracking.pose_timeline`).
-        roi_depth, gate, load, pose_gate, pose_calls, depth_fusion, outputs, view: the parts
-            (see the module docstring); ``depth_fusion`` is ``None`` without one.
+        roi_depth, gate, load, pose_gate, pose_calls, depth_fusion, appearance, outputs, view: the
+            parts (see the module docstring); ``depth_fusion`` and ``appearance`` are ``None``
+            without one.
         scheduler, frames, fusion: the internal drivers (:mod:`~evtrack.tracking.scheduler`,
             :mod:`~evtrack.tracking.frames`, :mod:`~evtrack.tracking.fusion`) that run the
             steps, take the frames and apply the queued measurements.
@@ -176,6 +192,8 @@ class Tracker:
         self.timeline = PoseTimeline(self.ukf, int(round(cfg.history_ms * 1e3)))
         self.depth_fusion = make_depth_fusion(cfg, self.motion, self.mesh, depth, self.timeline,
                                               self._past_pose)
+        self.appearance = make_appearance_fusion(cfg, self.motion, self.mesh, self.rgb_camera,
+                                                 self.T_event_rgb, self.timeline, self._past_pose)
         self._blas = BlasThreads(cfg.blas_threads)
         self.gate = EventGate(camera, self.silhouette, cfg.mask_margin_px, cfg.burst_rate_hz,
                               cfg.flow.roi_size, make_denoiser(cfg, self.motion, camera),
@@ -184,6 +202,7 @@ class Tracker:
         self.load = LoadController.from_config(cfg)
         self.view = ViewCheck(self.silhouette, cfg.min_visible_fraction, cfg.lost_after_ms,
                               cfg.velocity_step_us)
+        _check_pose_source(cfg, pose_source)
         self.pose_calls = PoseCaller(pose_source, cfg.pose_period_us, cfg.pose_gate.min_confidence)
         self.scheduler = StepScheduler(self)
         self.fusion = MeasurementFusion(self)
@@ -202,6 +221,7 @@ class Tracker:
 
     @pose_source.setter
     def pose_source(self, source: PoseSource | None) -> None:
+        _check_pose_source(self.config, source)
         self.pose_calls.source = source
 
     @classmethod
@@ -241,14 +261,14 @@ class Tracker:
             pose = checked_pose(pose, f"reset: starting pose at t={int(t_us)} µs")
         self.stats = TrackerStats()
         parts = (self.motion, self.roi_depth, self.gate, self.pose_gate, self.pose_calls,
-                 self.depth_fusion)
+                 self.depth_fusion, self.appearance)
         for part in parts:
             if part is not None:
                 part.stats = self.stats
         self.motion.reset()
         self.ukf.reset(1)
         for part in (self.roi_depth, self.gate, self.load, self.pose_gate, self.pose_calls,
-                     self.depth_fusion, self.scheduler, self.fusion, self.frames):
+                     self.depth_fusion, self.appearance, self.scheduler, self.fusion, self.frames):
             if part is not None:
                 part.reset()
         self.view.out_of_view_us = 0
@@ -406,8 +426,10 @@ class Tracker:
 
     @property
     def _uses_rgb(self) -> bool:
-        """Whether the RGB images are read: by the pose source or the motion source."""
-        return self.pose_source is not None or self.motion.uses_rgb
+        """Whether the RGB images are read: by the pose source, the motion source or the
+        appearance alignment."""
+        return (self.pose_source is not None or self.motion.uses_rgb
+                or self.appearance is not None)
 
     def push_pose(self, measurement: PoseMeasurement, available_us: int | None = None) -> None:
         """Add a pose measurement (e.g. from a pose network running in another thread).
@@ -519,7 +541,8 @@ class Tracker:
         The pose source runs on the frames at ``pose_rate_hz`` and its poses reach the filter
         ``pose_latency_ms`` later, as they would live. With ``start_pose`` (4, 4) the track
         starts from it at ``start_t_us`` (as :meth:`reset` does), e.g. the ``velocity`` method
-        on a recording without a pose source.
+        on a recording without a pose source, or ``pose_source: model``; the events and frames
+        before ``start_t_us`` are then left out (the stream starts with the track).
 
         Returns:
             the :class:`~evtrack.tracking.trajectory.Trajectory` (one sample per velocity step).
@@ -532,7 +555,8 @@ class Tracker:
             with self._blas:  # the worker's pose calls all end inside (flush settles them)
                 self.reset(start_pose, start_t_us)
                 prepare = self.roi_depth.source.prepare if self.roi_depth.sensor else None
-                push_sequence(self, sequence, prepare, progress)
+                push_sequence(self, sequence, prepare, progress,
+                              None if start_pose is None else start_t_us)
                 return self.trajectory()
         finally:
             self.pose_calls.in_worker = False

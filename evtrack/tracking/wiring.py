@@ -11,6 +11,7 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.denoise import EventDenoiser
 from evtrack.errors import ConfigError
+from evtrack.tracking.appearance_fusion import AppearanceFusion
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.depth_fusion import DepthFusion
 from evtrack.tracking.depth_sources import DepthSource, ModelDepth, SensorDepth
@@ -20,8 +21,8 @@ from evtrack.tracking.pose_flips import HalfTurnResolver
 from evtrack.tracking.pose_gate import PoseGate
 from evtrack.tracking.pose_timeline import PoseTimeline
 
-__all__ = ["load_mesh", "make_denoiser", "make_depth_fusion", "make_depth_source",
-           "make_pose_gate"]
+__all__ = ["load_mesh", "make_appearance_fusion", "make_denoiser", "make_depth_fusion",
+           "make_depth_source", "make_pose_gate"]
 
 
 def load_mesh(mesh: Any) -> tuple[Any, np.ndarray]:
@@ -93,16 +94,28 @@ def make_depth_fusion(config: TrackerConfig, motion: MotionSource, mesh: Any,
     """The depth fusions (``depth_fusion.range``, ``depth_fusion.icp``), or ``None`` without one
     (or for a
     method whose poses only initialise)."""
-    if motion.poses_only_initialise or not (config.depth_fusion.range or config.depth_fusion.icp):
+    if motion.poses_only_initialise or not (config.depth_fusion.range or config.uses_depth_icp):
         return None
     if config.depth_fusion.range:
         _needs_mesh(mesh, "depth_fusion.range")
-    if config.depth_fusion.icp:
-        _needs_mesh(mesh, "depth_fusion.icp")
+    if config.uses_depth_icp:
+        _needs_mesh(mesh, "depth_fusion.icp" if config.depth_fusion.icp else "pose_source: model")
     # the depth maps are in the sensing camera, the filter's pose in the event camera
     to_depth = motion.depth_from_event()
     T = torch.eye(4, dtype=torch.float64) if to_depth is None else to_depth
     return DepthFusion(config, mesh, depth.camera, T.numpy(), timeline, past_pose)
+
+
+def make_appearance_fusion(config: TrackerConfig, motion: MotionSource, mesh: Any,
+                           rgb_camera: PinholeCamera, T_event_rgb: torch.Tensor,
+                           timeline: PoseTimeline, past_pose: Any) -> AppearanceFusion | None:
+    """The appearance alignment (``appearance``, ``pose_source: model``), or ``None`` without
+    one (or for a method whose poses only initialise)."""
+    if motion.poses_only_initialise or not config.uses_appearance:
+        return None
+    _needs_mesh(mesh, "appearance.enabled" if config.appearance.enabled
+                else "pose_source: model")
+    return AppearanceFusion(config, mesh, rgb_camera, T_event_rgb.numpy(), timeline, past_pose)
 
 
 def make_denoiser(cfg: TrackerConfig, motion: MotionSource, camera: PinholeCamera

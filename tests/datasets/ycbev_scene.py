@@ -2,8 +2,10 @@
 
 The simulator renders an undistorted camera with the event camera's intrinsics; the scene
 writer then records what the real rig would: events at the lens-distorted pixels (encoded
-with ``ycbev-toolkit``'s own writer), depth seen by the depth camera (not registered), ground
-truth in the colour camera in millimetres, and the BOP model in millimetres. The calibration
+with ``ycbev-toolkit``'s own writer), colour images rendered from the colour camera, depth
+seen by the depth camera (not registered), ground truth in the colour camera in millimetres,
+and the textured BOP model in millimetres (as YCB-V's: per-vertex texture coordinates and a
+``TextureFile`` beside it). The calibration
 files are the dataset's real ones (from ``../shared``).
 """
 
@@ -16,11 +18,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-import trimesh
 
 from evtrack.datasets.depth_registration import register_depth
 from evtrack.datasets.ycbev import CALIBRATION_FILES, FRAME_PERIOD_US, read_ycbev_calibration
 from evtrack.sequence import Sequence
+from evtrack.sim.objects import load_mesh
 
 OBJ_ID = 4  # 005_tomato_soup_can
 SCENE = "01"
@@ -67,6 +69,7 @@ def write_scene(seq: Sequence, calibration_dir: Path, root: Path) -> Path:
     T_depth_event = np.linalg.inv(cal.T_rgb_depth) @ T_rgb_event
     K_sim = seq.meta.event_camera.K().numpy()
     scene_gt = {}
+    colour = ColourCamera(load_mesh(seq.mesh_file, recenter=False), cal.rgb_camera)
     t_end = int(seq.events.t[-1])
     im_id = 0
     while im_id * FRAME_PERIOD_US + FRAME_PERIOD_US <= t_end:
@@ -75,29 +78,66 @@ def write_scene(seq: Sequence, calibration_dir: Path, root: Path) -> Path:
         scene_gt[str(im_id)] = [{"cam_R_m2c": T_rgb[:3, :3].tolist(),
                                  "cam_t_m2c": (T_rgb[:3, 3] * 1000.0).tolist(),
                                  "obj_id": OBJ_ID}]
-        k = int(torch.argmin((seq.rgb_times_us - t_us).abs()))
         cv2.imwrite(str(scene / "rgb" / f"{im_id:06d}.png"),
-                    cv2.cvtColor(seq.rgb(k), cv2.COLOR_RGB2BGR))
+                    cv2.cvtColor(colour.image(T_rgb), cv2.COLOR_RGB2BGR))
         k = int(torch.argmin((seq.depth_times_us - t_us).abs()))
         seen = register_depth(seq.depth(k), K_sim, cal.K_depth, T_depth_event,
                               cal.rgb_camera.size, splat=2)
         cv2.imwrite(str(scene / "depth" / f"{im_id:06d}.png"),
                     np.round(seen * 1000.0).astype(np.uint16))
         im_id += 1
+    colour.release()
     (scene / "scene_gt.json").write_text(json.dumps(scene_gt))
     write_model(seq.mesh_file, root / "ycbv_models" / "models", OBJ_ID)
     return scene
 
 
+class ColourCamera:
+    """The colour camera's images of the object (before a grey background): rendered with its
+    own intrinsics (lens distortion left out), as the simulator renders its frames."""
+
+    def __init__(self, mesh, camera) -> None:
+        from evtrack.camera import PinholeCamera
+        from evtrack.sim.renderer import Renderer
+
+        pinhole = PinholeCamera(camera.fx, camera.fy, camera.cx, camera.cy, camera.width,
+                                camera.height)
+        self.renderer = Renderer(pinhole)
+        self.renderer.set_object(mesh)
+
+    def image(self, T_rgb: np.ndarray) -> np.ndarray:
+        from evtrack.sim.frames import linear_to_srgb
+
+        out = self.renderer.render(T_rgb)
+        return linear_to_srgb(np.where(out.mask[..., None], out.rgb, 0.3))
+
+    def release(self) -> None:
+        self.renderer.release()
+
+
 def write_model(mesh_file: Path, models_dir: Path, obj_id: int, scale: float = 1000.0) -> None:
-    """The mesh as a BOP model (``obj_XXXXXX.ply``, millimetres) with ``models_info.json``."""
+    """The mesh as a textured BOP model (``obj_XXXXXX.ply`` in millimetres with
+    ``texture_u``/``texture_v`` per vertex and ``comment TextureFile obj_XXXXXX.png``, as the
+    YCB-V models) with ``models_info.json``."""
     from evtrack.eval.pose_metrics import object_diameter
 
     models_dir.mkdir(parents=True)
-    mesh = trimesh.load(mesh_file, force="mesh", process=False)
-    mesh.apply_scale(scale)
-    mesh.export(models_dir / f"obj_{obj_id:06d}.ply")
-    vertices = np.asarray(mesh.vertices)
+    mesh = load_mesh(mesh_file, recenter=False)
+    vertices = np.asarray(mesh.vertices, np.float64) * scale
+    stem = f"obj_{obj_id:06d}"
+    cv2.imwrite(str(models_dir / f"{stem}.png"), cv2.cvtColor(mesh.texture, cv2.COLOR_RGB2BGR))
+    header = ("ply\nformat ascii 1.0\n"
+              f"comment TextureFile {stem}.png\n"
+              f"element vertex {len(vertices)}\n"
+              + "".join(f"property float {k}\n"
+                        for k in ("x", "y", "z", "nx", "ny", "nz", "texture_u", "texture_v"))
+              + f"element face {len(mesh.faces)}\nproperty list uchar int vertex_indices\n"
+              "end_header\n")
+    rows = np.hstack([vertices, mesh.normals, mesh.uv])
+    with open(models_dir / f"{stem}.ply", "w") as f:
+        f.write(header)
+        np.savetxt(f, rows, fmt="%.7g")
+        np.savetxt(f, np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]), fmt="%d")
     lo, hi = vertices.min(0), vertices.max(0)
     info = {str(obj_id): {"diameter": object_diameter(vertices),
                           "min_x": lo[0], "min_y": lo[1], "min_z": lo[2],

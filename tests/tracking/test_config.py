@@ -169,7 +169,7 @@ def test_a_misspelt_field_gets_the_nearest_name() -> None:
         TrackerConfig.from_dict({"velocity_kf": {"flw_std": 1.0}})
     with pytest.raises(ConfigError, match="'roi_sise': did you mean 'roi_size'"):
         TrackerConfig.from_dict({"flow": {"roi_sise": 3}})
-    with pytest.raises(ConfigError, match=r"\['zzz'\]; known: \['blas_threads'"):
+    with pytest.raises(ConfigError, match=r"\['zzz'\]; known: \['appearance', 'blas_threads'"):
         TrackerConfig.from_dict({"zzz": 1})  # nothing close: the known names
 
 
