@@ -40,6 +40,7 @@ from evtrack.models.estimator import PoseEstimator, TorchPoseEstimator, preproce
 from evtrack.models.factory import create, load_model
 from evtrack.models.fold_batchnorm import fold_batchnorm
 from evtrack.models.keypoints import find_peaks, grid_to_pixel, pixel_to_grid
+from evtrack.models.mesh_registration import Registration, RegistrationConfig, register_mesh
 from evtrack.models.onnx_estimator import OnnxPoseEstimator
 from evtrack.models.onnx_export import ExportError, export_onnx, read_onnx_record
 from evtrack.models.summary import count_flops, count_parameters
@@ -74,6 +75,8 @@ __all__ = [
     "PoseDetection",
     "PoseEstimator",
     "RefineResult",
+    "Registration",
+    "RegistrationConfig",
     "TorchPoseEstimator",
     "WeightsError",
     "WeightsRecord",
@@ -99,6 +102,7 @@ __all__ = [
     "preprocess",
     "read_onnx_record",
     "read_record",
+    "register_mesh",
     "register_model",
     "save_weights",
     "set_record_decode",

@@ -261,12 +261,18 @@ class AppearanceRefiner:
         return luminance(cv2.remap(rgb, mx, my, cv2.INTER_LINEAR))
 
     # ------------------------------------------------------------------ the fit
-    def refine(self, pose: np.ndarray | torch.Tensor, rgb: np.ndarray) -> AppearanceResult:
+    def refine(self, pose: np.ndarray | torch.Tensor, rgb: np.ndarray,
+               translation_std_m: float | None = None) -> AppearanceResult:
         """Refine one object-to-camera pose on an RGB frame.
 
         Args:
             pose: (4, 4) object-to-camera transform (metres), e.g. a filter's prediction.
             rgb: (H, W, 3) frame of the camera: uint8 sRGB, or float linear RGB.
+            translation_std_m: a Gaussian prior on the fit's move of the position (standard
+                deviation, m), for a pose whose position is already known better than the
+                image tells it (e.g. from a depth fit: an image sees the distance along the
+                viewing ray poorly, and the fit may slide along it). ``None``: no prior. The
+                returned information holds the image's part alone.
 
         Raises:
             ValueError: a pose that is not a finite (4, 4) matrix, or a frame of another size.
@@ -282,11 +288,15 @@ class AppearanceRefiner:
             return AppearanceResult(T0, False, refusal="not visible",
                                     reason=f"the object's origin is not in front of the camera "
                                            f"(z = {T0[2, 3]:.3f} m)")
+        if translation_std_m is not None and not translation_std_m > 0:
+            raise ValueError(f"appearance refinement: translation_std_m must be positive, got "
+                             f"{translation_std_m}")
+        anchor = None if translation_std_m is None else (T0[:3, 3].copy(), translation_std_m)
         T = T0.copy()
         try:
             for k in range(cfg.renders):
                 levels = cfg.levels if k == 0 else cfg.levels[-1:]
-                T, pixels, corr, scale, info = self._fit_render(T, frame, levels)
+                T, pixels, corr, scale, info = self._fit_render(T, frame, levels, anchor)
         except _Refused as refused:
             return AppearanceResult(T0, False, refusal=refused.refusal, reason=refused.reason)
         turned = math.degrees(_rotation_angle(T[:3, :3] @ T0[:3, :3].T))
@@ -303,7 +313,8 @@ class AppearanceRefiner:
                                            f"{cfg.min_correlation})")
         return AppearanceResult(T, True, pixels, corr, scale, info)
 
-    def _fit_render(self, T: np.ndarray, frame: np.ndarray, levels: tuple[float, ...]):
+    def _fit_render(self, T: np.ndarray, frame: np.ndarray, levels: tuple[float, ...],
+                    anchor: tuple[np.ndarray, float] | None = None):
         """Render at ``T`` and fit at the blurs ``levels`` in turn: ``(pose, pixels,
         correlation, scale, information)``.
 
@@ -342,14 +353,16 @@ class AppearanceRefiner:
         for sigma in levels:
             deep = rim > cfg.erode_px + sigma
             fit = self._fit_level(T, X_obj[deep], us[deep], vs[deep], template, inside, image,
-                                  sigma, K)
+                                  sigma, K, anchor)
             T = fit[0]
         return fit
 
     def _fit_level(self, T: np.ndarray, X_obj: np.ndarray, us: np.ndarray, vs: np.ndarray,
                    template: np.ndarray, inside: np.ndarray, image: np.ndarray, sigma: float,
-                   K: tuple[float, float, float, float]):
-        """Gauss-Newton steps at one blur: ``(pose, pixels, correlation, scale, information)``.
+                   K: tuple[float, float, float, float],
+                   anchor: tuple[np.ndarray, float] | None = None):
+        """Gauss-Newton steps at one blur: ``(pose, pixels, correlation, scale, information)``;
+        ``anchor`` ``(t0, σ)``: the translation prior (see :meth:`refine`).
 
         Raises:
             _Refused: too few textured pixels, or the fit diverged.
@@ -377,12 +390,26 @@ class AppearanceRefiner:
         lin = (ib, gx, gy, (fx, fy, cx, cy), (w, h))
         r, J, _ = self._linearise(T, Xo, target, *lin)
         scale = self._scale(r)  # the robust scale, renewed at each accepted step
-        cost = self._cost(r, scale)
+
+        def prior(T: np.ndarray, scale: float) -> tuple[float, np.ndarray]:
+            """The prior's weight (residual units², per m²) and the position's move."""
+            if anchor is None:
+                return 0.0, np.zeros(3)
+            return (scale / anchor[1]) ** 2, T[:3, 3] - anchor[0]
+
+        def total_cost(r: np.ndarray, T: np.ndarray, scale: float) -> float:
+            weight, moved = prior(T, scale)
+            return self._cost(r, scale) + 0.5 * weight * float(moved @ moved) / len(r)
+
+        cost = total_cost(r, T, scale)
         lam = 1e-4
         for _ in range(cfg.iterations):
             wts = self._weights(r, scale)
             A = (J * wts[:, None]).T @ J
             g = (J * wts[:, None]).T @ r
+            weight, moved = prior(T, scale)
+            A[:3, :3] += weight * np.eye(3)
+            g[:3] += weight * moved
             step = None
             while lam < 1e6:  # Levenberg-Marquardt: damp until a step lowers the cost
                 try:
@@ -396,7 +423,7 @@ class AppearanceRefiner:
                     r_new, J_new, _ = self._linearise(T_new, Xo, target, *lin)
                 except _Refused:
                     r_new = None
-                if r_new is not None and self._cost(r_new, scale) < cost:
+                if r_new is not None and total_cost(r_new, T_new, scale) < cost:
                     step, lam = candidate, max(lam / 10.0, 1e-7)
                     break
                 lam *= 10.0
@@ -404,7 +431,7 @@ class AppearanceRefiner:
                 break  # no step lowers the cost: converged
             T, r, J = T_new, r_new, J_new
             scale = self._scale(r)
-            cost = self._cost(r, scale)
+            cost = total_cost(r, T, scale)
             if (np.linalg.norm(step[3:]) < cfg.tolerance
                     and np.linalg.norm(step[:3]) < cfg.tolerance * abs(T[2, 3])):
                 break

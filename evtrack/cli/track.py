@@ -66,11 +66,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--start-from-ground-truth", action="store_true",
                    help="start the track from the ground truth's first pose (groundtruth.h5), "
                         "as a benchmark gives a tracker its start")
+    p.add_argument("--start-box", type=float, nargs=4, default=None,
+                   metavar=("U0", "V0", "U1", "V1"),
+                   help="find the start pose on the first RGB-D frame from the object's textured "
+                        "mesh alone, given this box around it in the RGB image (pixels; global "
+                        "registration: the mesh fitted to the depth from many orientations, the "
+                        "texture picking among them)")
     p.add_argument("--mesh-only", action="store_true",
                    help="no pose network: correct the pose with the object's mesh alone "
                         "(pose_source: model: the mesh aligned with the depth frames, its "
                         "textured render with the RGB frames); needs a start pose "
-                        "(--start-pose or --start-from-ground-truth). Not in the paper")
+                        "(--start-pose, --start-from-ground-truth or --start-box). Not in the "
+                        "paper")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -117,12 +124,18 @@ def _pose_source(args: argparse.Namespace, seq):
     return NetworkPoseSource(est, seq.meta.T_event_rgb, refiner=refiner, camera=cam)
 
 
-def _start(args: argparse.Namespace, seq) -> dict:
-    """The start pose and time of ``--start-pose`` or ``--start-from-ground-truth``, as
-    keyword arguments of ``track``."""
+def _start(args: argparse.Namespace, seq, tracker) -> dict:
+    """The start pose and time of ``--start-pose``, ``--start-from-ground-truth`` or
+    ``--start-box``, as keyword arguments of ``track``."""
     from_truth = getattr(args, "start_from_ground_truth", False)
-    if args.start_pose and from_truth:
-        raise ConfigError("give either --start-pose or --start-from-ground-truth, not both")
+    box = getattr(args, "start_box", None)
+    given = [o for o, v in (("--start-pose", args.start_pose),
+                            ("--start-from-ground-truth", from_truth),
+                            ("--start-box", box is not None)) if v]
+    if len(given) > 1:
+        raise ConfigError(f"give one start: {' and '.join(given)} were given")
+    if box is not None:
+        return _registered_start(seq, tracker, box)
     if from_truth:
         gt = seq.ground_truth
         if gt is None:
@@ -130,8 +143,8 @@ def _start(args: argparse.Namespace, seq) -> dict:
         t0 = int(gt.pose_t_us[0])
         return {"start_pose": gt.pose_at(t0), "start_t_us": t0}
     if getattr(args, "mesh_only", False) and not args.start_pose:
-        raise ConfigError("--mesh-only needs a start pose: --start-pose (recorded by the import) "
-                          "or --start-from-ground-truth")
+        raise ConfigError("--mesh-only needs a start pose: --start-pose (recorded by the import), "
+                          "--start-from-ground-truth or --start-box U0 V0 U1 V1")
     if not args.start_pose:
         return {}
     import numpy as np
@@ -148,6 +161,29 @@ def _start(args: argparse.Namespace, seq) -> dict:
         raise ConfigError(f"--start-pose: {seq.root / 'meta.yaml'}: extra.start_pose must be "
                           f"a 4x4 matrix and extra.start_t_us an integer ({exc})") from exc
     return {"start_pose": pose, "start_t_us": t_us}
+
+
+def _registered_start(seq, tracker, box) -> dict:
+    """``--start-box``: the start pose registered on the first RGB frame and the depth frame
+    nearest it."""
+    import numpy as np
+
+    if seq.num_rgb == 0 or seq.num_depth == 0:
+        raise ConfigError(f"--start-box: {seq.root} needs RGB and depth frames to register the "
+                          "mesh on")
+    t_us = int(seq.rgb_times_us[0])
+    k = int(np.argmin(np.abs(seq.depth_times_us.numpy() - t_us)))
+    try:
+        found = tracker.start_from_frame(t_us, seq.rgb(0), seq.depth(k), tuple(box))
+    except ValueError as exc:
+        raise ConfigError(f"--start-box: {exc}") from None
+    runner = ("" if found.runner_up is None else
+              f"; the next best, {found.runner_up[1]:.0f}° away, correlates "
+              f"{found.runner_up[0]:.3f}")
+    print(f"start pose registered on the frame at {t_us} µs: the colour image correlates "
+          f"{found.correlation:.3f} with the mesh there ({found.fitted} of {found.tried} "
+          f"orientations fitted the depth){runner}")
+    return {"start_pose": tracker.pose(), "start_t_us": t_us}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -171,8 +207,8 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "mesh_only", False):
         changes["pose_source"] = "model"
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
-    start = _start(args, seq)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
+    start = _start(args, seq, tracker)
     traj = tracker.track(seq, progress=not args.quiet, **start)
     traj.save(args.out)
     if args.bop_results is not None:

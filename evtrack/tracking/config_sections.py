@@ -236,6 +236,11 @@ class DepthFusionConfig(Config):
         icp_std_m, icp_std_deg: floors added to the fit's translation and rotation standard
             deviations (m, degrees): the fit's own covariance assumes independent depth errors,
             which a real sensor's (ripple, flying pixels, a scale bias) are not.
+        icp_min_information: directions of the fit whose information (per metre of surface
+            motion: rotations times the object's radius) is below this share of the best-seen
+            direction's count as unseen (a huge variance): a near-symmetric shape's fit claims
+            to see its symmetry (the fine ridges of a can's lids) far better than it does. 0:
+            only directions below 1e-9 of the best.
     """
 
     range: bool = False
@@ -246,6 +251,7 @@ class DepthFusionConfig(Config):
     icp_scene_points: int = setting(3000, gt=0)
     icp_std_m: float = setting(0.002, gt=0, unit="m")
     icp_std_deg: float = setting(1.0, gt=0, unit="deg")
+    icp_min_information: float = setting(0.0, ge=0, le=1)
 
 
 @dataclass

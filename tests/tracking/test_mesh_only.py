@@ -135,3 +135,48 @@ def test_the_config_flags(fast_sequence) -> None:
     assert not plain.uses_appearance and not plain.uses_depth_icp
     tracker = Tracker.for_sequence(fast_sequence, plain)
     assert tracker.appearance is None
+
+
+def _silhouette_box(seq, t_us: int) -> tuple[int, int, int, int]:
+    """A box 3 px around the object's projection at its true pose of ``t_us``."""
+    T = np.linalg.inv(seq.meta.T_event_rgb.numpy()) @ seq.ground_truth.pose_at(t_us).numpy()
+    from evtrack.sim.objects import load_mesh
+
+    V = load_mesh(seq.mesh_file, recenter=False).vertices.astype(np.float64)
+    X = V @ T[:3, :3].T + T[:3, 3]
+    cam = seq.meta.rgb_camera
+    u, v = cam.fx * X[:, 0] / X[:, 2] + cam.cx, cam.fy * X[:, 1] / X[:, 2] + cam.cy
+    return int(u.min()) - 3, int(v.min()) - 3, int(u.max()) + 4, int(v.max()) + 4
+
+
+def test_the_start_is_found_on_the_first_frame(fast_sequence, mesh_runs, tmp_path,
+                                               capsys) -> None:
+    """``start_from_frame`` registers the mesh on the first RGB-D frame (a box around the
+    object given) and starts the track there; ``evtrack track --start-box`` does the same."""
+    from evtrack.cli import main
+
+    t0 = int(fast_sequence.rgb_times_us[0])
+    box = _silhouette_box(fast_sequence, t0)
+    tracker = _tracker(fast_sequence, pose_source="model")
+    found = tracker.start_from_frame(t0, fast_sequence.rgb(0), fast_sequence.depth(0), box)
+    truth = fast_sequence.ground_truth.pose_at(t0).numpy()
+    R = tracker.pose()[:3, :3].T @ truth[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 2.0
+    assert np.linalg.norm(tracker.pose()[:3, 3] - truth[:3, 3]) < 0.005
+    assert found.correlation > 0.9 and tracker.initialized and tracker.now_us == t0
+    traj = tracker.track(fast_sequence, start_pose=tracker.pose(), start_t_us=t0)
+    err = tracking_errors(traj, fast_sequence.ground_truth)
+    assert err.rotation_rmse_deg < 1.5 * mesh_runs["rgbd"][0].rotation_rmse_deg + 0.5
+    config = tmp_path / "tracker.yaml"
+    config.write_text("flow: {roi_size: 16}\nmask_margin_px: 8.0\n")
+    out = tmp_path / "t.csv"
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--mesh-only",
+                 "--config", str(config), "--start-box", *map(str, box), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "start pose registered on the frame at" in printed and "appearance alignments" in printed
+    with pytest.raises(ValueError, match="holds no part"):
+        tracker.start_from_frame(t0, fast_sequence.rgb(0), fast_sequence.depth(0),
+                                 (500, 500, 600, 600))
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--mesh-only",
+                 "--start-box", *map(str, box), "--start-from-ground-truth", "--quiet"]) == 1
+    assert "give one start" in capsys.readouterr().err
