@@ -124,9 +124,10 @@ def _pose_source(args: argparse.Namespace, seq):
     return NetworkPoseSource(est, seq.meta.T_event_rgb, refiner=refiner, camera=cam)
 
 
-def _start(args: argparse.Namespace, seq, tracker) -> dict:
-    """The start pose and time of ``--start-pose``, ``--start-from-ground-truth`` or
-    ``--start-box``, as keyword arguments of ``track``."""
+def _start(args: argparse.Namespace, seq) -> dict:
+    """The start pose and time of ``--start-pose`` or ``--start-from-ground-truth``, as
+    keyword arguments of ``track``; ``{"box": box}`` for ``--start-box`` (registered once the
+    tracker is built, :func:`_registered_start`). Checked before the tracker is built."""
     from_truth = getattr(args, "start_from_ground_truth", False)
     box = getattr(args, "start_box", None)
     given = [o for o, v in (("--start-pose", args.start_pose),
@@ -135,7 +136,7 @@ def _start(args: argparse.Namespace, seq, tracker) -> dict:
     if len(given) > 1:
         raise ConfigError(f"give one start: {' and '.join(given)} were given")
     if box is not None:
-        return _registered_start(seq, tracker, box)
+        return {"box": tuple(box)}
     if from_truth:
         gt = seq.ground_truth
         if gt is None:
@@ -207,8 +208,10 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "mesh_only", False):
         changes["pose_source"] = "model"
     cfg = TrackerConfig.from_dict(changes, "command line", base=cfg)
+    start = _start(args, seq)
     tracker = Tracker.for_sequence(seq, cfg, _pose_source(args, seq))
-    start = _start(args, seq, tracker)
+    if "box" in start:
+        start = _registered_start(seq, tracker, start["box"])
     traj = tracker.track(seq, progress=not args.quiet, **start)
     traj.save(args.out)
     if args.bop_results is not None:
