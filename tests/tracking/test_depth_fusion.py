@@ -69,6 +69,37 @@ def test_unseen_direction_gets_a_huge_variance() -> None:
     assert np.isfinite(cov).all()
 
 
+def test_a_barely_seen_direction_counts_as_unseen() -> None:
+    """A can with a little ridge (one row of normals tilted round the axis): the fit sees its
+    spin, but at ~0.3 % of its best direction's information (per metre of surface motion).
+    With ``min_share`` 0.01 that direction gets the unseen variance; below the share it keeps
+    the fit's own; the well-seen directions keep theirs, and nothing becomes surer."""
+    ang = np.linspace(0, np.pi, 400)
+    P = np.stack([0.04 * np.cos(ang), 0.04 * np.sin(ang) - 0.1, np.linspace(-.05, .05, 400)],
+                 1) + [0, 0, 0.8]
+    normals = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)
+    ridge = np.arange(0, 400, 40)  # tilted round the axis: these see the spin
+    tangent = np.stack([-np.sin(ang), np.cos(ang), np.zeros_like(ang)], 1)
+    normals[ridge] = 0.8 * normals[ridge] + 0.6 * tangent[ridge]
+    centre = np.array([0, -0.1, 0.8])
+    a = np.hstack([normals, np.cross(P - centre, normals)])
+    pose = np.eye(4)
+    pose[:3, 3] = centre
+    res = RefineResult(pose, True, 400, 400, 0.001, 3, "", a.T @ a, centre)
+    kept = alignment_covariance(res, 0.0, 0.0, radius_m=0.06, min_share=0.0)
+    cut = alignment_covariance(res, 0.0, 0.0, radius_m=0.06, min_share=0.01)
+    assert np.degrees(np.sqrt(kept[5, 5])) < 1.0  # the fit claims to see the spin
+    assert cut[5, 5] > 1e4 * kept[5, 5]
+    assert np.linalg.eigvalsh(cut - kept).min() > -1e-12 * np.abs(kept).max()
+    scale = np.r_[np.ones(3), np.full(3, 0.06)]  # the pose's origin is the fit's centre here
+    w, V = np.linalg.eigh(a.T @ a / np.outer(scale, scale))
+    for k in np.nonzero(w > 0.2 * w.max())[0]:  # well seen: the same variance
+        v = V[:, k] * scale
+        assert abs(v @ cut @ v - v @ kept @ v) <= 1e-6 * (v @ kept @ v)
+    lower = alignment_covariance(res, 0.0, 0.0, radius_m=0.06, min_share=1e-4)
+    np.testing.assert_allclose(lower, kept, rtol=1e-9)
+
+
 def _rotation_rmse_deg(traj, seq, t_from_us: int) -> float:
     gt = seq.ground_truth
     t = traj.t_us.numpy()
