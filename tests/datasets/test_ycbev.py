@@ -143,14 +143,12 @@ def test_tracks_and_evaluates(imported: Path, tmp_path: Path) -> None:
 def test_tracks_from_the_bop_mesh_alone(imported: Path, tmp_path: Path) -> None:
     """An object evtrack ships no network for is tracked from its textured BOP model alone
     (``--mesh-only``: the mesh aligned with the depth frames, its render with the colour
-    images), from the ground truth's first pose, through ``evtrack track`` and ``evaluate``."""
+    images), from the ground truth's first pose, through ``evtrack evaluate --mesh-only``."""
     seq = Sequence.load(imported)
     assert seq.meta.object_name == NAME and Sequence.load(imported).mesh_file.suffix == ".glb"
     from evtrack.sim.objects import load_mesh
 
     assert load_mesh(seq.mesh_file, recenter=False).texture.shape[0] > 2  # textured
-    assert main(["track", str(imported), "--out", str(tmp_path / "t.csv"), "--mesh-only",
-                 "--start-from-ground-truth", "--quiet"]) == 0
     out = tmp_path / "res"
     assert main(["evaluate", "--benchmark", str(imported.parent), "--mesh-only", "--out",
                  str(out), "--quiet"]) == 0
