@@ -44,6 +44,10 @@ from evtrack.errors import ConfigError
 
 __all__ = ["AppearanceRefineConfig", "AppearanceResult", "AppearanceRefiner"]
 
+MESH_SIZE_M = (0.005, 3.0)
+"""The diagonal of the mesh's bounding box must lie in this range (metres): anything else is a
+mesh in other units."""
+
 _LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)  # linear RGB -> luminance (Rec. 709)
 
 
@@ -196,6 +200,13 @@ class AppearanceRefiner:
         if faces.ndim != 2 or faces.shape[0] == 0:
             raise ConfigError("appearance refinement needs a textured mesh with faces; got one "
                               "without faces")
+        verts = np.asarray(mesh.vertices, np.float64)
+        size = float(np.linalg.norm(verts.max(0) - verts.min(0))) if len(verts) else 0.0
+        if not MESH_SIZE_M[0] <= size <= MESH_SIZE_M[1]:
+            raise ConfigError(f"appearance refinement: the mesh is {size:.4g} across, outside "
+                              f"{MESH_SIZE_M[0]}-{MESH_SIZE_M[1]} m: its vertices must be in "
+                              "metres (a mesh in millimetres: scale it by 0.001, or load it "
+                              "with evtrack.sim.objects.load_mesh(path, scale=0.001))")
         self.mesh = mesh
         self.config = config or AppearanceRefineConfig()
         self.camera = camera

@@ -252,13 +252,18 @@ class Tracker:
         that pose; without, it waits for the first pose from the pose source.
 
         Raises:
-            ValueError: a pose without ``t_us``, or not a rigid (4, 4) transform (checked
-                before anything is reset).
+            ValueError: a pose without ``t_us``, not a rigid (4, 4) transform, or with the
+                object's origin behind the camera (checked before anything is reset).
         """
         if pose is not None and t_us is None:
             raise ValueError("reset: a starting pose needs its time t_us")
         if pose is not None:  # checked before anything is reset
             pose = checked_pose(pose, f"reset: starting pose at t={int(t_us)} µs")
+            if not float(pose[2, 3]) > 0:
+                raise ValueError(f"reset: the starting pose at t={int(t_us)} µs puts the "
+                                 f"object's origin behind the event camera (z = "
+                                 f"{float(pose[2, 3]):.3f} m); poses are object-to-camera "
+                                 "(did you pass camera-to-object?)")
         self.stats = TrackerStats()
         parts = (self.motion, self.roi_depth, self.gate, self.pose_gate, self.pose_calls,
                  self.depth_fusion, self.appearance)

@@ -220,6 +220,10 @@ def test_bad_input_is_named(box) -> None:
                        box.texture, box.colors, box.source, box.offset)
     with pytest.raises(ConfigError, match="without faces"):
         AppearanceRefiner(empty, CAM)
+    millimetres = ObjectMesh(box.name, box.vertices * 1000.0, box.faces, box.normals, box.uv,
+                             box.texture, box.colors, box.source, box.offset)
+    with pytest.raises(ConfigError, match="must be in metres"):
+        AppearanceRefiner(millimetres, CAM)
     refiner = AppearanceRefiner(box, CAM)
     with pytest.raises(ValueError, match="finite"):
         refiner.refine(np.full((4, 4), np.nan), np.zeros((240, 320, 3), np.uint8))

@@ -103,6 +103,21 @@ def test_nothing_happens_without_a_start_pose(fast_sequence) -> None:
     assert tracker.stats.appearance_alignments == tracker.stats.depth_alignments == 0
 
 
+def test_a_start_pose_behind_the_camera_is_refused(fast_sequence) -> None:
+    """A start pose with the object behind the camera (a camera-to-object pose, say) is an
+    error before anything is reset; the tracker keeps its state."""
+    pose, t0 = _start(fast_sequence)
+    tracker = _tracker(fast_sequence, pose_source="model")
+    tracker.reset(pose, t0)
+    behind = np.linalg.inv(pose.numpy())
+    assert behind[2, 3] < 0
+    with pytest.raises(ValueError, match="behind the event camera"):
+        tracker.reset(behind, t0)
+    assert tracker.initialized
+    with pytest.raises(ValueError, match="behind the event camera"):
+        tracker.track(fast_sequence, start_pose=behind, start_t_us=t0)
+
+
 def test_config_and_input_errors(fast_sequence) -> None:
     with pytest.raises(ConfigError, match="'velocity' method takes poses only to start"):
         TrackerConfig.from_dict({"pose_source": "model", "method": "velocity"})
