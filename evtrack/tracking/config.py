@@ -456,6 +456,15 @@ class TrackerConfig(Config):
                                          and self.depth.source == "sensor")
 
     @property
+    def icp_min_information(self) -> float:
+        """``depth_fusion.icp_min_information``, or its default where it is ``None``: 0.01 with
+        the appearance alignment on, else 0."""
+        share = self.depth_fusion.icp_min_information
+        if share is not None:
+            return share
+        return 0.01 if self.uses_appearance else 0.0
+
+    @property
     def uses_appearance(self) -> bool:
         """Whether the RGB frames are aligned with the textured mesh: ``appearance.enabled``,
         or ``pose_source: model``."""

@@ -240,12 +240,15 @@ class DepthFusionConfig(Config):
             motion: rotations times the object's radius) is below this share of the best-seen
             direction's count as unseen (a huge variance): a near-symmetric shape's fit claims
             to see its symmetry (the fine ridges of a can's lids) far better than it does. 0:
-            only directions below 1e-9 of the best. On the tuning split's first frames per
-            10 (YCB objects, simulated depth) the weakest direction's share was 0.004-0.006
-            for the tomato soup can (its spin), 0.008-0.022 for the mustard bottle, 0.036-0.107
-            for the box-like objects; 0.01 took the mesh-only tracker's mean rotation error on
-            the fixed set from 1.40° to 1.27° (better in three of its four columns, worse on
-            the can's default `faster`; 0.03: 1.58°).
+            only directions below 1e-9 of the best. ``None`` (the default): 0.01 where the
+            appearance alignment measures what the depth barely sees (``appearance`` on, as
+            with ``pose_source: model``), else 0. On the tuning split's frames (YCB objects,
+            simulated depth) the weakest direction's share was 0.004-0.006 for the tomato soup
+            can (its spin), 0.008-0.022 for the mustard bottle, 0.036-0.107 for the box-like
+            objects. With the mesh alone, 0.01 took the mean rotation error on the fixed set
+            from 1.40° to 1.27° (0.03: 1.58°); with the networks, the default presets, it
+            raised it from 1.49° to 2.82° (the can's `faster`: 2.1° to 10.8°): there the
+            depth's hint about the can's spin beats the network's guesses.
     """
 
     range: bool = False
@@ -256,7 +259,7 @@ class DepthFusionConfig(Config):
     icp_scene_points: int = setting(3000, gt=0)
     icp_std_m: float = setting(0.002, gt=0, unit="m")
     icp_std_deg: float = setting(1.0, gt=0, unit="deg")
-    icp_min_information: float = setting(0.01, ge=0, le=1)
+    icp_min_information: float | None = setting(None, ge=0, le=1)
 
 
 @dataclass

@@ -152,7 +152,7 @@ class DepthFusion:
             cov_d = alignment_covariance(res, cfg.depth_fusion.icp_std_m,
                                          math.radians(cfg.depth_fusion.icp_std_deg),
                                          self.depth_icp.radius,
-                                         cfg.depth_fusion.icp_min_information)
+                                         cfg.icp_min_information)
             A = self.T_event_depth
             T_meas = A @ res.pose
             Ra = np.kron(np.eye(2), A[:3, :3])  # both tangent blocks rotate with the frame

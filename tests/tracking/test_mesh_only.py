@@ -149,6 +149,12 @@ def test_the_config_flags(fast_sequence) -> None:
     assert both.uses_appearance and not both.uses_depth_icp
     plain = TrackerConfig()
     assert not plain.uses_appearance and not plain.uses_depth_icp
+    # barely seen ICP directions count as unseen where the appearance measures them
+    assert model.icp_min_information == both.icp_min_information == 0.01
+    assert plain.icp_min_information == TrackerConfig(depth_fusion={"icp": True}
+                                                      ).icp_min_information == 0.0
+    assert TrackerConfig(pose_source="model", depth_fusion={"icp_min_information": 0.0}
+                         ).icp_min_information == 0.0
     tracker = Tracker.for_sequence(fast_sequence, plain)
     assert tracker.appearance is None
 
