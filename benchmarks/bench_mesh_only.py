@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import platform
 import subprocess
 import time
 from pathlib import Path
@@ -33,16 +32,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def _commit() -> str:
@@ -140,10 +129,12 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=12,
                         help="frames per sequence for the per-call costs (default 12)")
     args = parser.parse_args()
+    from bench_tracker import cpu_model
+
     from evtrack import Sequence
 
     torch.set_num_threads(args.threads)
-    print(f"{datetime.date.today()}, {_cpu()}, commit {_commit()}, {args.threads} torch "
+    print(f"{datetime.date.today()}, {cpu_model()}, commit {_commit()}, {args.threads} torch "
           f"thread(s)")
     print()
     print("| sequence | what | ms per call (median / p90), or the run | result |")
