@@ -16,8 +16,12 @@ the event gate (:mod:`~evtrack.tracking.event_gate`), the load controller
 (:mod:`~evtrack.tracking.load_control`), the motion source picked by ``method``
 (:mod:`~evtrack.tracking.motion`), RoI depth (:mod:`~evtrack.tracking.roi_depth`), the pose
 calls and gate (:mod:`~evtrack.tracking.pose_calls`, :mod:`~evtrack.tracking.pose_gate`), the
-depth fusions (:mod:`~evtrack.tracking.depth_fusion`) and the outputs
-(:mod:`~evtrack.tracking.outputs`).
+depth fusions (:mod:`~evtrack.tracking.depth_fusion`), the appearance alignment
+(:mod:`~evtrack.tracking.appearance_fusion`) and the outputs (:mod:`~evtrack.tracking.outputs`).
+
+With ``TrackerConfig.pose_source: model`` the object's mesh is the pose source: from a start
+pose (:meth:`Tracker.reset`, :meth:`Tracker.start_from_frame`), the depth and appearance
+alignments correct the event track; no network is called.
 
 The methods (``TrackerConfig.method``, one motion source each):
 
