@@ -276,7 +276,7 @@ class AppearanceConfig(Config):
         enabled: align RGB frames with the mesh's render and fuse the result (on whenever
             ``TrackerConfig.pose_source`` is ``"model"``). Needs the object's textured mesh.
         rate_hz: at most this many RGB frames per second are aligned. Each alignment costs
-            80-140 ms of one CPU core for a YCB object at 640x480 (2 renders with Mesa's
+            75-140 ms of one CPU core for a YCB object at 640x480 (2 renders with Mesa's
             CPU OpenGL, 3 blur levels; ``benchmarks/bench_mesh_only.py``).
         levels: the Gaussian blurs (px) of the coarse-to-fine passes; the first sets how far the
             fit reaches.
