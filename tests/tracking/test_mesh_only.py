@@ -198,6 +198,12 @@ def test_the_start_is_found_on_the_first_frame(fast_sequence, mesh_runs, tmp_pat
     assert "start pose registered on the frame at" in printed and "appearance alignments" in printed
     err = tracking_errors(evtrack.Trajectory.load(out), fast_sequence.ground_truth)
     assert err.rotation_rmse_deg < 1.5 * mesh_runs["rgbd"][0].rotation_rmse_deg + 0.5
+    from_truth = tmp_path / "from_truth.csv"
+    assert main(["track", str(fast_sequence.root), "--out", str(from_truth), "--mesh-only",
+                 "--config", str(config), "--start-from-ground-truth", "--quiet"]) == 0
+    truth_start = tracking_errors(evtrack.Trajectory.load(from_truth),
+                                  fast_sequence.ground_truth)
+    assert truth_start.rotation_rmse_deg < 4.0 and truth_start.samples > 500
     with pytest.raises(ValueError, match="holds no part"):
         tracker.start_from_frame(t0, fast_sequence.rgb(0), fast_sequence.depth(0),
                                  (500, 500, 600, 600))
