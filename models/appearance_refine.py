@@ -48,8 +48,6 @@ MESH_SIZE_M = (0.005, 3.0)
 """The diagonal of the mesh's bounding box must lie in this range (metres): anything else is a
 mesh in other units."""
 
-_LUMA = np.array([0.2126, 0.7152, 0.0722], np.float32)  # linear RGB -> luminance (Rec. 709)
-
 
 @dataclass(frozen=True)
 class AppearanceRefineConfig:
@@ -147,10 +145,11 @@ class AppearanceResult:
 def luminance(rgb: np.ndarray) -> np.ndarray:
     """(H, W) float32 linear luminance of a uint8 sRGB image (decoded to linear first) or of a
     float linear RGB image, (H, W, 3)."""
+    from evtrack.sim.frames import luminance as linear_luminance
     from evtrack.sim.frames import srgb_to_linear
 
-    lin = srgb_to_linear(rgb) if rgb.dtype == np.uint8 else np.asarray(rgb, np.float32)
-    return np.ascontiguousarray(lin @ _LUMA, dtype=np.float32)
+    lin = srgb_to_linear(rgb) if rgb.dtype == np.uint8 else rgb
+    return np.ascontiguousarray(linear_luminance(lin))
 
 
 class _Refused(Exception):

@@ -97,8 +97,8 @@ class Registration:
 
 
 def _rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
-    R = A[:3, :3].T @ B[:3, :3]
-    return math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0))))
+    """The angle (deg) between the rotations of two (4, 4) poses."""
+    return math.degrees(Rotation.from_matrix(A[:3, :3].T @ B[:3, :3]).magnitude())
 
 
 def _start_position(depth: np.ndarray, box: tuple[int, int, int, int], K: np.ndarray,

@@ -50,3 +50,16 @@ def ycb_dir(shared_dir: Path) -> Path:
     if not path.is_dir():
         pytest.skip(f"{path} is absent: the YCB meshes are missing")
     return path
+
+
+@pytest.fixture(scope="session")
+def gl():
+    """Skips the test where no headless OpenGL context can be made (the renders need one)."""
+    pytest.importorskip("moderngl")
+    from evtrack.sim.errors import RendererUnavailableError
+    from evtrack.sim.renderer import create_gl_context
+
+    try:
+        create_gl_context().release()
+    except RendererUnavailableError as exc:
+        pytest.skip(f"no headless OpenGL: {exc}")

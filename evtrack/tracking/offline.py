@@ -96,28 +96,22 @@ class _EventPusher:
 
     def skip_before(self, t_start: int) -> None:
         """Leave out the events before ``t_start`` (the stream starts there)."""
-        while True:
-            chunk = self.carry if self.carry is not None else next(self.events, None)
-            self.carry = None
-            if chunk is None:
-                return
-            k = int(torch.searchsorted(chunk.t, torch.tensor([t_start]))[0])
-            if k < len(chunk):
-                self.carry = chunk[k:]
-                return
+        self.until(t_start, push=False)
 
-    def until(self, t_stop: int | None) -> None:
-        """Push the events before ``t_stop`` (``None``: all the rest)."""
+    def until(self, t_stop: int | None, push: bool = True) -> None:
+        """Push the events before ``t_stop`` (``None``: all the rest); with ``push`` False,
+        drop them instead."""
         while True:
             chunk = self.carry if self.carry is not None else next(self.events, None)
             self.carry = None
             if chunk is None:
                 return
             if t_stop is None:
-                self._push(chunk)
+                if push:
+                    self._push(chunk)
                 continue
             k = int(torch.searchsorted(chunk.t, torch.tensor([t_stop]))[0])
-            if k:
+            if k and push:
                 self._push(chunk[:k])
             if k < len(chunk):
                 self.carry = chunk[k:]

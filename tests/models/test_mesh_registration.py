@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_appearance_refine import BOX_POSE, CAM, CAN_POSE, angle_deg, frame_of, gl  # noqa: F401
+from test_appearance_refine import BOX_POSE, CAM, CAN_POSE, angle_deg, frame_of
 
 from evtrack.errors import ConfigError
 from evtrack.models.mesh_registration import RegistrationConfig, register_mesh
@@ -27,7 +27,7 @@ def scene(mesh, T, wall_m: float = 1.2):
 
 
 @pytest.mark.parametrize(("kind", "truth"), [("can", CAN_POSE), ("box", BOX_POSE)])
-def test_the_pose_is_found_from_the_mesh_alone(gl, kind, truth) -> None:  # noqa: F811
+def test_the_pose_is_found_from_the_mesh_alone(gl, kind, truth) -> None:
     """Depth orients the shape; the texture picks the can's spin about its axis, which the
     depth cannot see: within 1° and 3 mm, the colour image confirming it."""
     mesh = procedural_object(kind, 3)
@@ -41,7 +41,7 @@ def test_the_pose_is_found_from_the_mesh_alone(gl, kind, truth) -> None:  # noqa
         assert found.runner_up[1] > 20.0 and found.runner_up[0] < found.correlation
 
 
-def test_what_it_refuses(gl) -> None:  # noqa: F811
+def test_what_it_refuses(gl) -> None:
     mesh = procedural_object("box", 3)
     rgb, depth, box = scene(mesh, BOX_POSE)
     fast = RegistrationConfig(rotations=12, candidates=4)
