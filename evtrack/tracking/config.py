@@ -285,6 +285,13 @@ class TrackerConfig(Config):
         use_flow_normal_flags: pass the flow's per-RoI aperture flags to the velocity filter
             (normal-only rows where the flow saw one edge direction). Off, every RoI gets
             ``velocity_kf.assume_normal`` (the paper treats every flow as a normal flow).
+        pivot_max_radius_ratio: with ``velocity_kf.object_centred`` the velocity filter's process
+            noise pivots on the object's centre, as an object moving before a still camera
+            turns about itself. An object whose radius (its farthest vertex from its origin) is
+            at least this share of its distance is taken for a scene around the camera (a
+            camera recording imported with its scene as the object, e.g. a plane filling the
+            view): what moves is the camera, which turns about itself, so the noise has no
+            pivot there.
         pose_gate: the pose gate (:class:`~evtrack.tracking.config_sections.PoseGateConfig`): depth
             check, ray alignment, alternatives, half turns, re-initialisation on agreement.
         depth: the depth at the RoIs (:class:`~evtrack.tracking.config_sections.DepthConfig`):
@@ -380,6 +387,7 @@ class TrackerConfig(Config):
     pose_prior: bool = False
     history_ms: float = setting(1000.0, gt=0, unit="ms")
     use_flow_normal_flags: bool = True
+    pivot_max_radius_ratio: float = setting(0.5, gt=0)
     pose_gate: PoseGateConfig = field(default_factory=PoseGateConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     depth_fusion: DepthFusionConfig = field(default_factory=DepthFusionConfig)

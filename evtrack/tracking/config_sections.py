@@ -196,6 +196,14 @@ class DepthConfig(Config):
         model_interval_us: the ``model`` depth map is re-rendered at most this often.
         model_scale: the ``model`` depth map is rendered at this fraction of the event camera's
             resolution.
+        range_sigmas: a RoI's depths count as the object's within the depth range of its
+            silhouette at the predicted pose, widened by
+            :data:`~evtrack.tracking.roi_depth.DEPTH_TOLERANCE_M` plus this many standard
+            deviations of the pose filter's uncertainty in the depth (camera ``z``) of the
+            object's origin, taken at each segment's start. While the pose drifts (fast turns
+            between two poses) its predicted range does too; a fixed margin then rejects the
+            object's true depths and every RoI falls back to the drifted pose's depth, which
+            scales the twist wrongly and drifts the pose further. 0: the fixed margin only.
     """
 
     source: Literal["sensor", "model"] = "sensor"
@@ -204,6 +212,7 @@ class DepthConfig(Config):
     max_age_ms: float = setting(100.0, ge=0, unit="ms")
     model_interval_us: int = setting(5000, ge=1, unit="µs")
     model_scale: float = setting(0.5, gt=0, le=1)
+    range_sigmas: float = setting(3.0, ge=0)
 
 
 @dataclass

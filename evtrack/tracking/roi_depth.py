@@ -9,6 +9,8 @@ RoI is counted in :attr:`~evtrack.tracking.stats.TrackerStats.depth_fallbacks`.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from evtrack.tracking.depth_sources import DepthSource, ModelDepth, SensorDepth
@@ -31,19 +33,34 @@ class RoiDepth:
     Args:
         source: sensor depth frames or model depth.
         max_depth_age_ms: a sensor frame older than this is not used (the RoIs fall back).
+        range_sigmas: the silhouette's depth range is widened by :data:`DEPTH_TOLERANCE_M` plus
+            this many standard deviations of the pose's depth (:meth:`set_pose_uncertainty`).
 
     Attributes:
         stats: the counters it adds to (``depth_fallbacks``).
+        range_margin_m: the widening of the depth range now (m).
     """
 
-    def __init__(self, source: DepthSource, max_depth_age_ms: float) -> None:
+    def __init__(self, source: DepthSource, max_depth_age_ms: float,
+                 range_sigmas: float = 0.0) -> None:
         self.source = source
         self.max_age_us = max_depth_age_ms * 1e3
         self.sensor = isinstance(source, SensorDepth)
+        self.range_sigmas = range_sigmas
+        self.range_margin_m = DEPTH_TOLERANCE_M
         self.stats = TrackerStats()
 
+    def set_pose_uncertainty(self, depth_std_m: float) -> None:
+        """Widen the depth range by ``range_sigmas`` times ``depth_std_m``, the pose filter's
+        standard deviation (m) of the object origin's camera ``z`` (a non-finite one: the fixed
+        margin)."""
+        extra = self.range_sigmas * depth_std_m
+        self.range_margin_m = DEPTH_TOLERANCE_M + (extra if math.isfinite(extra) else 0.0)
+
     def reset(self) -> None:
-        """Forget the depth frame (sensor) or the rendering (model)."""
+        """Forget the depth frame (sensor) or the rendering (model) and the pose's
+        uncertainty."""
+        self.range_margin_m = DEPTH_TOLERANCE_M
         if isinstance(self.source, SensorDepth):
             self.source.map, self.source.t_us = None, None
         elif isinstance(self.source, ModelDepth):
@@ -84,14 +101,13 @@ class RoiDepth:
     def lookup(self, uv: np.ndarray, poly: SilhouettePolygon, pose: np.ndarray, t_now: int,
                patch: bool = True) -> np.ndarray:
         """(N,) depths (m) of the RoIs ``uv`` (N, 2) px at ``t_now``, within the silhouette's
-        depth range widened by :data:`DEPTH_TOLERANCE_M`, the missing ones by the fallback
+        depth range widened by :attr:`range_margin_m`, the missing ones by the fallback
         (counted). Model depth renders at ``pose`` when due."""
         if isinstance(self.source, ModelDepth):
             self.source.update(t_now, pose)
         else:
             self.expire(t_now)  # too old: fall back
-        z_lo, z_hi = poly.z_range
-        z = self.source.lookup(uv, (z_lo - DEPTH_TOLERANCE_M, z_hi + DEPTH_TOLERANCE_M), patch)
+        z = self.source.lookup(uv, self.depth_range(poly), patch)
         self.stats.depth_fallbacks += int(self.fill_missing(z, pose).sum())
         return z
 
@@ -106,10 +122,11 @@ class RoiDepth:
         self.expire(t_now)
         lo, hi = int(flows.bounds[k]), int(flows.bounds[end])
         cache = flows.depth_cache
-        if cache is None or cache[0] is not self.source.map or cache[3] is not poly:
-            z_lo, z_hi = poly.z_range
-            cache = (self.source.map, lo, self.source.lookup(
-                flows.uv[lo:], (z_lo - DEPTH_TOLERANCE_M, z_hi + DEPTH_TOLERANCE_M)), poly)
+        z_range = self.depth_range(poly)
+        if (cache is None or cache[0] is not self.source.map or cache[3] is not poly
+                or cache[4] != z_range):
+            cache = (self.source.map, lo, self.source.lookup(flows.uv[lo:], z_range), poly,
+                     z_range)
             flows.depth_cache = cache
         z = cache[2][lo - cache[1]:hi - cache[1]].copy()
         return z, self.fill_missing(z, pose)
@@ -120,6 +137,12 @@ class RoiDepth:
         z, missing = self.run(flows, k, k + 1, poly, pose, t_now)
         self.stats.depth_fallbacks += int(missing.sum())
         return z
+
+    def depth_range(self, poly: SilhouettePolygon) -> tuple[float, float]:
+        """The depths (m) that count as the object's: ``poly``'s range widened by
+        :attr:`range_margin_m`."""
+        z_lo, z_hi = poly.z_range
+        return z_lo - self.range_margin_m, z_hi + self.range_margin_m
 
     @staticmethod
     def fill_missing(z: np.ndarray, pose: np.ndarray | None) -> np.ndarray:

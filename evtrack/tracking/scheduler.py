@@ -139,6 +139,8 @@ class StepScheduler:
         tr.frames.due(t0 + step)
         pose = tr._present_pose() if tr.initialized else None
         poly = tr.silhouette.polygon(pose) if pose is not None else None
+        if pose is not None:
+            tr._pose_depth_uncertainty()
         tr.gate.burst_ends = []
         if motion.uses_events:
             ev = self._gate(ev, t0, t_end, pose, poly)

@@ -51,7 +51,7 @@ class StepFlows:
         self.support = res.support.detach().cpu().numpy()[order]
         edges = t0 + step * np.arange(n_steps + 1, dtype=np.int64)
         self.bounds = np.searchsorted(t[order], edges, side="left")
-        self.depth_cache: tuple[np.ndarray | None, int, np.ndarray, Any] | None = None
+        self.depth_cache: tuple[np.ndarray | None, int, np.ndarray, Any, Any] | None = None
 
     def step(self, k: int) -> tuple[np.ndarray, Tensor, Tensor]:
         """Step ``k``'s RoI centres (N, 2) float64 px, flows (N, 2) px/s and normal flags (N,)."""

@@ -60,6 +60,7 @@ re-initialises itself after ``reinit_after`` gated poses in a row
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from collections.abc import Callable
@@ -189,7 +190,7 @@ class Tracker:
             self.silhouette, aligned))
         depth = make_depth_source(cfg, self.motion, self.mesh, self.rgb_camera,
                                   self.T_event_rgb)
-        self.roi_depth = RoiDepth(depth, cfg.depth.max_age_ms)
+        self.roi_depth = RoiDepth(depth, cfg.depth.max_age_ms, cfg.depth.range_sigmas)
         self.pose_gate = make_pose_gate(cfg, self.motion, self.mesh, vertices, depth,
                                         self.T_event_rgb)
         self.ukf = self.motion.pose_filter()
@@ -323,7 +324,14 @@ class Tracker:
         pose = self._present_pose()
         poly = self.silhouette.polygon(pose) if np.isfinite(pose).all() else None
         self.motion.segment_started(pose)
+        self._pose_depth_uncertainty()
         return pose, poly
+
+    def _pose_depth_uncertainty(self) -> None:
+        """Tell the RoI depth the pose filter's standard deviation (m) of the object origin's
+        camera ``z`` now (``depth.range_sigmas``)."""
+        if self.roi_depth.range_sigmas:
+            self.roi_depth.set_pose_uncertainty(math.sqrt(max(float(self.ukf.cov[0, 2, 2]), 0.0)))
 
     def _past_pose(self, t_us: int) -> np.ndarray | None:
         """(4, 4) the pose the filter had at a kept past time (:meth:`PoseTimeline.pose_at

@@ -222,6 +222,36 @@ def test_velocity_noise_pivots_about_the_tracked_object(fast_sequence, runs) -> 
     assert torch.equal(plain.motion.vkf.q_matrix, torch.diag(plain.motion.vkf.q_density))
 
 
+def test_a_scene_around_the_camera_has_no_pivot(fast_sequence) -> None:
+    """An object whose radius is at least ``pivot_max_radius_ratio`` of its distance is taken
+    for a scene around the camera (a moving camera's recording): the velocity noise then has
+    no pivot. The test's box (radius ~0.12 m) is an object at 1 m and a scene at 0.2 m, or
+    at 1 m with a ratio of 0.1."""
+    tracker, _ = make_tracker(fast_sequence, method="full")
+    motion = tracker.motion
+    radius = motion.object_radius_m
+    assert 0.05 < radius < 0.2
+
+    def pose_at(distance):
+        T = np.eye(4)
+        T[:3, 3] = (0.0, 0.0, distance)
+        return T
+
+    assert not motion.is_scene_at(pose_at(1.0)) and motion.is_scene_at(pose_at(0.2))
+    assert motion.is_scene_at(pose_at(radius / 0.5 - 1e-6))
+    assert not motion.is_scene_at(pose_at(radius / 0.5 + 1e-6))
+    diag = torch.diag(motion.vkf.q_density)
+    motion.segment_started(pose_at(1.0))
+    assert float(motion.vkf.q_matrix[:3, 3:].abs().max()) > 0  # pivots on the object
+    motion.segment_started(pose_at(0.2))
+    assert torch.equal(motion.vkf.q_matrix, diag)
+    near, _ = make_tracker(fast_sequence, method="full", pivot_max_radius_ratio=0.1)
+    near.motion.segment_started(pose_at(1.0))
+    assert torch.equal(near.motion.vkf.q_matrix, diag)
+    with pytest.raises(ConfigError, match="pivot_max_radius_ratio"):
+        TrackerConfig(pivot_max_radius_ratio=0.0)
+
+
 def test_model_depth_tracks_like_sensor_depth(fast_sequence, runs) -> None:
     """Depth rendered from the mesh at the predicted pose instead of the sensor's. Before the
     first pose there is no model depth: the steps only keep their RoI flows, measured once

@@ -53,6 +53,9 @@ class EventMotion(MotionSource):
         self.flow = TripletFlow(cfg.flow.replace(sensor_size=camera.size, device=cfg.device))
         self.vkf = VelocityKF(camera, 1, cfg.velocity_kf, device=self.device)
         self.vkf.prepare_pixels(self.flow.roi_centres())  # a distorted camera's RoIs: once
+        vertices = np.asarray(context.vertices, np.float64).reshape(-1, 3)
+        self.object_radius_m = (float(np.linalg.norm(vertices, axis=1).max())
+                                if len(vertices) else 0.0)  # m
         self.events_before_pose = cfg.remeasure.before_pose
         self.remeasurer: Remeasurer | None = None
         self.flows: StepFlows | None = None
@@ -85,10 +88,20 @@ class EventMotion(MotionSource):
 
     def segment_started(self, pose: np.ndarray | None) -> None:
         """The velocity filter's pivot (object-centred process noise): the object's centre at
-        ``pose``, or none without a finite pose."""
+        ``pose``; none without a finite pose, or for a scene around the camera
+        (:meth:`is_scene_at`)."""
         if self.config.velocity_kf.object_centred:
             self.vkf.set_pivot(None if pose is None or not np.isfinite(pose).all()
+                               or self.is_scene_at(pose)
                                else torch.from_numpy(np.ascontiguousarray(pose[:3, 3])))
+
+    def is_scene_at(self, pose: np.ndarray) -> bool:
+        """Whether the object at ``pose`` (4, 4) is a scene around the camera rather than an
+        object before it: its radius (its farthest vertex from its origin) at least
+        ``pivot_max_radius_ratio`` times its origin's distance. What moves is then the
+        camera, which turns about itself, not about the scene's origin."""
+        distance = float(np.linalg.norm(pose[:3, 3]))
+        return self.object_radius_m >= self.config.pivot_max_radius_ratio * distance
 
     def track_started(self, t_pose: int) -> None:
         if self.remeasurer is not None and self.remeasurer.unposed:
