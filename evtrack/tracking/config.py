@@ -148,8 +148,8 @@ def _pose_ukf_defaults() -> PoseUKFConfig:
     # q_rotation 0.1 rad²/s: with the RoIs' depth range following the filter's uncertainty
     # (depth.range_sigmas) the event twist drifts less between poses than it does without,
     # and a tighter noise than 0.3 gates more of a network's gross errors about a can's axis.
-    # Tuning split
-    # (12 `faster` sequences per speed setting, 4 `regular`), full, rotation 0.3 -> 0.1:
+    # Tuning split (12 `faster` sequences per speed setting, 4 `regular`), full, rotation
+    # 0.3 -> 0.1:
     # paper-matched regular 6.93 -> 6.85, faster 11.17 -> 10.39 (one tomato can 20 -> 11);
     # default presets 7.79 -> 7.72, 11.48 -> 11.38; positions within 0.01 cm.
     return PoseUKFConfig(q_translation=0.01, q_rotation=0.1, reinit_after=3,
@@ -172,10 +172,9 @@ def _frame_flow_kf_defaults() -> VelocityKFConfig:
 def _pose_twist_defaults() -> PoseTwistUKFConfig:
     # The full method's translation noise (_pose_ukf_defaults) and 0.3 rad²/s in rotation: the
     # dense-flow twist drifts as the event twist does, and a tighter noise made the gate reject
-    # good poses
-    # (oracle poses, the four YCB `faster` sequences at 4 kHz: 28.4 cm / 39.7 deg with the
-    # filter's defaults, 21.8 cm / 38.5 deg with these; 18.4 cm / 33.7 deg once the frame
-    # pairs before a late first pose were measured too).
+    # good poses (oracle poses, the four YCB `faster` sequences at 4 kHz: 28.4 cm / 39.7 deg
+    # with the filter's defaults, 21.8 cm / 38.5 deg with these; 18.4 cm / 33.7 deg once the
+    # frame pairs before a late first pose were measured too).
     return PoseTwistUKFConfig(q_translation=0.01, q_rotation=0.3)
 
 
