@@ -52,7 +52,7 @@ def alignment_covariance(res: Any, std_m: float, std_rad: float, radius_m: float
     axis (0.04-0.1° about the others) while leaving a 5° turn about it at 7°."""
     M = pivot_map(torch.from_numpy(res.pose[:3, 3] - res.centre)).numpy()
     info = M.T @ res.information @ M
-    scale = np.r_[np.ones(3), np.full(3, max(radius_m, 1e-9) if radius_m > 0 else 1.0)]
+    scale = np.r_[np.ones(3), np.full(3, radius_m if radius_m > 0 else 1.0)]
     info_s = info / np.outer(scale, scale)  # per metre of surface motion
     w, V = np.linalg.eigh(0.5 * (info_s + info_s.T))
     top = max(float(w.max()), 1e-30)
