@@ -36,7 +36,8 @@ from evtrack.errors import ConfigError, EventFileError
 from evtrack.events import Events
 from evtrack.utils import make_public
 
-__all__ = ["SequenceMeta", "GroundTruth", "Sequence", "SequenceWriter", "FORMAT_VERSION"]
+__all__ = ["SequenceMeta", "SequenceObject", "GroundTruth", "Sequence", "SequenceWriter",
+           "FORMAT_VERSION"]
 
 FORMAT_VERSION = 1
 META_FILE = "meta.yaml"
@@ -46,6 +47,25 @@ DEPTH_UNITS = ("mm_png16", "m_float32")
 
 
 # ---------------------------------------------------------------------------- metadata
+@dataclass
+class SequenceObject:
+    """One of several objects of a sequence (``meta.yaml``'s ``objects`` list).
+
+    Attributes:
+        name: the object's name (unique in the sequence).
+        mesh_path: its mesh, relative to the sequence folder or absolute; ``None`` if unknown.
+        ground_truth_path: its ground-truth file (:class:`GroundTruth`), relative or absolute;
+            ``None`` if it has none.
+    """
+
+    name: str
+    mesh_path: str | None = None
+    ground_truth_path: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "mesh": self.mesh_path, "ground_truth": self.ground_truth_path}
+
+
 @dataclass
 class SequenceMeta:
     """What ``meta.yaml`` holds.
@@ -64,6 +84,8 @@ class SequenceMeta:
         depth_unit: ``"mm_png16"`` (uint16 PNG in mm) or ``"m_float32"`` (float32 TIFF in m).
         source: ``"simulation"`` or ``"recording"``.
         extra: free-form information (simulation settings, seeds, ...).
+        objects: with several objects, all of them (the first is ``object_name`` with
+            ``mesh_path`` and ``groundtruth.h5``); empty for one object.
     """
 
     event_camera: PinholeCamera
@@ -76,6 +98,7 @@ class SequenceMeta:
     depth_unit: str = "mm_png16"
     source: str = "recording"
     extra: dict[str, Any] = field(default_factory=dict)
+    objects: list[SequenceObject] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.T_event_rgb = torch.as_tensor(self.T_event_rgb, dtype=torch.float64)
@@ -83,9 +106,15 @@ class SequenceMeta:
             raise ConfigError(f"T_event_rgb must be 4x4, got shape {tuple(self.T_event_rgb.shape)}")
         if self.depth_unit not in DEPTH_UNITS:
             raise ConfigError(f"depth_unit must be one of {DEPTH_UNITS}, got {self.depth_unit!r}")
+        names = [o.name for o in self.objects]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"the sequence's object names must be unique, got {names}")
+        if self.objects and self.objects[0].name != self.object_name:
+            raise ConfigError(f"objects[0] ({self.objects[0].name!r}) must be the sequence's "
+                              f"object ({self.object_name!r})")
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        out = {
             "format_version": FORMAT_VERSION,
             "name": self.name,
             "source": self.source,
@@ -97,6 +126,9 @@ class SequenceMeta:
             "depth_unit": self.depth_unit,
             "extra": _plain(self.extra),
         }
+        if self.objects:
+            out["objects"] = [o.to_dict() for o in self.objects]
+        return out
 
     @classmethod
     def from_dict(cls, data: Any, source: str = META_FILE) -> SequenceMeta:
@@ -114,7 +146,7 @@ class SequenceMeta:
         if "event_camera" not in data or data["event_camera"] is None:
             raise ConfigError(f"{source}: missing field 'event_camera'")
         known = {"format_version", "name", "source", "object", "event_camera", "rgb_camera",
-                 "T_event_rgb", "rates", "depth_unit", "extra"}
+                 "T_event_rgb", "rates", "depth_unit", "extra", "objects"}
         unknown = sorted(set(data) - known)
         if unknown:
             raise ConfigError(f"{source}: unknown field(s) {unknown}")
@@ -137,8 +169,10 @@ class SequenceMeta:
         mesh = obj.get("mesh")
         if mesh is not None and not isinstance(mesh, str):
             raise ConfigError(f"{source}: field 'object.mesh' must be a file path, got {mesh!r}")
+        objects = _parse_objects(data.get("objects"), source)
         try:
             return cls(
+                objects=objects,
                 event_camera=PinholeCamera.from_dict(
                     data["event_camera"], f"{source}: event_camera"),
                 name=str(data.get("name") or ""),
@@ -156,6 +190,34 @@ class SequenceMeta:
             if str(exc).startswith(source):
                 raise
             raise ConfigError(f"{source}: {exc}") from exc
+
+
+def _parse_objects(data: Any, source: str) -> list[SequenceObject]:
+    """``meta.yaml``'s ``objects`` list; errors name the entry and the field."""
+    if data is None:
+        return []
+    if not isinstance(data, list):
+        raise ConfigError(f"{source}: field 'objects' must be a list of mappings with 'name', "
+                          "'mesh' and 'ground_truth'")
+    out = []
+    for k, entry in enumerate(data):
+        if not isinstance(entry, Mapping):
+            raise ConfigError(f"{source}: objects[{k}] must be a mapping")
+        unknown = sorted(set(entry) - {"name", "mesh", "ground_truth"})
+        if unknown:
+            raise ConfigError(f"{source}: objects[{k}] has unknown field(s) {unknown}")
+        name = entry.get("name")
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"{source}: objects[{k}].name must be a non-empty string")
+        paths = {}
+        for key in ("mesh", "ground_truth"):
+            value = entry.get(key)
+            if value is not None and not isinstance(value, str):
+                raise ConfigError(f"{source}: objects[{k}].{key} must be a file path, got "
+                                  f"{value!r}")
+            paths[key] = value
+        out.append(SequenceObject(name, paths["mesh"], paths["ground_truth"]))
+    return out
 
 
 def _plain(value: Any) -> Any:
@@ -185,6 +247,8 @@ class GroundTruth:
         twists: (K, 6) float64 ``[v_o (m/s), ω (rad/s)]`` (the package's convention).
         event_flow: (N, 2) float32 px/s at each event of ``events.h5`` (same order), NaN where
             the event is not on the object, or ``None``.
+        event_object: (N,) int16, the index in :attr:`SequenceMeta.objects` of the object each
+            event is on (-1: none), or ``None``; simulations of several objects store it.
     """
 
     pose_t_us: Tensor
@@ -192,6 +256,7 @@ class GroundTruth:
     twist_t_us: Tensor
     twists: Tensor
     event_flow: Tensor | None = None
+    event_object: Tensor | None = None
 
     def __post_init__(self) -> None:
         self.pose_t_us = torch.as_tensor(self.pose_t_us, dtype=torch.int64)
@@ -200,6 +265,8 @@ class GroundTruth:
         self.twists = torch.as_tensor(self.twists, dtype=torch.float64)
         if self.event_flow is not None:
             self.event_flow = torch.as_tensor(self.event_flow, dtype=torch.float32)
+        if self.event_object is not None:
+            self.event_object = torch.as_tensor(self.event_object, dtype=torch.int16)
         m = self.pose_t_us.shape[0]
         if self.poses.shape != (m, 4, 4):
             raise ValueError(f"poses must be ({m}, 4, 4) to match pose_t_us, got "
@@ -262,6 +329,9 @@ class GroundTruth:
             if self.event_flow is not None:
                 f.create_dataset("event_flow", data=self.event_flow.numpy(), chunks=True,
                                  compression="lzf")
+            if self.event_object is not None:
+                f.create_dataset("event_object", data=self.event_object.numpy(), chunks=True,
+                                 compression="lzf")
 
     @classmethod
     def load(cls, path: str | Path) -> GroundTruth:
@@ -272,8 +342,9 @@ class GroundTruth:
                 if missing:
                     raise EventFileError(path, f"ground-truth datasets missing: {missing}")
                 flow = f["event_flow"][()] if "event_flow" in f else None
+                owner = f["event_object"][()] if "event_object" in f else None
                 return cls(f["poses/t_us"][()], f["poses/T"][()], f["twists/t_us"][()],
-                           f["twists/V"][()], flow)
+                           f["twists/V"][()], flow, owner)
         except (OSError, KeyError, ValueError) as exc:
             if isinstance(exc, EventFileError):
                 raise
@@ -523,6 +594,33 @@ class Sequence:
         return self._gt
 
     @property
+    def objects(self) -> list[SequenceObject]:
+        """The sequence's objects: ``meta.objects``, or for a one-object sequence its object
+        (with ``groundtruth.h5`` when the folder has one)."""
+        if self.meta.objects:
+            return list(self.meta.objects)
+        return [SequenceObject(self.meta.object_name, self.meta.mesh_path, GT_FILE)]
+
+    def _resolve(self, path: str | None) -> Path | None:
+        if not path:
+            return None
+        p = Path(path)
+        return p if p.is_absolute() or self.root is None else self.root / p
+
+    def object_mesh_file(self, index: int) -> Path | None:
+        """Object ``index``'s mesh path resolved against the folder, or ``None``."""
+        return self._resolve(self.objects[index].mesh_path)
+
+    def object_ground_truth(self, index: int) -> GroundTruth | None:
+        """Object ``index``'s ground truth (object 0's is :attr:`ground_truth`), or ``None``."""
+        if index == 0 or (index < 0 and index + len(self.objects) == 0):
+            return self.ground_truth
+        path = self._resolve(self.objects[index].ground_truth_path)
+        if path is None or not path.is_file():
+            return None
+        return GroundTruth.load(path)
+
+    @property
     def mesh_file(self) -> Path | None:
         """The object's mesh path resolved against the folder, or ``None``."""
         if not self.meta.mesh_path:
@@ -542,6 +640,15 @@ class Sequence:
                 writer.add_depth(int(self.depth_times_us[i]), self.depth(i))
             if self.ground_truth is not None:
                 writer.set_ground_truth(self.ground_truth)
+            for k, obj in enumerate(self.meta.objects[1:], start=1):
+                gt = self.object_ground_truth(k)
+                if gt is not None and obj.ground_truth_path and not Path(
+                        obj.ground_truth_path).is_absolute():
+                    gt.save(writer.file_path(obj.ground_truth_path))
+                mesh = self.object_mesh_file(k)
+                if (mesh is not None and mesh.is_file() and obj.mesh_path
+                        and not Path(obj.mesh_path).is_absolute()):
+                    shutil.copyfile(mesh, writer.file_path(obj.mesh_path))
 
     def summary(self) -> dict[str, Any]:
         """A dictionary describing the sequence (used by ``evtrack info``)."""

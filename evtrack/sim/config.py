@@ -157,6 +157,11 @@ class TrajectoryConfig(Config):
             on (a speed reversal); at other waypoints it passes through.
         duration_jitter: segment durations are scaled by a uniform factor in
             ``[1 - jitter, 1 + jitter]``.
+        layout: how several objects share the view (:mod:`evtrack.sim.layout`):
+            ``"crossing"``, each in its own depth band over the whole image, so that they
+            pass in front of one another; ``"apart"``, each in its own cell of the image with
+            its whole bounding sphere inside, so that none occludes another. One object
+            ignores it.
     """
 
     preset: TrajectoryPreset = "regular"
@@ -169,6 +174,7 @@ class TrajectoryConfig(Config):
     max_rotation: float = 2.0
     reversal_probability: float = 0.5
     duration_jitter: float = 0.3
+    layout: Literal["crossing", "apart"] = "crossing"
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -12,6 +12,13 @@ does everything in a stream, so memory does not grow with the number of renders:
 
 Output: a sequence folder (:class:`evtrack.sequence.SequenceWriter`) with ``object.glb``, the
 object's mesh in the object frame the poses use.
+
+Several objects (a list of meshes): each moves on its own trajectory, laid out by
+``trajectory.layout`` (:mod:`evtrack.sim.layout`), and all are drawn in every render. The
+first is the sequence's object (``object.glb``, ``groundtruth.h5``); object ``k >= 1`` has
+``objects/k/object.glb`` and ``objects/k/groundtruth.h5``, listed in ``meta.yaml``'s
+``objects``. ``groundtruth.h5`` then also holds, per event, the object it is on
+(``event_object``) and its flow from that object's motion.
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ import numpy as np
 import torch
 
 from evtrack.events import Events, concatenate
-from evtrack.sequence import GroundTruth, SequenceMeta, SequenceWriter
+from evtrack.sequence import GT_FILE, GroundTruth, SequenceMeta, SequenceObject, SequenceWriter
 from evtrack.sim.config import SimConfig, TrajectoryConfig
 from evtrack.sim.esim import EventSimulator, log_intensity
 from evtrack.sim.frames import (
@@ -37,7 +44,13 @@ from evtrack.sim.frames import (
     exposure_windows,
     linear_to_srgb,
 )
-from evtrack.sim.groundtruth import event_flow, pixel_speeds, speed_percentiles
+from evtrack.sim.groundtruth import (
+    event_flow,
+    labelled_event_flow,
+    pixel_speeds,
+    speed_percentiles,
+)
+from evtrack.sim.layout import object_trajectories
 from evtrack.sim.objects import ObjectMesh
 from evtrack.sim.renderer import Renderer
 from evtrack.sim.scene import Scene, build_scene
@@ -51,6 +64,7 @@ __all__ = [
     "preset_config",
     "sequence_scene",
     "sequence_trajectory",
+    "sequence_trajectories",
     "speed_samples",
 ]
 
@@ -89,6 +103,7 @@ class _RenderState:
     log: torch.Tensor      # (H, W) on the simulator's device
     depth: np.ndarray      # (H, W) float32 metres, 0 = nothing
     mask: np.ndarray       # (H, W) bool
+    labels: np.ndarray | None = None  # (H, W) int16 object labels, several objects only
 
 
 def render_times_us(duration_s: float, render_hz: float) -> np.ndarray:
@@ -115,9 +130,19 @@ class _Timer:
         return _Ctx()
 
 
+_STREAMS = ("trajectory", "scene", "events", "rgb_noise", "depth_noise")
+
+
 def _seeds(seed: int) -> dict[str, np.random.SeedSequence]:
-    names = ("trajectory", "scene", "events", "rgb_noise", "depth_noise")
-    return dict(zip(names, np.random.SeedSequence(int(seed)).spawn(len(names)), strict=True))
+    return dict(zip(_STREAMS, np.random.SeedSequence(int(seed)).spawn(len(_STREAMS)),
+                    strict=True))
+
+
+def _object_trajectory_seeds(seed: int, count: int) -> list[np.random.SeedSequence]:
+    """Object 0's trajectory stream is the one-object stream; object ``k >= 1`` gets a child
+    spawned after the named streams (the named streams do not change)."""
+    children = np.random.SeedSequence(int(seed)).spawn(len(_STREAMS) + count - 1)
+    return [children[0]] + children[len(_STREAMS):]
 
 
 def sequence_scene(config: SimConfig) -> Scene:
@@ -133,13 +158,23 @@ def sequence_trajectory(config: SimConfig, obj: ObjectMesh) -> Trajectory:
                              config.trajectory, seed=seeds["trajectory"])
 
 
+def sequence_trajectories(config: SimConfig, objects: list[ObjectMesh]) -> list[Trajectory]:
+    """The random trajectories :func:`simulate` uses for several ``objects`` (one object:
+    :func:`sequence_trajectory`'s)."""
+    if len(objects) == 1:
+        return [sequence_trajectory(config, objects[0])]
+    return object_trajectories(config.duration, config.camera.camera(),
+                               [o.radius for o in objects], config.trajectory,
+                               _object_trajectory_seeds(config.seed, len(objects)))
+
+
 def simulate(
-    obj: ObjectMesh,
+    obj: ObjectMesh | list[ObjectMesh],
     config: SimConfig,
     out_dir: str | Path,
     *,
     name: str | None = None,
-    trajectory: Trajectory | None = None,
+    trajectory: Trajectory | list[Trajectory] | None = None,
     overwrite: bool = False,
     progress: bool | Callable[[int], None] = False,
     extra: Mapping[str, Any] | None = None,
@@ -147,11 +182,13 @@ def simulate(
     """Simulate one sequence and write it to ``out_dir`` (a sequence folder).
 
     Args:
-        obj: the tracked object.
+        obj: the tracked object, or a list of several (unique names; see the module
+            docstring).
         config: camera, scene, timing, trajectory preset, event model, frames, seed.
         out_dir: the sequence folder to create (it appears only when complete).
         name: sequence name (default: the folder name).
-        trajectory: use this trajectory instead of a random one (e.g. a static one).
+        trajectory: use this trajectory instead of a random one (e.g. a static one); with
+            several objects a list of one per object.
         overwrite: replace an existing folder.
         progress: show a tqdm bar (``True``) or call ``progress(n)`` after ``n`` more
             base renders.
@@ -162,7 +199,8 @@ def simulate(
         counts, pixel-speed statistics and stage timings (seconds).
 
     Raises:
-        ValueError: ``extra`` names an entry the simulator writes itself.
+        ValueError: ``extra`` names an entry the simulator writes itself; several objects
+            share a name; a trajectory list of another length than the objects'.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
@@ -205,16 +243,30 @@ class _Simulation:
     """One :func:`simulate` run: its schedule, random streams, and the state of the stream of
     renders (events waiting to be written, the open exposure, the ground truth so far)."""
 
-    def __init__(self, obj: ObjectMesh, config: SimConfig, name: str,
-                 trajectory: Trajectory | None) -> None:
-        self.obj, self.config = obj, config
+    def __init__(self, obj: ObjectMesh | list[ObjectMesh], config: SimConfig, name: str,
+                 trajectory: Trajectory | list[Trajectory] | None) -> None:
+        self.objects = list(obj) if isinstance(obj, list | tuple) else [obj]
+        if not self.objects:
+            raise ValueError("simulate: give at least one object")
+        names = [o.name for o in self.objects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"simulate: the objects' names must be unique, got {names}")
+        self.multi = len(self.objects) > 1
+        self.obj, self.config = self.objects[0], config
         self.timer = _Timer()
         self.cam = cam = config.camera.camera()
         seeds = _seeds(config.seed)
         duration_us = int(round(config.duration * 1e6))
         if trajectory is None:
-            trajectory = sequence_trajectory(config, obj)
-        self.trajectory = trajectory
+            trajectories = sequence_trajectories(config, self.objects)
+        else:
+            trajectories = list(trajectory) if isinstance(trajectory, list | tuple) else [
+                trajectory]
+        if len(trajectories) != len(self.objects):
+            raise ValueError(f"simulate: {len(trajectories)} trajectories for "
+                             f"{len(self.objects)} objects")
+        self.trajectories = trajectories
+        self.trajectory = trajectories[0]
         self.scene = sequence_scene(config)
         self.base_times = render_times_us(config.duration, config.render.render_hz)
         windows = exposure_windows(self.base_times, config.frames.rgb_hz,
@@ -227,16 +279,19 @@ class _Simulation:
         self.stats = SimulationStats(num_base_renders=len(self.base_times))
         self.pose_times: list[int] = []
         self.flows: list[np.ndarray] = []
+        self.owners: list[np.ndarray] = []
         self.pending: list[Events] = []
         self.pending_n = 0
         self.acc = ExposureAccumulator()
         self.min_threshold = min(config.events.threshold_on, config.events.threshold_off)
         self.meta = SequenceMeta(
-            event_camera=cam, name=name, object_name=obj.name, mesh_path=MESH_FILE,
+            event_camera=cam, name=name, object_name=self.obj.name, mesh_path=MESH_FILE,
             rgb_camera=cam, rates={"render_hz": config.render.render_hz,
                                    "rgb_hz": config.frames.rgb_hz,
                                    "depth_hz": config.frames.rgb_hz},
-            depth_unit="mm_png16", source="simulation")
+            depth_unit="mm_png16", source="simulation",
+            objects=[SequenceObject(o.name, *_object_files(k)) for k, o in enumerate(
+                self.objects)] if self.multi else [])
         self.more_extra: dict[str, Any] = {}
         self.renderer: Renderer
         self.writer: SequenceWriter
@@ -245,7 +300,7 @@ class _Simulation:
         """Set up ``renderer`` with the scene and the object."""
         self.renderer = renderer
         self.scene.apply(renderer)
-        renderer.set_object(self.obj)
+        renderer.set_objects(self.objects)
 
     def write(self, writer: SequenceWriter, tick: Callable[[int], Any] | None) -> None:
         """Render every base time (and the adaptive midpoints); write the events, frames,
@@ -265,23 +320,32 @@ class _Simulation:
         self.flush()
         self.write_ground_truth()
         self.meta.extra = _extra(self.config, self.obj, self.trajectory, self.scene, self.stats)
+        if self.multi:
+            self.meta.extra["objects"] = [
+                {"name": o.name, "source": o.source, "offset": [float(v) for v in o.offset],
+                 "trajectory": tr.to_dict()}
+                for o, tr in zip(self.objects, self.trajectories, strict=True)]
+            self.meta.extra["event_object"] = (
+                "index in objects of the object each event is on, -1 for none")
         self.meta.extra.update(self.more_extra)
         with self.timer("write"):
-            self.obj.export(writer.file_path(MESH_FILE))
+            for k, o in enumerate(self.objects):
+                o.export(writer.file_path(_object_files(k)[0]))
 
     def render(self, t_us: int, base_index: int | None = None) -> _RenderState:
         """Render at ``t_us``; a base render (``base_index``) also feeds the frames."""
         with self.timer("render"):
-            raw = self.renderer.render_raw(self.trajectory.pose(t_us * 1e-6))
+            raw = self.renderer.render_raw([tr.pose(t_us * 1e-6) for tr in self.trajectories])
             w = raw[..., 3]
             depth = np.abs(w)
             mask = w > 0
+            labels = self.renderer.labels() if self.multi else None
         if base_index is not None:
             self.frames(base_index, t_us, raw, depth)
         with self.timer("events"):
             log = log_intensity(torch.from_numpy(raw[..., :3]).to(self.esim.device),
                                 self.config.events.log_eps)
-        return _RenderState(int(t_us), log, depth, mask)
+        return _RenderState(int(t_us), log, depth, mask, labels)
 
     def step(self, a: _RenderState, b: _RenderState, level: int) -> None:
         """The events from ``a`` to ``b``, after splitting the interval where the adaptive
@@ -307,7 +371,15 @@ class _Simulation:
         self.pose_times.append(b.t_us)
         if not len(ev):
             return
-        if self.config.ground_truth.event_flow:
+        if self.multi:
+            with self.timer("ground_truth"):
+                flow, owner = labelled_event_flow(
+                    ev.x.numpy(), ev.y.numpy(), ev.t.numpy(), a.t_us, a.depth, a.labels,
+                    b.t_us, b.depth, b.labels, self.trajectories, self.cam)
+                self.owners.append(owner)
+                if self.config.ground_truth.event_flow:
+                    self.flows.append(flow)
+        elif self.config.ground_truth.event_flow:
             with self.timer("ground_truth"):
                 self.flows.append(event_flow(
                     ev.x.numpy(), ev.y.numpy(), ev.t.numpy(), a.t_us, a.depth, a.mask,
@@ -352,12 +424,26 @@ class _Simulation:
             if self.config.ground_truth.event_flow:
                 flow = (np.concatenate(self.flows) if self.flows
                         else np.zeros((0, 2), np.float32))
-            self.writer.set_ground_truth(GroundTruth(t_us, poses, t_us, twists, flow))
+            owner = None
+            if self.multi:
+                owner = (np.concatenate(self.owners) if self.owners
+                         else np.zeros(0, np.int16))
+            self.writer.set_ground_truth(GroundTruth(t_us, poses, t_us, twists, flow, owner))
+            for k, tr in enumerate(self.trajectories[1:], start=1):
+                GroundTruth(t_us, tr.pose(t_us * 1e-6), t_us, tr.twist(t_us * 1e-6)).save(
+                    self.writer.file_path(_object_files(k)[1]))
             samples = speed_samples(self.obj, self.trajectory, t_us, self.cam,
                                     self.config.ground_truth.velocity_samples)
         self.stats.num_renders = len(self.pose_times)
         self.stats.pixel_speed = speed_percentiles(samples)
         self.stats.pixel_speed_samples = samples
+
+
+def _object_files(index: int) -> tuple[str, str]:
+    """Object ``index``'s mesh and ground-truth files in a sequence folder."""
+    if index == 0:
+        return MESH_FILE, GT_FILE
+    return f"objects/{index}/{MESH_FILE}", f"objects/{index}/{GT_FILE}"
 
 
 def _frame_schedule(windows: list[ExposureWindow], base_times: np.ndarray
@@ -392,7 +478,8 @@ def speed_samples(obj: ObjectMesh, trajectory: Trajectory, t_us: np.ndarray, cam
 
 
 SIM_EXTRA_KEYS = ("generator", "seed", "config", "object", "trajectory", "scene",
-                  "rgb_timestamps", "depth_timestamps", "event_order", "event_flow", "stats")
+                  "rgb_timestamps", "depth_timestamps", "event_order", "event_flow", "stats",
+                  "objects", "event_object")
 """The entries of ``meta.yaml``'s ``extra`` the simulator writes (see :func:`_extra`)."""
 
 

@@ -1,9 +1,11 @@
 """Headless OpenGL renderer (moderngl over EGL: Mesa llvmpipe on CPU, or an NVIDIA driver).
 
 One draw call per object writes, per pixel, linear RGB and the camera-frame depth ``z`` into a
-single float32 RGBA target; the sign of ``z`` marks the tracked object (``+z``) against the
+single float32 RGBA target; the sign of ``z`` marks the tracked objects (``+z``) against the
 rest of the scene (``-z``); 0 means nothing was drawn. One ``read`` per frame then gives RGB,
-depth and mask together.
+depth and mask together. A second, single-channel target holds each pixel's object label
+(``k + 1`` for the tracked object ``k``, 0 for the static scene and for nothing), read by
+:meth:`Renderer.labels` when several objects are tracked.
 
 Conventions:
     * Camera: OpenCV (x right, y down, z forward), pinhole intrinsics of a
@@ -61,16 +63,19 @@ uniform vec3 u_light;       // unit vector towards the light, camera frame
 uniform float u_ambient;
 uniform float u_diffuse;
 uniform float u_sign;       // +1 tracked object, -1 everything else
+uniform float u_label;      // k + 1 for tracked object k, 0 for the static scene
 in vec3 v_normal;
 in vec2 v_uv;
 in vec3 v_color;
 in float v_z;
-out vec4 f_out;
+layout(location = 0) out vec4 f_out;
+layout(location = 1) out float f_label;
 void main() {
     vec3 n = normalize(v_normal);
     float shade = u_ambient + u_diffuse * max(dot(n, u_light), 0.0);
     vec3 albedo = texture(u_texture, v_uv).rgb * v_color;
     f_out = vec4(albedo * shade, u_sign * v_z);
+    f_label = u_label;
 }
 """
 
@@ -124,7 +129,7 @@ class RenderOutput:
     Attributes:
         rgb: (H, W, 3) float32 linear RGB.
         depth: (H, W) float32 camera-frame z in metres, 0 where nothing was drawn.
-        mask: (H, W) bool, pixels showing the tracked object.
+        mask: (H, W) bool, pixels showing a tracked object.
     """
 
     rgb: np.ndarray
@@ -140,10 +145,14 @@ class _Drawable:
     sign: float
     pose: np.ndarray | None  # None: takes the per-frame pose (the tracked object)
     lit: bool
+    label: float = 0.0       # k + 1 for tracked object k
 
 
 class Renderer:
-    """Render a textured object (and a static scene) from a pinhole camera, headless.
+    """Render textured objects (and a static scene) from a pinhole camera, headless.
+
+    One object (:meth:`set_object`) or several (:meth:`set_objects`) are tracked: each is drawn
+    at its own pose per frame; the static scene once.
 
     Args:
         camera: pinhole intrinsics and image size (no distortion).
@@ -179,15 +188,19 @@ class Renderer:
         self.set_light(light_direction, ambient, diffuse)
         size = (camera.width, camera.height)
         self._color = self.ctx.renderbuffer(size, 4, dtype="f4")
+        self._label = self.ctx.renderbuffer(size, 1, dtype="f4")
         self._depth = self.ctx.depth_renderbuffer(size)
-        self.fbo = self.ctx.framebuffer([self._color], self._depth)
+        self.fbo = self.ctx.framebuffer([self._color, self._label], self._depth)
         # the static scene is drawn once into its own framebuffer and copied in per frame
         self._static_color = self.ctx.renderbuffer(size, 4, dtype="f4")
+        self._static_label = self.ctx.renderbuffer(size, 1, dtype="f4")
         self._static_depth = self.ctx.depth_renderbuffer(size)
-        self._static_fbo = self.ctx.framebuffer([self._static_color], self._static_depth)
+        self._static_fbo = self.ctx.framebuffer([self._static_color, self._static_label],
+                                                self._static_depth)
         self._static_dirty = True
         self._buffer = np.empty((camera.height, camera.width, 4), np.float32)
-        self._object: _Drawable | None = None
+        self._label_buffer = np.empty((camera.height, camera.width), np.float32)
+        self._objects: list[_Drawable] = []
         self._static: list[_Drawable] = []
 
     # ------------------------------------------------------------------ scene set-up
@@ -219,9 +232,18 @@ class Renderer:
 
     def set_object(self, mesh: ObjectMesh) -> None:
         """The tracked object (drawn at the pose passed to :meth:`render`)."""
-        if self._object is not None:
-            self._release(self._object)
-        self._object = self._drawable(mesh, 1.0, None, True)
+        self.set_objects([mesh])
+
+    def set_objects(self, meshes: list[ObjectMesh]) -> None:
+        """Several tracked objects, object ``k`` labelled ``k + 1`` (drawn at the ``k``-th of
+        the poses passed to :meth:`render_raw`)."""
+        if not meshes:
+            raise ConfigError("Renderer.set_objects: give at least one mesh")
+        for d in self._objects:
+            self._release(d)
+        self._objects = [self._drawable(m, 1.0, None, True) for m in meshes]
+        for k, d in enumerate(self._objects):
+            d.label = float(k + 1)
 
     def add_static(self, mesh: ObjectMesh, pose: np.ndarray, lit: bool = True) -> None:
         """A static part of the scene (background, distractor) at a fixed object->camera pose.
@@ -236,17 +258,20 @@ class Renderer:
     def _draw(self, d: _Drawable, pose: np.ndarray) -> None:
         self.program["u_modelview"].write(np.asarray(pose, "f4").T.tobytes())
         self.program["u_sign"].value = d.sign
+        self.program["u_label"].value = d.label
         self.program["u_light"].value = tuple(self._light)
         self.program["u_ambient"].value = self._ambient if d.lit else 1.0
         self.program["u_diffuse"].value = self._diffuse if d.lit else 0.0
         d.texture.use(0)
         d.vao.render()
 
-    def render_raw(self, pose: np.ndarray | None) -> np.ndarray:
+    def render_raw(self, pose: np.ndarray | list[np.ndarray] | None) -> np.ndarray:
         """Render and return the internal (H, W, 4) float32 buffer ``(r, g, b, ±z)``.
 
         The buffer is reused by the next call; copy it to keep it. ``pose`` is the (4, 4)
-        object-to-camera transform of the tracked object (``None``: draw the static scene only).
+        object-to-camera transform of the tracked object, or with several objects
+        (:meth:`set_objects`) a list of one per object, or a (K, 4, 4) array (``None``: draw
+        the static scene only). :meth:`labels` then gives which object each pixel shows.
         """
         mgl = self._moderngl
         if self._static_dirty:
@@ -262,14 +287,24 @@ class Renderer:
         self.ctx.enable(mgl.DEPTH_TEST)
         self.ctx.disable(mgl.CULL_FACE)
         if pose is not None:
-            if self._object is None:
+            if not self._objects:
                 raise RuntimeError("Renderer.render: call set_object first")
-            pose = np.asarray(pose, np.float64)
-            if pose.shape != (4, 4) or not np.isfinite(pose).all():
-                raise ValueError(f"pose must be a finite (4, 4) matrix, got {pose.shape}")
-            self._draw(self._object, pose)
+            poses = np.asarray(pose, np.float64).reshape(-1, 4, 4) if not isinstance(
+                pose, list | tuple) else [np.asarray(p, np.float64) for p in pose]
+            if len(poses) != len(self._objects):
+                raise ValueError(f"{len(poses)} pose(s) for {len(self._objects)} object(s)")
+            for d, p in zip(self._objects, poses, strict=True):
+                if p.shape != (4, 4) or not np.isfinite(p).all():
+                    raise ValueError(f"pose must be a finite (4, 4) matrix, got {p.shape}")
+                self._draw(d, p)
         self.fbo.read_into(self._buffer, components=4, dtype="f4")
         return self._buffer
+
+    def labels(self) -> np.ndarray:
+        """(H, W) int16 object label of the last render: ``k + 1`` where tracked object ``k``
+        shows, 0 elsewhere (static scene, nothing)."""
+        self.fbo.read_into(self._label_buffer, components=1, attachment=1, dtype="f4")
+        return np.rint(self._label_buffer).astype(np.int16)
 
     def render(self, pose: np.ndarray | None) -> RenderOutput:
         """Render the scene with the tracked object at ``pose`` (object->camera, (4, 4))."""
@@ -288,11 +323,11 @@ class Renderer:
         """Free the GL objects and the context (also done by ``with``)."""
         if self.ctx is None:
             return
-        for d in self._static + ([self._object] if self._object else []):
+        for d in self._static + self._objects:
             self._release(d)
-        self._static, self._object = [], None
-        for obj in (self.fbo, self._color, self._depth, self._static_fbo, self._static_color,
-                    self._static_depth):
+        self._static, self._objects = [], []
+        for obj in (self.fbo, self._color, self._label, self._depth, self._static_fbo,
+                    self._static_color, self._static_label, self._static_depth):
             obj.release()
         self.program.release()
         self.ctx.release()

@@ -191,9 +191,15 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     ])
 
 
-def _in_view(p: np.ndarray, camera: PinholeCamera, radius: float, cfg: TrajectoryConfig
-             ) -> np.ndarray:
-    """(N, 3) object centres -> (N,) bool: in the depth range and inside the view margin."""
+def _full_image(camera: PinholeCamera) -> tuple[float, float, float, float]:
+    return 0.0, camera.width - 1.0, 0.0, camera.height - 1.0
+
+
+def _in_view(p: np.ndarray, camera: PinholeCamera, radius: float, cfg: TrajectoryConfig,
+             region: tuple[float, float, float, float] | None = None) -> np.ndarray:
+    """(N, 3) object centres -> (N,) bool: in the depth range and inside the view margin of
+    ``region`` (``(u_lo, u_hi, v_lo, v_hi)`` pixels; default the whole image)."""
+    u_lo, u_hi, v_lo, v_hi = region or _full_image(camera)
     z = p[:, 2]
     ok = (z >= cfg.z_range[0] - 1e-9) & (z <= cfg.z_range[1] + 1e-9)
     zs = np.where(z > 0, z, np.inf)
@@ -201,33 +207,35 @@ def _in_view(p: np.ndarray, camera: PinholeCamera, radius: float, cfg: Trajector
     v = camera.fy * p[:, 1] / zs + camera.cy
     mu = cfg.view_margin * camera.fx * radius / zs
     mv = cfg.view_margin * camera.fy * radius / zs
-    half_u, half_v = (camera.width - 1) / 2.0, (camera.height - 1) / 2.0
+    half_u, half_v = (u_hi - u_lo) / 2.0, (v_hi - v_lo) / 2.0
     mu, mv = np.minimum(mu, half_u), np.minimum(mv, half_v)
-    return ok & (u >= mu - 1e-9) & (u <= camera.width - 1 - mu + 1e-9) & (
-        v >= mv - 1e-9) & (v <= camera.height - 1 - mv + 1e-9)
+    return ok & (u >= u_lo + mu - 1e-9) & (u <= u_hi - mu + 1e-9) & (
+        v >= v_lo + mv - 1e-9) & (v <= v_hi - mv + 1e-9)
 
 
 def _sample_position(rng: np.random.Generator, camera: PinholeCamera, radius: float,
-                     cfg: TrajectoryConfig) -> np.ndarray:
+                     cfg: TrajectoryConfig,
+                     region: tuple[float, float, float, float] | None = None) -> np.ndarray:
+    u_lo, u_hi, v_lo, v_hi = region or _full_image(camera)
     z = rng.uniform(*cfg.z_range)
-    mu = min(cfg.view_margin * camera.fx * radius / z, (camera.width - 1) / 2.0)
-    mv = min(cfg.view_margin * camera.fy * radius / z, (camera.height - 1) / 2.0)
-    u = rng.uniform(mu, camera.width - 1 - mu)
-    v = rng.uniform(mv, camera.height - 1 - mv)
+    mu = min(cfg.view_margin * camera.fx * radius / z, (u_hi - u_lo) / 2.0)
+    mv = min(cfg.view_margin * camera.fy * radius / z, (v_hi - v_lo) / 2.0)
+    u = rng.uniform(u_lo + mu, u_hi - mu)
+    v = rng.uniform(v_lo + mv, v_hi - mv)
     return np.array([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z])
 
 
-def _next_waypoint(rng, prev_p, prev_r, camera, radius, cfg):
+def _next_waypoint(rng, prev_p, prev_r, camera, radius, cfg, region=None):
     """A waypoint at a distance in ``waypoint_step`` and rotation in ``rotation_step``."""
     lo, hi = cfg.waypoint_step
     p = None
     for _ in range(_MAX_WAYPOINT_TRIES):
-        cand = _sample_position(rng, camera, radius, cfg)
+        cand = _sample_position(rng, camera, radius, cfg, region)
         if lo <= np.linalg.norm(cand - prev_p) <= hi:
             p = cand
             break
     if p is None:  # the view volume is small: take a point on the chord towards a sample
-        cand = _sample_position(rng, camera, radius, cfg)
+        cand = _sample_position(rng, camera, radius, cfg, region)
         d = cand - prev_p
         p = prev_p + d * min(1.0, hi / max(np.linalg.norm(d), 1e-12))
     axis = rng.standard_normal(3)
@@ -241,7 +249,8 @@ def _next_waypoint(rng, prev_p, prev_r, camera, radius, cfg):
 
 def random_trajectory(duration: float, camera: PinholeCamera, object_radius: float,
                       config: TrajectoryConfig | None = None,
-                      seed: int | np.random.SeedSequence = 0) -> Trajectory:
+                      seed: int | np.random.SeedSequence = 0,
+                      region: tuple[float, float, float, float] | None = None) -> Trajectory:
     """A random smooth trajectory covering ``[0, duration]`` seconds.
 
     The object's centre stays at ``z`` in ``config.z_range`` and projects inside the image
@@ -255,17 +264,19 @@ def random_trajectory(duration: float, camera: PinholeCamera, object_radius: flo
         object_radius: bounding-sphere radius of the object, metres.
         config: speeds and limits (default: the ``regular`` preset).
         seed: the same seed gives the same trajectory.
+        region: ``(u_lo, u_hi, v_lo, v_hi)``, the pixel rectangle the view constraint keeps
+            the object in (default: the whole image).
     """
     cfg = config or TrajectoryConfig()
     rng = np.random.default_rng(seed)
     R_ref = random_rotation(rng)
-    p = [_sample_position(rng, camera, object_radius, cfg)]
+    p = [_sample_position(rng, camera, object_radius, cfg, region)]
     r = [np.zeros(3)]
     seg = []
     t_first = None
     total = 0.0
     while True:
-        pn, rn = _next_waypoint(rng, p[-1], r[-1], camera, object_radius, cfg)
+        pn, rn = _next_waypoint(rng, p[-1], r[-1], camera, object_radius, cfg, region)
         h = max(np.linalg.norm(pn - p[-1]) / cfg.linear_speed,
                 np.linalg.norm(rn - r[-1]) / cfg.angular_speed, _MIN_SEGMENT_S)
         h *= rng.uniform(1.0 - cfg.duration_jitter, 1.0 + cfg.duration_jitter)
@@ -287,10 +298,10 @@ def random_trajectory(duration: float, camera: PinholeCamera, object_radius: flo
             V[i] = (P[i + 1] - P[i - 1]) / (H[i - 1] + H[i])
             W[i] = (Rv[i + 1] - Rv[i - 1]) / (H[i - 1] + H[i])
     traj = Trajectory(times, P, V, Rv, W, R_ref, reversal)
-    return _fit_in_view(traj, camera, object_radius, cfg)
+    return _fit_in_view(traj, camera, object_radius, cfg, region)
 
 
-def _fit_in_view(traj: Trajectory, camera, radius, cfg) -> Trajectory:
+def _fit_in_view(traj: Trajectory, camera, radius, cfg, region=None) -> Trajectory:
     """Halve knot velocities next to segments that leave the view until none does."""
     V = traj.velocities.copy()
     kt = traj.knot_times
@@ -298,7 +309,7 @@ def _fit_in_view(traj: Trajectory, camera, radius, cfg) -> Trajectory:
         cur = Trajectory(kt, traj.positions, V, traj.rotvecs, traj.rotvec_rates, traj.R_ref,
                          traj.reversals)
         ts = np.arange(kt[0], kt[-1], _CHECK_STEP_S)
-        bad = ~_in_view(cur.pose(ts)[:, :3, 3], camera, radius, cfg)
+        bad = ~_in_view(cur.pose(ts)[:, :3, 3], camera, radius, cfg, region)
         if not bad.any():
             return cur
         segs = np.unique(np.clip(np.searchsorted(kt, ts[bad], side="right") - 1, 0, len(kt) - 2))

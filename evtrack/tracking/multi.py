@@ -1,0 +1,377 @@
+"""``MultiTracker``: several objects tracked from one event stream and one set of RGB-D frames.
+
+Each object has its own :class:`~evtrack.tracking.tracker.Tracker` (its mesh, pose source and
+filters). The multi-object tracker sits in front of them and shares the stream out:
+
+* **Windows.** Time is cut into assignment windows of one step group each
+  (``velocity_step_us * flow_batch_steps``, 40 ms by default), starting at the first input.
+  When the stream reaches a window, every object's tracker is advanced to the window's start,
+  and its silhouette is predicted over the window: the convex hull of the silhouette at its
+  pose now and the one its twist predicts at the window's end (as the tracker's own event gate
+  sweeps it), grown by ``mask_margin_px``.
+* **Assignment** (:func:`~evtrack.tracking.assignment.assign_events`): an event inside one
+  object's swept silhouette is that object's; inside several, the nearest one's (smallest
+  camera ``z`` of its origin: it occludes the others there); inside none, nobody's.
+* **Dispatch.** Each tracker receives its own events and those of nobody (its event gate drops
+  the latter as it would alone, and its burst detection still sees the background); the
+  events owned by another object never reach it. The counts are in :attr:`stats`.
+* **Frames** go to every tracker (each calls its own pose source on them).
+
+The windows are fixed by the clock, and each window's silhouettes are computed from trackers
+that have seen exactly the stream before the window's start, so the trajectories do not depend
+on how the stream was cut into packets: streaming equals offline.
+
+Cost: the event flow and the filters run per object on its own events; the assignment is a
+few polygons per window and one pixel test per event and object.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from evtrack.camera import PinholeCamera
+from evtrack.errors import ConfigError, EventsError
+from evtrack.events import Events
+from evtrack.tracking.assignment import NO_OBJECT, ObjectMask, assign_events
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.event_gate import moved_pose
+from evtrack.tracking.pose_sources import PoseSource
+from evtrack.tracking.tracker import Tracker
+from evtrack.tracking.trajectory import Trajectory
+
+__all__ = ["MultiTracker", "TrackedObject", "AssignmentStats"]
+
+
+@dataclass
+class TrackedObject:
+    """One object of a :class:`MultiTracker`.
+
+    Attributes:
+        name: unique name (the key of :meth:`MultiTracker.pose` and of the trajectories).
+        mesh: its mesh: a file (glTF/OBJ/PLY, metres), an :class:`~evtrack.sim.ObjectMesh` or
+            (V, 3) vertices.
+        pose_source: its pose source (e.g. its network's), or ``None`` with
+            ``pose_source: model`` or a start pose.
+        start_pose: (4, 4) object-to-camera pose at the start time given to
+            :meth:`MultiTracker.reset` / :meth:`MultiTracker.track`, or ``None`` (wait for
+            the pose source).
+        config: this object's tracker config; ``None``: the multi-tracker's.
+    """
+
+    name: str
+    mesh: Any
+    pose_source: PoseSource | None = None
+    start_pose: np.ndarray | None = None
+    config: TrackerConfig | None = None
+
+
+@dataclass
+class AssignmentStats:
+    """Counts of the event assignment.
+
+    Attributes:
+        events: events pushed.
+        per_object: events owned by each object (by name).
+        unassigned: events in no object's silhouette (given to every tracker, which drops
+            them unless they are in its own mask).
+        contested: events in several silhouettes, given to the nearest object.
+        windows: assignment windows opened.
+    """
+
+    events: int = 0
+    per_object: dict[str, int] = field(default_factory=dict)
+    unassigned: int = 0
+    contested: int = 0
+    windows: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"events": self.events, "per_object": dict(self.per_object),
+                "unassigned": self.unassigned, "contested": self.contested,
+                "windows": self.windows}
+
+
+class MultiTracker:
+    """Track several objects from one event stream (see the module docstring).
+
+    Args:
+        objects: the objects (at least one; unique names).
+        config: the tracker config of every object without its own.
+        camera: the event camera.
+        rgb_camera, T_event_rgb: the RGB-D camera and its extrinsic (as :class:`Tracker`).
+
+    Example:
+        >>> cfg = TrackerConfig(pose_source="model")
+        >>> multi = MultiTracker.for_sequence(seq, cfg)                    # doctest: +SKIP
+        >>> tracks = multi.track(seq, start_poses=poses, start_t_us=0)    # doctest: +SKIP
+        >>> tracks["005_tomato_soup_can"].save("can.csv")                 # doctest: +SKIP
+    """
+
+    def __init__(self, objects: Sequence[TrackedObject], config: TrackerConfig | None = None, *,
+                 camera: PinholeCamera, rgb_camera: PinholeCamera | None = None,
+                 T_event_rgb: Any = None) -> None:
+        if not objects:
+            raise ConfigError("MultiTracker: give at least one object")
+        names = [o.name for o in objects]
+        if len(set(names)) != len(names) or not all(names):
+            raise ConfigError(f"MultiTracker: object names must be unique and non-empty, got "
+                              f"{names}")
+        self.objects = list(objects)
+        self.config = config if config is not None else TrackerConfig()
+        self.camera = camera
+        self.trackers: dict[str, Tracker] = {
+            o.name: Tracker(o.config or self.config, camera=camera, mesh=o.mesh,
+                            pose_source=o.pose_source, rgb_camera=rgb_camera,
+                            T_event_rgb=T_event_rgb)
+            for o in self.objects}
+        windows = {t.config.velocity_step_us * t.config.flow_batch_steps
+                   for t in self.trackers.values()}
+        if len(windows) != 1:
+            raise ConfigError("MultiTracker: every object's config must have the same "
+                              "velocity_step_us * flow_batch_steps (the assignment window), "
+                              f"got {sorted(windows)} µs")
+        self.window_us = windows.pop()
+        self.stats = AssignmentStats()
+        self._reset_stream()
+
+    @classmethod
+    def for_sequence(cls, sequence, config: TrackerConfig | None = None,
+                     pose_sources: Mapping[str, PoseSource] | None = None) -> MultiTracker:
+        """A multi-tracker of every object of a :class:`~evtrack.Sequence`
+        (:attr:`~evtrack.Sequence.objects`) with its cameras and extrinsic; ``pose_sources``
+        by object name (objects without one get none)."""
+        pose_sources = dict(pose_sources or {})
+        objects = []
+        for k, obj in enumerate(sequence.objects):
+            mesh = sequence.object_mesh_file(k)
+            if mesh is None:
+                raise ConfigError(f"{sequence.root or sequence.meta.name}: object {obj.name!r} "
+                                  "has no mesh (meta.yaml objects[].mesh)")
+            objects.append(TrackedObject(obj.name, mesh, pose_sources.pop(obj.name, None)))
+        if pose_sources:
+            raise ConfigError(f"pose sources for objects the sequence does not have: "
+                              f"{sorted(pose_sources)} (it has {[o.name for o in objects]})")
+        return cls(objects, config, camera=sequence.meta.event_camera,
+                   rgb_camera=sequence.meta.rgb_camera, T_event_rgb=sequence.meta.T_event_rgb)
+
+    # ------------------------------------------------------------------ state
+    def _reset_stream(self) -> None:
+        self._origin: int | None = None      # the windows' grid starts here (µs)
+        self._window: int | None = None      # index of the open window
+        self._masks: list[ObjectMask] = []
+        self._last_event_us: int | None = None
+        self._horizon: int | None = None     # the latest time declared by advance()
+
+    def reset(self, t_us: int | None = None,
+              start_poses: Mapping[str, np.ndarray] | None = None) -> None:
+        """Start over. Objects with a start pose (``start_poses`` by name, else their
+        :attr:`TrackedObject.start_pose`) start from it at ``t_us`` (required then); the
+        others wait for their pose source."""
+        start_poses = dict(start_poses or {})
+        unknown = sorted(set(start_poses) - set(self.trackers))
+        if unknown:
+            raise ConfigError(f"start poses for unknown objects {unknown} (objects: "
+                              f"{list(self.trackers)})")
+        for obj in self.objects:
+            pose = start_poses.get(obj.name, obj.start_pose)
+            self.trackers[obj.name].reset(pose, t_us if pose is not None else None)
+        self.stats = AssignmentStats(per_object={o.name: 0 for o in self.objects})
+        self._reset_stream()
+        if t_us is not None and any(t.now_us is not None for t in self.trackers.values()):
+            self._start(int(t_us))
+
+    def _start(self, t_us: int) -> None:
+        self._origin = t_us
+        for tracker in self.trackers.values():
+            if tracker.now_us is None:
+                tracker.advance(t_us)
+
+    @property
+    def names(self) -> list[str]:
+        """The objects' names, in order."""
+        return [o.name for o in self.objects]
+
+    def pose(self, name: str, t_us: int | None = None) -> np.ndarray:
+        """Object ``name``'s pose (4, 4) at ``t_us`` (see :meth:`Tracker.pose`)."""
+        return self._tracker(name).pose(t_us)
+
+    def twist(self, name: str, t_us: int | None = None) -> np.ndarray:
+        """Object ``name``'s twist (6,) at ``t_us`` (see :meth:`Tracker.twist`)."""
+        return self._tracker(name).twist(t_us)
+
+    def trajectory(self, name: str) -> Trajectory:
+        """Object ``name``'s outputs so far (one sample per velocity step)."""
+        traj = self._tracker(name).trajectory()
+        traj.meta["assignment"] = self.stats.to_dict()
+        traj.meta["object"] = name
+        return traj
+
+    def trajectories(self) -> dict[str, Trajectory]:
+        """Every object's trajectory, by name."""
+        return {name: self.trajectory(name) for name in self.names}
+
+    def _tracker(self, name: str) -> Tracker:
+        try:
+            return self.trackers[name]
+        except KeyError:
+            raise KeyError(f"no object {name!r}; the objects are {self.names}") from None
+
+    # ------------------------------------------------------------------ inputs
+    def push_events(self, events: Events) -> None:
+        """Add the next events of the stream (time-sorted): assign them to the objects and
+        hand each tracker its share (see the module docstring).
+
+        Raises:
+            EventsError: unsorted events, events before earlier ones, or outside the sensor.
+        """
+        if not isinstance(events, Events):
+            raise EventsError(f"push_events expects an Events container, got "
+                              f"{type(events).__name__}")
+        if not len(events):
+            return
+        report = events.validate(self.camera.size)
+        if not report.ok:
+            raise EventsError(f"push_events: {report}")
+        if self._last_event_us is not None and events.t_start < self._last_event_us:
+            raise EventsError(f"push_events: events from t={events.t_start} µs arrive after "
+                              f"events up to t={self._last_event_us} µs (push in time order)")
+        events = events.to("cpu")
+        if self._origin is None:
+            self._start(events.t_start)
+        self._last_event_us = events.t_end
+        self.stats.events += len(events)
+        t = events.t
+        while len(events):
+            window = (int(events.t_start) - self._origin) // self.window_us
+            end = self._origin + (window + 1) * self.window_us
+            k = int(torch.searchsorted(t, torch.tensor([end]))[0])
+            if window != self._window:
+                self._open(window)
+            self._dispatch(events[:k])
+            events, t = events[k:], t[k:]
+
+    def _open(self, window: int) -> None:
+        """Advance every tracker to the window's start and predict the silhouettes over it."""
+        start = self._origin + window * self.window_us
+        self._window = window
+        self.stats.windows += 1
+        self._masks = []
+        for tracker in self.trackers.values():
+            if tracker.now_us is None or tracker.now_us < start:
+                tracker.advance(start)
+            self._masks.append(self._predicted_mask(tracker, start))
+
+    def _predicted_mask(self, tracker: Tracker, start: int) -> ObjectMask:
+        """The tracker's silhouette swept over ``[start, start + window)`` and its depth."""
+        pose = tracker.pose()
+        if not np.isfinite(pose).all() or not tracker.initialized:
+            return ObjectMask(None, np.inf)
+        twist = tracker.twist()
+        now = tracker.now_us if tracker.now_us is not None else start
+        if now != start and np.isfinite(twist).all():
+            pose = moved_pose(pose, twist, (start - now) * 1e-6)
+        poly = tracker.silhouette.polygon(pose)
+        if poly is None:
+            return ObjectMask(None, np.inf)
+        swept = tracker.gate.swept_mask(poly, pose, self.window_us, twist)
+        return ObjectMask(swept, float(pose[2, 3]))
+
+    def _dispatch(self, events: Events) -> None:
+        """Assign one window's events and push each tracker its share."""
+        if not len(events):
+            return
+        margin = self.config.mask_margin_px
+        owner = assign_events(events.x.numpy(), events.y.numpy(), self._masks, margin,
+                              self.camera.size)
+        self.stats.unassigned += int((owner == NO_OBJECT).sum())
+        if len(self._masks) > 1:
+            self.stats.contested += _contested(events, self._masks, owner, margin,
+                                               self.camera.size)
+        for k, (name, tracker) in enumerate(self.trackers.items()):
+            mine = owner == k
+            self.stats.per_object[name] = self.stats.per_object.get(name, 0) + int(mine.sum())
+            keep = mine | (owner == NO_OBJECT)
+            share = events if keep.all() else events[torch.from_numpy(keep)]
+            if len(share):
+                tracker.push_events(share)
+
+    def advance(self, t_us: int) -> None:
+        """Declare that every event before ``t_us`` was pushed (see :meth:`Tracker.advance`).
+        The trackers advance to the last window start at or before ``t_us`` (so that the next
+        window's silhouettes are those the offline run predicts); :meth:`flush` takes them to
+        the end."""
+        t_us = int(t_us)
+        if self._origin is None:
+            self._start(t_us)
+        self._horizon = t_us if self._horizon is None else max(self._horizon, t_us)
+        start = self._origin + ((t_us - self._origin) // self.window_us) * self.window_us
+        for tracker in self.trackers.values():
+            tracker.advance(start)
+
+    def push_frame(self, t_us: int, rgb: Any = None, depth: Any = None) -> None:
+        """Hand an RGB-D frame to every object's tracker (see :meth:`Tracker.push_frame`).
+
+        A depth frame is read once (a callable is called here) and shared."""
+        if callable(rgb):
+            rgb = rgb()
+        if callable(depth):
+            depth = depth()
+        if self._origin is None:
+            self._start(int(t_us))
+        for tracker in self.trackers.values():
+            tracker.push_frame(t_us, rgb, depth)
+
+    def flush(self) -> None:
+        """Close every step up to the latest time known (the last event or :meth:`advance`),
+        in every tracker. Call it at the end of a stream."""
+        ends = [t for t in (self._horizon, self._last_event_us) if t is not None]
+        for tracker in self.trackers.values():
+            if ends:
+                tracker.advance(max(ends))
+            tracker.flush()
+
+    # ------------------------------------------------------------------ offline
+    def track(self, sequence, progress: bool = False,
+              start_poses: Mapping[str, np.ndarray] | None = None,
+              start_t_us: int | None = None) -> dict[str, Trajectory]:
+        """Track every object through a :class:`~evtrack.Sequence` (events and frames in time
+        order, as :meth:`Tracker.track` does for one).
+
+        Args:
+            start_poses: (4, 4) start poses by object name, at ``start_t_us`` (the stream
+                starts there); objects without one wait for their pose source.
+
+        Returns:
+            each object's :class:`~evtrack.tracking.trajectory.Trajectory`, by name.
+        """
+        from evtrack.tracking.offline import push_sequence
+
+        if start_poses and start_t_us is None:
+            raise ConfigError("MultiTracker.track: start_poses need start_t_us")
+        self.reset(start_t_us, start_poses)
+        push_sequence(self, sequence, None, progress,
+                      None if not start_poses else start_t_us)
+        return self.trajectories()
+
+    @property
+    def method(self) -> str:
+        """The method of the first object's tracker (the progress bar's label)."""
+        return f"{self.trackers[self.names[0]].method} x{len(self.objects)}"
+
+
+def _contested(events: Events, masks: list[ObjectMask], owner: np.ndarray, margin: float,
+               size: tuple[int, int]) -> int:
+    """Events of an owner that also lie in another object's silhouette."""
+    owned = owner != NO_OBJECT
+    if not owned.any():
+        return 0
+    x, y = events.x.numpy()[owned], events.y.numpy()[owned]
+    claims = np.zeros(int(owned.sum()), np.int64)
+    for mask in masks:
+        if mask.polygon is not None and np.isfinite(mask.depth):
+            claims += mask.polygon.contains_pixels(x, y, margin, size)
+    return int((claims > 1).sum())
