@@ -1,0 +1,271 @@
+"""Several objects from one stream: the event assignment against a brute-force reference, and
+the multi-object tracker against one tracker per object."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from tracker_helpers import ORACLE_NOISE, TEST_TRACKER, sim_config
+
+from evtrack import Sequence
+from evtrack.errors import ConfigError, EventsError
+from evtrack.eval.metrics import tracking_errors
+from evtrack.events import Events
+from evtrack.sim.engine import simulate
+from evtrack.sim.objects import make_box, make_can
+from evtrack.tracking.assignment import (
+    NO_OBJECT,
+    ObjectMask,
+    assign_events,
+    assign_events_reference,
+)
+from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.multi import MultiTracker, TrackedObject
+from evtrack.tracking.pose_sources import OraclePoseSource
+from evtrack.tracking.silhouette import SilhouettePolygon
+from evtrack.tracking.tracker import Tracker
+
+SIZE = (160, 120)
+
+
+def _random_polygon(rng: np.random.Generator) -> SilhouettePolygon:
+    import cv2
+
+    centre = rng.uniform([0, 0], SIZE)
+    points = centre + rng.normal(0.0, rng.uniform(3, 40), (int(rng.integers(1, 9)), 2))
+    if len(points) >= 3:
+        points = cv2.convexHull(points.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    return SilhouettePolygon(points, (0.5, 0.6), 1.0)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_assignment_matches_the_brute_force_reference(seed) -> None:
+    rng = np.random.default_rng(seed)
+    masks = []
+    for _ in range(int(rng.integers(1, 5))):
+        poly = None if rng.random() < 0.15 else _random_polygon(rng)
+        depth = float(rng.choice([0.5, 0.7, 0.7, 1.0]))  # ties: the lower index wins
+        masks.append(ObjectMask(poly, depth))
+    x = rng.integers(0, SIZE[0], 3000)
+    y = rng.integers(0, SIZE[1], 3000)
+    margin = float(rng.choice([0.0, 2.5, 8.0]))
+    fast = assign_events(x, y, masks, margin, SIZE)
+    assert np.array_equal(fast, assign_events_reference(x, y, masks, margin))
+    if any(m.polygon is not None for m in masks):
+        assert (fast != NO_OBJECT).any()
+
+
+def test_the_nearer_object_owns_an_overlap() -> None:
+    square = np.array([[10.0, 10.0], [50.0, 10.0], [50.0, 50.0], [10.0, 50.0]])
+    far = ObjectMask(SilhouettePolygon(square, (1, 1), 1.0), 1.0)
+    near = ObjectMask(SilhouettePolygon(square + 20.0, (1, 1), 1.0), 0.5)
+    x = np.array([15, 40, 65, 100])
+    y = np.array([15, 40, 65, 100])
+    assert assign_events(x, y, [far, near], 0.0, SIZE).tolist() == [0, 1, 1, NO_OBJECT]
+    assert assign_events(x, y, [ObjectMask(None, 0.1), far], 0.0, SIZE).tolist() == [
+        1, 1, NO_OBJECT, NO_OBJECT]
+
+
+# ---------------------------------------------------------------------------- the tracker
+@pytest.fixture(scope="module")
+def two_objects(tmp_path_factory) -> Sequence:
+    """Two objects in separate halves of a 160x120 image, 0.6 s of ``faster`` motion."""
+    out = tmp_path_factory.mktemp("multi") / "two"
+    cfg = sim_config(0.6, 4)
+    cfg = dataclasses.replace(
+        cfg, camera=cfg.camera.resized(160, 120),
+        events=dataclasses.replace(cfg.events, threshold_on=0.3, threshold_off=0.3),
+        trajectory=dataclasses.replace(cfg.trajectory, preset="regular", linear_speed=None,
+                                       angular_speed=None, layout="apart", z_range=(0.3, 0.7)))
+    box = make_box(size=(0.1, 0.12, 0.05), seed=2)
+    can = make_can(seed=1)
+    simulate([box, can], cfg, out)
+    return Sequence.load(out)
+
+
+def _sources(seq: Sequence) -> dict[str, OraclePoseSource]:
+    return {o.name: OraclePoseSource(seq.object_ground_truth(k).pose_at, seed=k, **ORACLE_NOISE)
+            for k, o in enumerate(seq.objects)}
+
+
+def _multi(seq: Sequence) -> MultiTracker:
+    return MultiTracker.for_sequence(seq, TrackerConfig.from_dict(TEST_TRACKER), _sources(seq))
+
+
+@pytest.fixture(scope="module")
+def offline(two_objects):
+    multi = _multi(two_objects)
+    return multi, multi.track(two_objects)
+
+
+def test_streaming_equals_offline_with_two_objects(two_objects, offline) -> None:
+    seq = two_objects
+    _, tracks = offline
+    multi = _multi(seq)
+    rng = np.random.default_rng(0)
+    ev = seq.events
+    frames = sorted({(int(t), "rgb", i) for i, t in enumerate(seq.rgb_times_us)}
+                    | {(int(t), "depth", i) for i, t in enumerate(seq.depth_times_us)})
+    pos = 0
+    for t, kind, i in frames:
+        cut = int(np.searchsorted(ev.t.numpy(), t))
+        while pos < cut:
+            n = int(rng.integers(1, 4000))
+            multi.push_events(ev[pos:min(cut, pos + n)])
+            pos = min(cut, pos + n)
+        if kind == "rgb":
+            multi.push_frame(t, rgb=lambda i=i: seq.rgb(i))
+        else:
+            multi.push_frame(t, depth=seq.depth(i))
+    multi.push_events(ev[pos:])
+    multi.advance(int(ev.t[-1]) + 1)
+    multi.flush()
+    for name, offline_track in tracks.items():
+        live = multi.trajectory(name)
+        assert len(live) == len(offline_track) > 500
+        assert np.array_equal(live.t_us, offline_track.t_us)
+        assert np.array_equal(live.poses.numpy(), offline_track.poses.numpy(), equal_nan=True)
+        assert np.array_equal(live.status, offline_track.status)
+
+
+def test_each_object_is_tracked_as_well_as_alone(two_objects, offline) -> None:
+    seq = two_objects
+    multi, tracks = offline
+    stats = multi.stats
+    assert stats.events == len(seq.events)
+    assert sum(stats.per_object.values()) + stats.unassigned == stats.events
+    assert all(n > 1000 for n in stats.per_object.values())
+    for k, obj in enumerate(seq.objects):
+        gt = seq.object_ground_truth(k)
+        source = OraclePoseSource(gt.pose_at, seed=k, **ORACLE_NOISE)
+        alone = Tracker(TrackerConfig.from_dict(TEST_TRACKER), camera=seq.meta.event_camera,
+                        mesh=seq.object_mesh_file(k), pose_source=source).track(seq)
+        together = tracking_errors(tracks[obj.name], gt)
+        single = tracking_errors(alone, gt)
+        assert together.position_rmse_cm < 5.0 and together.rotation_rmse_deg < 15.0
+        assert together.position_rmse_cm <= 1.1 * single.position_rmse_cm + 0.2
+        assert together.rotation_rmse_deg <= 1.1 * single.rotation_rmse_deg + 0.5
+        assert tracks[obj.name].meta["object"] == obj.name
+
+
+def test_assigned_events_are_on_their_object(two_objects, offline) -> None:
+    """Against the simulator's per-event labels: the events given to an object are its own."""
+    seq = two_objects
+    multi, _ = offline
+    truth = seq.ground_truth.event_object.numpy()
+    got: list[np.ndarray] = []
+    replay = _multi(seq)
+    dispatch = replay._dispatch
+
+    def recording(events: Events) -> None:
+        masks = replay._masks
+        from evtrack.tracking.assignment import assign_events as assign
+
+        got.append(assign(events.x.numpy(), events.y.numpy(), masks,
+                          replay.config.mask_margin_px, replay.camera.size))
+        dispatch(events)
+
+    replay._dispatch = recording
+    replay.track(seq)
+    owner = np.concatenate(got)
+    assert len(owner) == len(truth)
+    assigned = owner != NO_OBJECT
+    right = (owner[assigned] == truth[assigned]).mean()
+    assert right > 0.98
+    assert replay.stats.to_dict() == multi.stats.to_dict()
+
+
+def test_pose_and_twist_by_name(offline) -> None:
+    multi, tracks = offline
+    name = multi.names[1]
+    assert np.allclose(multi.pose(name, int(tracks[name].t_us[300])), tracks[name].poses[300])
+    assert multi.twist(name).shape == (6,)
+    with pytest.raises(KeyError, match="no object 'mug'"):
+        multi.pose("mug")
+
+
+def test_bad_set_ups_are_refused(two_objects) -> None:
+    seq = two_objects
+    cam = seq.meta.event_camera
+    mesh = seq.object_mesh_file(0)
+    with pytest.raises(ConfigError, match="at least one object"):
+        MultiTracker([], camera=cam)
+    with pytest.raises(ConfigError, match="unique"):
+        MultiTracker([TrackedObject("a", mesh), TrackedObject("a", mesh)], camera=cam)
+    other = TrackerConfig.from_dict({"flow_batch_steps": 10})
+    with pytest.raises(ConfigError, match="same velocity_step_us"):
+        MultiTracker([TrackedObject("a", mesh), TrackedObject("b", mesh, config=other)],
+                     camera=cam)
+    with pytest.raises(ConfigError, match="objects the sequence does not have.*mug"):
+        MultiTracker.for_sequence(seq, pose_sources={"mug": None})
+    multi = MultiTracker([TrackedObject("a", mesh)], camera=cam)
+    with pytest.raises(ConfigError, match="unknown objects.*'b'"):
+        multi.reset(0, {"b": np.eye(4)})
+    with pytest.raises(ConfigError, match="start_poses need start_t_us"):
+        multi.track(seq, start_poses={"a": np.eye(4)})
+    ev = seq.events[:100]
+    multi.push_events(seq.events[100:200])
+    with pytest.raises(EventsError, match="time order"):
+        multi.push_events(ev)
+
+
+def test_start_poses_start_the_objects_without_a_pose_source(two_objects) -> None:
+    seq = two_objects
+    objects = [TrackedObject(o.name, seq.object_mesh_file(k)) for k, o in enumerate(seq.objects)]
+    cfg = TrackerConfig.from_dict({**TEST_TRACKER, "method": "velocity"})
+    multi = MultiTracker(objects, cfg, camera=seq.meta.event_camera)
+    t0 = 100_000
+    starts = {o.name: seq.object_ground_truth(k).pose_at(t0).numpy()
+              for k, o in enumerate(seq.objects)}
+    tracks = multi.track(seq, start_poses=starts, start_t_us=t0)
+    for k, obj in enumerate(seq.objects):
+        track = tracks[obj.name]
+        assert int(track.t_us[0]) > t0 and bool(track.tracked.all())
+        err = tracking_errors(track, seq.object_ground_truth(k), t_end_us=t0 + 20_000)
+        assert err.samples == 20 and err.position_rmse_cm < 1.0
+
+
+@pytest.fixture(scope="module")
+def crossing(tmp_path_factory) -> Sequence:
+    """A can passing in front of a turning box (160x120, 0.6 s): their silhouettes overlap."""
+    from robustness_scenes import knot_trajectory
+
+    out = tmp_path_factory.mktemp("multi") / "crossing"
+    cfg = sim_config(0.6, 5)
+    cfg = dataclasses.replace(
+        cfg, camera=cfg.camera.resized(160, 120),
+        events=dataclasses.replace(cfg.events, threshold_on=0.3, threshold_off=0.3))
+    can = knot_trajectory([-0.1, 0.7], [[-0.12, 0.0, 0.35], [0.12, 0.0, 0.35]],
+                          [[0.3, 0.0, 0.0], [0.3, 0.0, 0.0]],
+                          rotvec_rates=[[0.0, 1.0, 0.0], [0.0, 1.0, 0.0]])
+    box = knot_trajectory([-0.1, 0.7], [[0.0, -0.02, 0.6], [0.0, 0.02, 0.6]],
+                          [[0.0, 0.05, 0.0], [0.0, 0.05, 0.0]],
+                          rotvec_rates=[[0.4, 0.8, 0.0], [0.4, 0.8, 0.0]])
+    simulate([make_can(seed=1), make_box(size=(0.1, 0.12, 0.05), seed=2)], cfg, out,
+             trajectory=[can, box])
+    return Sequence.load(out)
+
+
+def test_an_occluding_object_owns_the_overlap(crossing) -> None:
+    seq = crossing
+    truth = seq.ground_truth.event_object.numpy()
+    multi = _multi(seq)
+    owners: list[np.ndarray] = []
+    dispatch = multi._dispatch
+
+    def recording(events: Events) -> None:
+        owners.append(assign_events(events.x.numpy(), events.y.numpy(), multi._masks,
+                                    multi.config.mask_margin_px, multi.camera.size))
+        dispatch(events)
+
+    multi._dispatch = recording
+    tracks = multi.track(seq)
+    owner = np.concatenate(owners)
+    assert multi.stats.contested > 500
+    assigned = owner != NO_OBJECT
+    assert (owner[assigned] == truth[assigned]).mean() > 0.9
+    for k, obj in enumerate(seq.objects):
+        err = tracking_errors(tracks[obj.name], seq.object_ground_truth(k))
+        assert err.position_rmse_cm < 5.0 and err.rotation_rmse_deg < 15.0
