@@ -620,6 +620,22 @@ class Sequence:
             return None
         return GroundTruth.load(path)
 
+    def object_view(self, index: int) -> Sequence:
+        """The same recording seen as a one-object sequence of object ``index``: its name,
+        mesh and ground truth, the whole event stream and every frame (e.g. to track that
+        object alone with a :class:`~evtrack.Tracker`)."""
+        import dataclasses
+
+        obj = self.objects[index]
+        mesh = self.object_mesh_file(index)
+        meta = dataclasses.replace(self.meta, object_name=obj.name, objects=[],
+                                   mesh_path=None if mesh is None else str(mesh))
+        view = Sequence(meta, self._events, self.rgb_times_us, self._rgb_frames,
+                        self.depth_times_us, self._depth_frames,
+                        self.object_ground_truth(index), self.root)
+        view._gt_loaded = True
+        return view
+
     @property
     def mesh_file(self) -> Path | None:
         """The object's mesh path resolved against the folder, or ``None``."""

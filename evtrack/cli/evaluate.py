@@ -50,6 +50,8 @@ examples:
   evtrack export pose --weights runs/pose/box.pt --out onnx/box.onnx
   evtrack evaluate --benchmark bench --weights-dir onnx --backend onnxruntime
   evtrack evaluate --benchmark bench --out bench-mesh --mesh-only
+  evtrack simulate-benchmark --out multi --multi-object two four
+  evtrack evaluate --benchmark multi --oracle-where-missing --jobs 2
 """
 
 
@@ -190,6 +192,8 @@ def run(args: argparse.Namespace) -> int:
     sequences = find_sequences(args.benchmark)
     require_ground_truth(sequences)
     require_one_split(sequences)
+    if any(s.objects for s in sequences):
+        return _run_multi_object(args, spec, base, sequences)
     objects = [s.object_name for s in sequences]
     if args.mesh_only:
         weights: dict = {}
@@ -205,6 +209,55 @@ def run(args: argparse.Namespace) -> int:
             "--benchmark": args.benchmark, "--weights-dir": args.weights_dir,
             "--config": args.config}):
         return _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out)
+
+
+def _run_multi_object(args: argparse.Namespace, spec, base, sequences) -> int:
+    """``evaluate`` on sequences with several objects (see the description)."""
+    from evtrack.eval.benchmark import MESH_ONLY_RUNS, run_specs
+    from evtrack.eval.multi_object import (
+        MULTI_OUTPUT_NAMES,
+        evaluate_multi_object,
+        write_multi_object_report,
+    )
+    from evtrack.eval.pose_setup import pose_caption, resolve_weights
+    from evtrack.utils import output_folder
+
+    single = [s.name for s in sequences if not s.objects]
+    if single:
+        raise ConfigError(f"the benchmark mixes one-object sequences {single[:3]} with "
+                          "several-object ones; evaluate them in separate runs")
+    for option, given in (("--ablation", args.ablation), ("--video", args.video)):
+        if given:
+            raise ConfigError(f"{option} is for one-object sequences; the multi-object "
+                              "evaluation compares each object together and alone")
+    if args.mesh_only:
+        _check_mesh_only(args)
+        runs = [MESH_ONLY_RUNS[0]]
+        weights: dict = {}
+        caption = ("no pose network: poses from each object's mesh alone (pose_source: "
+                   "model), from the ground truth's first pose")
+    else:
+        runs = run_specs(args.methods or ("full",))
+        objects = sorted({name for s in sequences for name in s.objects})
+        weights = resolve_weights(spec, objects)
+        caption = pose_caption(spec, weights, objects)
+    bench = args.benchmark.resolve()
+    out = args.out or bench.parent / f"{bench.name}-results"
+    with output_folder(out, MULTI_OUTPUT_NAMES, args.overwrite, inputs={
+            "--benchmark": args.benchmark, "--weights-dir": args.weights_dir,
+            "--config": args.config}):
+        print(f"evaluating {len(sequences)} multi-object sequence(s) x {len(runs)} run(s), "
+              f"each object together and alone; pose source: {caption}")
+        results, timings = evaluate_multi_object(
+            sequences, runs, base, spec, weights, out, jobs=args.jobs,
+            torch_threads=args.threads, progress=not args.quiet)
+        markdown = write_multi_object_report(
+            results, timings, out, caption,
+            {"benchmark": str(args.benchmark), "tracker_config": base.to_dict()})
+    print()
+    print(markdown)
+    print(f"wrote {out}/: multi_object.md, multi_object.csv, multi_object.yaml, trajectories/")
+    return 0
 
 
 def _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out: Path) -> int:

@@ -49,12 +49,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             "folder with ground-truth poses, twists and per-event optical flow."
         ),
     )
-    p.add_argument("--object", required=True,
+    p.add_argument("--object", required=True, action="append", metavar="OBJECT",
                    help="a procedural object (no download): coded_box (the one the shipped "
                         "demo network knows), box, can or bottle; a YCB name such as "
                         "003_cracker_box; a mesh file (glTF/GLB/OBJ/PLY, metres); or a BOP "
                         "model, in millimetres and scaled to metres: a file obj_000005.ply "
-                        "beside a models_info.json, or bop:MODELS_DIR:5")
+                        "beside a models_info.json, or bop:MODELS_DIR:5. Repeat it for "
+                        "several objects in one sequence (each on its own trajectory, the "
+                        "first is the sequence's object; see --layout)")
+    p.add_argument("--layout", choices=("crossing", "apart"), default=None,
+                   help="with several objects: 'crossing' (default), each in its own depth "
+                        "band over the whole image, so that they pass in front of one "
+                        "another; 'apart', each in its own cell of the image, none occluding "
+                        "another")
     p.add_argument("--speed", choices=("regular", "faster"), default=None,
                    help="trajectory preset (default: regular, or the config's)")
     p.add_argument("--seed", type=int, default=None,
@@ -109,6 +116,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     b.add_argument("--replicates", type=int, nargs="+", default=None, metavar="k",
                    help="only these replicates (0-based seed indices) of the split, e.g. to "
                         "simulate a split in parts; needs --split")
+    b.add_argument("--multi-object", nargs="+", choices=("two", "four"), default=None,
+                   metavar="SET",
+                   help="instead, the multi-object sets: 'two' (cracker box + tomato soup "
+                        "can, mustard bottle + potted meat can) and/or 'four' (all four in one "
+                        "stream), each in the 'apart' layout (no occlusion) and the "
+                        "'crossing' layout (they pass in front of one another), for each "
+                        "--presets (default: regular); in OUT/<set>/<objects>_<layout>_"
+                        "<preset>/, evaluated per object by 'evtrack evaluate'")
     b.add_argument("--velocity-only", action="store_true",
                    help="only write the pixel-velocity report (velocity_cdf.png, summary.yaml) "
                         "from the trajectories, without rendering (seconds instead of minutes)")
@@ -148,6 +163,9 @@ def build_config(args: argparse.Namespace):
     cfg = dataclasses.replace(cfg, **changes)
     if getattr(args, "speed", None) is not None:
         cfg = preset_config(cfg, args.speed)
+    if getattr(args, "layout", None) is not None:
+        cfg = dataclasses.replace(cfg, trajectory=dataclasses.replace(cfg.trajectory,
+                                                                      layout=args.layout))
     return cfg
 
 
@@ -166,11 +184,21 @@ def run_simulate(args: argparse.Namespace) -> int:
     _check_device(cfg.events.device)
     if args.out.exists() and not args.overwrite:
         raise EvtrackError(f"{args.out} exists; pass --overwrite to replace it")
-    obj = resolve_object(args.object, seed=args.object_seed, ycb_dir=args.ycb_dir)
-    stats = simulate(obj, cfg, args.out, overwrite=args.overwrite, progress=not args.quiet)
+    objects = [resolve_object(spec, seed=args.object_seed, ycb_dir=args.ycb_dir)
+               for spec in args.object]
+    names = [o.name for o in objects]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"--object: each object must be another one, got {names}")
+    if args.layout is not None and len(objects) == 1:
+        raise ConfigError("--layout places several objects; give --object more than once")
+    stats = simulate(objects if len(objects) > 1 else objects[0], cfg, args.out,
+                     overwrite=args.overwrite, progress=not args.quiet)
     speed = stats.pixel_speed
     print(f"wrote {args.out}: {stats.num_events} events, {stats.num_rgb} RGB-D frames, "
           f"{stats.num_renders} renders in {stats.timings['total']:.1f} s")
+    if len(objects) > 1:
+        print(f"objects: {', '.join(names)} (layout {cfg.trajectory.layout}); the pixel "
+              f"speed is {names[0]}'s")
     print(f"object pixel speed (px/s): median {speed['p50']:.0f}, p90 {speed['p90']:.0f}, "
           f"p99 {speed['p99']:.0f}")
     return 0
@@ -255,12 +283,38 @@ def _selected_entries(args: argparse.Namespace) -> list:
     return entries
 
 
+def _run_multi_object_sets(args: argparse.Namespace, cfg) -> int:
+    from evtrack.sim.multi_object_set import make_multi_object_set
+
+    clashes = {"--objects": args.objects, "--preset-speeds": args.preset_speeds,
+               "--split": args.split, "--seeds": args.seeds, "--replicates": args.replicates,
+               "--velocity-only": args.velocity_only}
+    for option, given in clashes.items():
+        if given:
+            raise ConfigError(f"--multi-object makes the fixed multi-object sets; {option} "
+                              "does not apply")
+    try:
+        summary = make_multi_object_set(args.out, cfg, sets=args.multi_object,
+                                        presets=args.presets or ("regular",),
+                                        ycb_dir=args.ycb_dir, overwrite=args.overwrite,
+                                        progress=not args.quiet)
+    except FileExistsError as exc:
+        raise EvtrackError(f"{exc} (use --overwrite)") from None
+    for name, row in summary["sequences"].items():
+        print(f"{name:56s} {row['events']:>10d} events {row['rgb_frames']:>4d} frames "
+              f"{row['seconds']:6.1f} s")
+    print(f"wrote {args.out}/summary.yaml")
+    return 0
+
+
 def run_benchmark(args: argparse.Namespace) -> int:
     from evtrack.sim.benchmark_set import make_benchmark_set, velocity_report
 
     cfg = build_config(args)
     speeds = parse_preset_speeds(args.preset_speeds)
     _check_device(cfg.events.device)
+    if args.multi_object:
+        return _run_multi_object_sets(args, cfg)
     entries = _selected_entries(args)
     if args.velocity_only:
         summary = velocity_report(args.out, cfg, ycb_dir=args.ycb_dir, entries=entries,

@@ -42,6 +42,8 @@ class BenchmarkSequence:
         speed: ``"regular"``, ``"faster"``, another preset name, or ``""`` when unknown.
         split: ``"tuning"``, ``"test"``, or ``""`` outside the held-out protocol.
         replicate: the seed's index within its object and preset in the split, or ``None``.
+        objects: the names of all its objects when it has several (``meta.yaml``
+            ``objects``), else empty.
     """
 
     path: Path
@@ -50,6 +52,7 @@ class BenchmarkSequence:
     speed: str
     split: str = ""
     replicate: int | None = None
+    objects: tuple[str, ...] = ()
 
     @property
     def file_stem(self) -> str:
@@ -132,7 +135,8 @@ def find_sequences(root: str | Path) -> list[BenchmarkSequence]:
         seq = Sequence.load(folder)
         name = folder.name if folder == root else folder.relative_to(root).as_posix()
         out.append(BenchmarkSequence(folder, name, seq.meta.object_name or "?",
-                                     speed_label(seq), *split_label(seq)))
+                                     speed_label(seq), *split_label(seq),
+                                     objects=tuple(o.name for o in seq.meta.objects)))
     return sorted(out, key=_sort_key)
 
 

@@ -315,11 +315,9 @@ class MultiTracker:
     def push_frame(self, t_us: int, rgb: Any = None, depth: Any = None) -> None:
         """Hand an RGB-D frame to every object's tracker (see :meth:`Tracker.push_frame`).
 
-        A depth frame is read once (a callable is called here) and shared."""
-        if callable(rgb):
-            rgb = rgb()
-        if callable(depth):
-            depth = depth()
+        A frame given as a callable is read when the first tracker needs it, once, and
+        shared."""
+        rgb, depth = _read_once(rgb), _read_once(depth)
         if self._origin is None:
             self._start(int(t_us))
         for tracker in self.trackers.values():
@@ -361,6 +359,20 @@ class MultiTracker:
     def method(self) -> str:
         """The method of the first object's tracker (the progress bar's label)."""
         return f"{self.trackers[self.names[0]].method} x{len(self.objects)}"
+
+
+def _read_once(frame: Any) -> Any:
+    """A callable frame wrapped so that it is read at most once (the trackers share it)."""
+    if not callable(frame):
+        return frame
+    cache: list[Any] = []
+
+    def read() -> Any:
+        if not cache:
+            cache.append(frame())
+        return cache[0]
+
+    return read
 
 
 def _contested(events: Events, masks: list[ObjectMask], owner: np.ndarray, margin: float,

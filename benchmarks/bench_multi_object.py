@@ -1,0 +1,127 @@
+"""What tracking several objects from one stream costs, against one object at the same number
+of events.
+
+    python benchmarks/bench_multi_object.py --multi SEQ [SEQ ...] --single SEQ [SEQ ...]
+        [--threads N] [--repeats R]
+
+* ``--multi``: sequences with several objects (``evtrack simulate-benchmark --multi-object``):
+  every object tracked by one :class:`evtrack.tracking.multi.MultiTracker`;
+* ``--single``: one-object sequences (e.g. the fixed benchmark set): one
+  :class:`evtrack.Tracker` each.
+
+Every run uses the oracle pose source (ground truth + noise, the ``evaluate --oracle``
+settings) so that the rows measure the tracker and not a pose network (a network costs one
+call per object and frame on top). For each multi-object sequence the reference is the
+one-object sequence whose event count is nearest, its time scaled to the multi-object
+sequence's events (``t_1 x E_multi / E_1``): the ratio ``t_multi / that`` is the cost of
+tracking K objects against one at the same total number of events. All runs happen in this
+process, one after the other, each the best of ``--repeats``, with ``--threads`` torch threads
+(default 1). The line above the table names the date, the CPU and the commit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import subprocess
+import time
+from pathlib import Path
+
+import torch
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True, cwd=Path(__file__).parent).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def _cpu() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor() or "unknown CPU"
+
+
+def _oracle(gt, seed: int):
+    from evtrack.tracking.pose_sources import OraclePoseSource
+
+    return OraclePoseSource(gt.pose_at, std_translation=0.01, std_rotation=0.03, seed=seed)
+
+
+def time_single(path: Path, repeats: int) -> tuple[float, int, float]:
+    """(best seconds, events, duration s) of one tracker on a one-object sequence."""
+    from evtrack import Sequence
+    from evtrack.tracking.tracker import Tracker
+
+    seq = Sequence.load(path)
+    best = float("inf")
+    for _ in range(repeats):
+        tracker = Tracker.for_sequence(seq, None, _oracle(seq.ground_truth, 0))
+        t0 = time.perf_counter()
+        tracker.track(seq)
+        best = min(best, time.perf_counter() - t0)
+    duration = (int(seq.ground_truth.pose_t_us[-1]) - int(seq.ground_truth.pose_t_us[0])) * 1e-6
+    return best, tracker.stats.events, duration
+
+
+def time_multi(path: Path, repeats: int) -> tuple[float, int, int, float]:
+    """(best seconds, events, objects, duration s) of a multi-object tracker."""
+    from evtrack import Sequence
+    from evtrack.tracking.multi import MultiTracker
+
+    seq = Sequence.load(path)
+    best = float("inf")
+    for _ in range(repeats):
+        sources = {o.name: _oracle(seq.object_ground_truth(k), k)
+                   for k, o in enumerate(seq.objects)}
+        multi = MultiTracker.for_sequence(seq, None, sources)
+        t0 = time.perf_counter()
+        multi.track(seq)
+        best = min(best, time.perf_counter() - t0)
+    gt = seq.ground_truth
+    duration = (int(gt.pose_t_us[-1]) - int(gt.pose_t_us[0])) * 1e-6
+    return best, multi.stats.events, len(seq.objects), duration
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--multi", type=Path, nargs="+", required=True, metavar="SEQ",
+                        help="sequences with several objects")
+    parser.add_argument("--single", type=Path, nargs="+", required=True, metavar="SEQ",
+                        help="one-object sequences (the references)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="runs per sequence, the best is kept (default 1)")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"# bench_multi_object.py, {datetime.date.today()}, {_cpu()}, commit {_commit()}, "
+          f"{args.threads} torch thread(s), oracle poses")
+    singles = []
+    for path in args.single:
+        seconds, events, duration = time_single(path, args.repeats)
+        singles.append((path.name, seconds, events, duration))
+        print(f"one object  {path.name:44s} {events:>10d} events {duration:5.2f} s stream "
+              f"{seconds:7.2f} s  {1e6 * seconds / max(events, 1):6.2f} us/event")
+    print()
+    print("| multi-object sequence | objects | events | time (s) | reference (one object) | "
+          "its events | its time scaled (s) | ratio |")
+    print("|:--|--:|--:|--:|:--|--:|--:|--:|")
+    for path in args.multi:
+        seconds, events, objects, _ = time_multi(path, args.repeats)
+        name, s1, e1, _ = min(singles, key=lambda s: abs(s[2] - events))
+        scaled = s1 * events / max(e1, 1)
+        print(f"| {path.parent.name}/{path.name} | {objects} | {events} | {seconds:.2f} | "
+              f"{name} | {e1} | {scaled:.2f} | {seconds / scaled:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
