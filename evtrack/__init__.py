@@ -24,6 +24,7 @@ from evtrack.errors import (
 from evtrack.events import Events, EventsValidationReport, concatenate
 from evtrack.sequence import Sequence
 from evtrack.tracking.config import TrackerConfig
+from evtrack.tracking.multi import MultiTracker, TrackedObject
 from evtrack.tracking.tracker import Tracker, TrackerStats
 from evtrack.tracking.trajectory import Trajectory
 
@@ -36,10 +37,12 @@ __all__ = [
     "EventsError",
     "EventsValidationReport",
     "EvtrackError",
+    "MultiTracker",
     "PinholeCamera",
     "Sequence",
     "Tracker",
     "TrackerConfig",
+    "TrackedObject",
     "TrackerStats",
     "Trajectory",
     "UnknownFormatError",

@@ -9,8 +9,9 @@ renders, like the single-object set.
   can;
 * ``four``: all four objects.
 
-Sequence ``<out>/<set>/<objects>_<layout>_<preset>/``; seed ``7000 + 100 s + 10 g + l`` for
-set ``s``, group ``g`` and layout ``l``, none shared with the single-object seeds (1000-5999).
+Sequence ``<out>/<set>/<objects>_<layout>_<preset>/``; seed ``9000 + 1000 p + 100 s + 10 g + l``
+for preset ``p``, set ``s``, group ``g`` and layout ``l``, none shared with the single-object
+seeds (the splits stay below 9000).
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ MULTI_OBJECT_SETS: dict[str, tuple[tuple[str, ...], ...]] = {
 
 LAYOUTS = ("apart", "crossing")
 
-_SEED_BASE = 7000
+_SEED_BASE = 9000
 
 
 @dataclass(frozen=True)

@@ -178,6 +178,8 @@ class MultiTracker:
                               f"{list(self.trackers)})")
         for obj in self.objects:
             pose = start_poses.get(obj.name, obj.start_pose)
+            if pose is not None and t_us is None:
+                raise ConfigError(f"object {obj.name!r} has a start pose: give its time t_us")
             self.trackers[obj.name].reset(pose, t_us if pose is not None else None)
         self.stats = AssignmentStats(per_object={o.name: 0 for o in self.objects})
         self._reset_stream()
@@ -340,8 +342,11 @@ class MultiTracker:
         order, as :meth:`Tracker.track` does for one).
 
         Args:
-            start_poses: (4, 4) start poses by object name, at ``start_t_us`` (the stream
-                starts there); objects without one wait for their pose source.
+            start_poses: (4, 4) start poses by object name (else the objects'
+                :attr:`TrackedObject.start_pose`), at ``start_t_us``; objects without one wait
+                for their pose source.
+            start_t_us: the stream starts there (its earlier events and frames are left
+                out); ``None``: at its start.
 
         Returns:
             each object's :class:`~evtrack.tracking.trajectory.Trajectory`, by name.
@@ -351,8 +356,7 @@ class MultiTracker:
         if start_poses and start_t_us is None:
             raise ConfigError("MultiTracker.track: start_poses need start_t_us")
         self.reset(start_t_us, start_poses)
-        push_sequence(self, sequence, None, progress,
-                      None if not start_poses else start_t_us)
+        push_sequence(self, sequence, None, progress, start_t_us)
         return self.trajectories()
 
     @property

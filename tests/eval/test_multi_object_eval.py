@@ -1,0 +1,115 @@
+"""Several objects end to end: ``evtrack simulate --object A --object B``, the multi-object
+sets, and ``evtrack evaluate`` per object (together and alone)."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import yaml
+from eval_helpers import TINY_TRACKER_YAML
+
+from evtrack import Sequence
+from evtrack.cli import main
+from evtrack.eval.metrics import tracking_errors
+from evtrack.eval.multi_object import occluded_share
+from evtrack.sim.benchmark_set import BENCHMARK_SEEDS, MAX_SEEDS, split_seed
+from evtrack.sim.multi_object_set import MULTI_OBJECT_SETS, multi_object_entries
+from evtrack.tracking.trajectory import Trajectory
+
+
+@pytest.fixture(scope="module")
+def two_object_bench(tmp_path_factory):
+    bench = tmp_path_factory.mktemp("multi") / "bench"
+    for layout in ("apart", "crossing"):
+        args = ["simulate", "--object", "box", "--object", "can", "--layout", layout,
+                "--duration", "0.4", "--seed", "3", "--width", "128", "--height", "96",
+                "--out", str(bench / layout), "--quiet"]
+        assert main(args) == 0
+    cfg = bench.parent / "tracker.yaml"
+    cfg.write_text(TINY_TRACKER_YAML)
+    return bench, cfg
+
+
+@pytest.fixture(scope="module")
+def evaluated(two_object_bench):
+    bench, cfg = two_object_bench
+    out = bench.parent / "results"
+    assert main(["evaluate", "--benchmark", str(bench), "--oracle", "--config", str(cfg),
+                 "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_simulate_writes_several_objects(two_object_bench) -> None:
+    bench, _ = two_object_bench
+    seq = Sequence.load(bench / "apart")
+    assert [o.name for o in seq.objects] == ["box", "can"]
+    assert seq.meta.extra["config"]["trajectory"]["layout"] == "apart"
+    assert set(np.unique(seq.ground_truth.event_object.numpy())) >= {0, 1}
+
+
+def test_simulate_refuses_a_repeated_object_and_a_lone_layout(tmp_path, capsys) -> None:
+    base = ["simulate", "--duration", "0.02", "--width", "32", "--out", str(tmp_path / "x")]
+    assert main(base + ["--object", "box", "--object", "box"]) == 1
+    assert "each object must be another one" in capsys.readouterr().err
+    assert main(base + ["--object", "box", "--layout", "apart"]) == 1
+    assert "give --object more than once" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_evaluate_reports_each_object_together_and_alone(evaluated, two_object_bench) -> None:
+    bench, _ = two_object_bench
+    out = evaluated
+    rows = list(csv.DictReader((out / "multi_object.csv").open()))
+    assert {(r["sequence"], r["object"]) for r in rows} == {
+        (s, o) for s in ("apart", "crossing") for o in ("box", "can")}
+    for r in rows:
+        seq = Sequence.load(bench / r["sequence"])
+        k = [o.name for o in seq.objects].index(r["object"])
+        for mode in ("together", "alone"):
+            traj = Trajectory.load(out / "trajectories" / r["sequence"] /
+                                   f"full-{r['object']}-{mode}.h5")
+            ref = tracking_errors(traj, seq.object_ground_truth(k))
+            assert float(r[f"{mode}_cm"]) == pytest.approx(ref.position_rmse_cm, abs=1e-3)
+            assert float(r[f"{mode}_deg"]) == pytest.approx(ref.rotation_rmse_deg, abs=1e-3)
+    text = (out / "multi_object.md").read_text()
+    assert "ORACLE" in text and "Averages per set and layout" in text
+    assert "| 2 objects | apart | full | 2 |" in text
+    manifest = yaml.safe_load((out / "multi_object.yaml").read_text())
+    assert len(manifest["timings"]) == 2 and len(manifest["objects"]) == 4
+
+
+def test_evaluate_refuses_a_mixed_benchmark_and_single_object_options(
+        two_object_bench, tiny_benchmark, tmp_path, capsys) -> None:
+    import shutil
+
+    bench, cfg = two_object_bench
+    mixed = tmp_path / "mixed"
+    shutil.copytree(bench / "apart", mixed / "apart")
+    shutil.copytree(tiny_benchmark / "box_regular", mixed / "box_regular")
+    assert main(["evaluate", "--benchmark", str(mixed), "--oracle", "--quiet"]) == 1
+    assert "mixes one-object sequences" in capsys.readouterr().err
+    assert main(["evaluate", "--benchmark", str(bench), "--oracle", "--ablation",
+                 "--out", str(tmp_path / "r"), "--quiet"]) == 1
+    assert "--ablation is for one-object sequences" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
+def test_occlusion_is_zero_apart_and_on_the_far_object_when_crossing(two_object_bench) -> None:
+    bench, _ = two_object_bench
+    assert occluded_share(Sequence.load(bench / "apart")) == [0.0, 0.0]
+    near, far = occluded_share(Sequence.load(bench / "crossing"))
+    assert near == 0.0 and far >= 0.0  # object 0 has the nearest depth band
+
+
+def test_multi_object_sets_have_their_own_seeds() -> None:
+    entries = multi_object_entries(("two", "four"), ("regular", "faster"))
+    seeds = [e.seed for e in entries]
+    assert len(set(seeds)) == len(seeds) == 2 * 2 * (len(MULTI_OBJECT_SETS["two"]) + 1)
+    single = set(BENCHMARK_SEEDS.values()) | {
+        split_seed(s, i, j, k) for s in ("tuning", "test") for i in range(4) for j in range(2)
+        for k in range(MAX_SEEDS)}
+    assert not set(seeds) & single
+    assert len({e.folder_name for e in entries}) == len(entries)
+    assert entries[0].folder_name == "two/cracker_box+tomato_soup_can_apart_regular"
