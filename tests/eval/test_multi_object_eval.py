@@ -113,3 +113,33 @@ def test_multi_object_sets_have_their_own_seeds() -> None:
     assert not set(seeds) & single
     assert len({e.folder_name for e in entries}) == len(entries)
     assert entries[0].folder_name == "two/cracker_box+tomato_soup_can_apart_regular"
+
+
+@pytest.mark.parametrize("options", [["--oracle"], ["--mesh-only", "--start-from-ground-truth"]])
+def test_track_writes_one_trajectory_per_object(two_object_bench, tmp_path, capsys,
+                                                options) -> None:
+    bench, cfg = two_object_bench
+    out = tmp_path / "track.h5"
+    assert main(["track", str(bench / "apart"), "--config", str(cfg), "--out", str(out),
+                 "--quiet", *options]) == 0
+    printed = capsys.readouterr().out
+    seq = Sequence.load(bench / "apart")
+    for k, name in enumerate(("box", "can")):
+        traj = Trajectory.load(tmp_path / f"track_{name}.h5")
+        assert bool(traj.tracked.any()) and f"track_{name}.h5" in printed
+        err = tracking_errors(traj, seq.object_ground_truth(k))
+        assert err.position_rmse_cm < 5.0
+    assert "2 objects" in printed and not out.exists()
+
+
+def test_track_refuses_one_object_options_on_several(two_object_bench, tmp_path,
+                                                     capsys) -> None:
+    bench, _ = two_object_bench
+    out = tmp_path / "t.csv"
+    assert main(["track", str(bench / "apart"), "--weights", "w.pt", "--out", str(out)]) == 1
+    assert "--weights is for one object" in capsys.readouterr().err
+    assert main(["track", str(bench / "apart"), "--mesh-only", "--start-pose",
+                 "--out", str(out)]) == 1
+    assert "--start-pose is for one object" in capsys.readouterr().err
+    assert main(["track", str(bench / "apart"), "--mesh-only", "--out", str(out)]) == 1
+    assert "needs --start-from-ground-truth" in capsys.readouterr().err
