@@ -4,8 +4,9 @@ Two layouts (``TrajectoryConfig.layout``):
 
 * ``"crossing"``: the depth range ``z_range`` is cut into one band per object, object 0 the
   nearest, with a gap between neighbouring bands of the sum of the two objects' radii, so that
-  two objects never intersect; each moves over the whole image, and a nearer object passes in
-  front of a farther one whenever their paths cross in the image.
+  two objects never intersect; every object's centre moves in the middle half of the image
+  (:func:`crossing_region`), and a nearer object passes in front of a farther one whenever
+  their paths cross.
 * ``"apart"``: the image is cut into a grid of ``ceil(sqrt(K))`` columns and as many rows as
   needed, one cell per object in reading order; each object's whole bounding sphere stays in
   its cell (``view_margin`` 1), so that no object occludes another. The near end of an
@@ -29,7 +30,7 @@ from evtrack.errors import ConfigError
 from evtrack.sim.config import TrajectoryConfig
 from evtrack.sim.trajectory import Trajectory, random_trajectory
 
-__all__ = ["object_trajectories", "depth_bands", "grid_cells"]
+__all__ = ["object_trajectories", "depth_bands", "grid_cells", "crossing_region"]
 
 
 def depth_bands(z_range: tuple[float, float], radii: Sequence[float]
@@ -53,6 +54,16 @@ def depth_bands(z_range: tuple[float, float], radii: Sequence[float]
         bands.append((lo, lo + width))
         lo += width + (gaps[k] if k < len(gaps) else 0.0)
     return bands
+
+
+def crossing_region(camera: PinholeCamera) -> tuple[float, float, float, float]:
+    """The pixel rectangle ``(u_lo, u_hi, v_lo, v_hi)`` the objects' centres share in the
+    ``crossing`` layout: the middle half of the image in each direction, so that their paths
+    cross. Over 20 seeds of 2 s at 640x480, the farther object of a YCB pair was hidden on
+    average 30-60 % of its silhouette and behind the nearer one in every seed (over the whole
+    image, in 55-60 % of the seeds)."""
+    w, h = camera.width - 1.0, camera.height - 1.0
+    return 0.25 * w, 0.75 * w, 0.25 * h, 0.75 * h
 
 
 def grid_cells(camera: PinholeCamera, count: int) -> list[tuple[float, float, float, float]]:
@@ -85,8 +96,9 @@ def object_trajectories(duration: float, camera: PinholeCamera, radii: Sequence[
     if len(radii) == 1:
         return [random_trajectory(duration, camera, radii[0], config, seed=seeds[0])]
     if config.layout == "crossing":
+        region = crossing_region(camera)
         return [random_trajectory(duration, camera, r, dataclasses.replace(config, z_range=band),
-                                  seed=s)
+                                  seed=s, region=region)
                 for r, band, s in zip(radii, depth_bands(config.z_range, radii), seeds,
                                       strict=True)]
     out = []

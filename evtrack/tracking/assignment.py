@@ -4,6 +4,14 @@ Each object has a predicted silhouette (a convex polygon, grown by a margin) and
 origin's camera ``z``). An event inside one object's polygon is that object's; inside several,
 the nearest object's (it occludes the others there); inside none, nobody's. The rule is
 applied per pixel, so it is the same however the events are split into packets.
+
+The nearer object also keeps the pixels in its margin that lie inside a farther object's
+silhouette: its edge events land there whenever its prediction is a few pixels off. Giving
+such pixels to the farther object instead (the nearest object whose silhouette itself holds
+the pixel) gave the occluded object twice its own events in a simulated crossing (a can
+passing in front of a turning box, 160x120, oracle poses), but ten times as many of the
+can's (6.0k against 0.6k): 86 % of the assigned events went to their object, against 94 %
+with this rule.
 """
 
 from __future__ import annotations

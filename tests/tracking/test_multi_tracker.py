@@ -66,6 +66,10 @@ def test_the_nearer_object_owns_an_overlap() -> None:
     assert assign_events(x, y, [far, near], 0.0, SIZE).tolist() == [0, 1, 1, NO_OBJECT]
     assert assign_events(x, y, [ObjectMask(None, 0.1), far], 0.0, SIZE).tolist() == [
         1, 1, NO_OBJECT, NO_OBJECT]
+    # within the margin of the nearer one, inside the farther one: still the nearer one's
+    right = ObjectMask(SilhouettePolygon(square + [45.0, 0.0], (1, 1), 1.0), 0.5)
+    x, y = np.array([48, 54, 30]), np.array([30, 30, 30])
+    assert assign_events(x, y, [far, right], 8.0, SIZE).tolist() == [1, 1, 0]
 
 
 # ---------------------------------------------------------------------------- the tracker
