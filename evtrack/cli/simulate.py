@@ -118,8 +118,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "simulate a split in parts; needs --split")
     b.add_argument("--multi-object", nargs="+", choices=("two", "four"), default=None,
                    metavar="SET",
-                   help="instead, the multi-object sets: 'two' (cracker box + tomato soup "
-                        "can, mustard bottle + potted meat can) and/or 'four' (all four in one "
+                   help="instead, the multi-object sets: 'two' (tomato soup can + cracker "
+                        "box, potted meat can + mustard bottle) and/or 'four' (all four in one "
                         "stream), each in the 'apart' layout (no occlusion) and the "
                         "'crossing' layout (they pass in front of one another), for each "
                         "--presets (default: regular); in OUT/<set>/<objects>_<layout>_"

@@ -112,7 +112,7 @@ def test_multi_object_sets_have_their_own_seeds() -> None:
         for k in range(MAX_SEEDS)}
     assert not set(seeds) & single
     assert len({e.folder_name for e in entries}) == len(entries)
-    assert entries[0].folder_name == "two/cracker_box+tomato_soup_can_apart_regular"
+    assert entries[0].folder_name == "two/tomato_soup_can+cracker_box_apart_regular"
 
 
 @pytest.mark.parametrize("options", [["--oracle"], ["--mesh-only", "--start-from-ground-truth"]])
