@@ -10,7 +10,9 @@ For every multi-object sequence and method:
   events are in it: its event gate drops those outside its mask), the same pose source seed;
 * **occluded**: the share of the object's silhouette covered by nearer objects' silhouettes
   at the true poses, averaged over the sequence every 10 ms (convex silhouettes: an upper
-  bound of the true occlusion).
+  bound of the true occlusion);
+* **visible / hidden**: the together run's errors over the samples where the object was
+  visible (under 5 % hidden) and where it was hidden (at least 25 %): what occlusion costs.
 
 The errors are those of :func:`~evtrack.eval.metrics.tracking_errors` (RMSE over the tracked
 samples). The tables give per object ``together / alone`` and their ratio, averaged per
@@ -34,7 +36,8 @@ from evtrack.eval.sequences import BenchmarkSequence
 from evtrack.tracking.config import TrackerConfig
 from evtrack.utils import atomic_write_text
 
-__all__ = ["ObjectResult", "SequenceTiming", "MULTI_OUTPUT_NAMES", "occluded_share",
+__all__ = ["ObjectResult", "SequenceTiming", "MULTI_OUTPUT_NAMES", "VISIBLE_BELOW",
+           "HIDDEN_FROM", "occlusion_timeline", "occluded_share", "errors_by_occlusion",
            "evaluate_multi_object", "multi_object_tables", "write_multi_object_report"]
 
 MULTI_OUTPUT_NAMES = ("multi_object.md", "multi_object.csv", "multi_object.yaml",
@@ -42,6 +45,12 @@ MULTI_OUTPUT_NAMES = ("multi_object.md", "multi_object.csv", "multi_object.yaml"
 """What a multi-object evaluation writes into its results folder."""
 
 _OCCLUSION_STEP_US = 10_000
+
+VISIBLE_BELOW = 0.05
+"""A sample counts as visible while less than this share of the object is hidden."""
+
+HIDDEN_FROM = 0.25
+"""A sample counts as hidden while at least this share of the object is hidden."""
 
 
 @dataclass
@@ -56,6 +65,8 @@ class ObjectResult:
     together: TrackingErrors
     alone: TrackingErrors
     occluded: float
+    visible: TrackingErrors | None = None
+    hidden: TrackingErrors | None = None
 
 
 @dataclass
@@ -70,9 +81,14 @@ class SequenceTiming:
     alone_s: float
 
 
-def occluded_share(sequence, step_us: int = _OCCLUSION_STEP_US) -> list[float]:
-    """Per object of ``sequence``, the mean share of its silhouette (at the true pose) covered
-    by nearer objects' silhouettes, every ``step_us`` over the ground truth's time span."""
+def occlusion_timeline(sequence, step_us: int = _OCCLUSION_STEP_US
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """The share of each object's silhouette (at the true pose) covered by nearer objects'
+    silhouettes, every ``step_us`` over the ground truth's time span.
+
+    Returns:
+        ``(t_us (T,), shares (K, T))``, shares in [0, 1].
+    """
     import cv2
 
     from evtrack.tracking.silhouette import Silhouette
@@ -83,10 +99,10 @@ def occluded_share(sequence, step_us: int = _OCCLUSION_STEP_US) -> list[float]:
     sils = [Silhouette(load_mesh(sequence.object_mesh_file(k))[1], cam)
             for k in range(len(gts))]
     t0, t1 = int(gts[0].pose_t_us[0]), int(gts[0].pose_t_us[-1])
-    shares = np.zeros(len(gts))
-    times = range(t0, t1 + 1, step_us)
-    for t in times:
-        poses = [gt.pose_at(t).numpy() for gt in gts]
+    times = np.arange(t0, t1 + 1, step_us, dtype=np.int64)
+    shares = np.zeros((len(gts), len(times)))
+    for i, t in enumerate(times):
+        poses = [gt.pose_at(int(t)).numpy() for gt in gts]
         polys = [s.polygon(p) for s, p in zip(sils, poses, strict=True)]
         for k, poly in enumerate(polys):
             if poly is None or len(poly.vertices) < 3:
@@ -102,8 +118,47 @@ def occluded_share(sequence, step_us: int = _OCCLUSION_STEP_US) -> list[float]:
                 if poses[j][2, 3] < poses[k][2, 3]:
                     inter, _ = cv2.intersectConvexConvex(own, other.vertices.astype(np.float32))
                     covered += inter
-            shares[k] += min(covered / area, 1.0)
-    return (shares / max(len(times), 1)).tolist()
+            shares[k, i] = min(covered / area, 1.0)
+    return times, shares
+
+
+def occluded_share(sequence, step_us: int = _OCCLUSION_STEP_US) -> list[float]:
+    """Per object, the mean of :func:`occlusion_timeline`'s shares over the sequence."""
+    _, shares = occlusion_timeline(sequence, step_us)
+    return shares.mean(axis=1).tolist()
+
+
+def errors_by_occlusion(trajectory, ground_truth, times: np.ndarray, shares: np.ndarray
+                        ) -> tuple[TrackingErrors, TrackingErrors]:
+    """A trajectory's errors over its samples while the object was visible (under
+    :data:`VISIBLE_BELOW` of it hidden) and while it was hidden (at least
+    :data:`HIDDEN_FROM`), each sample taking the occlusion of the nearest timeline time (the
+    earlier on a tie).
+
+    Args:
+        times, shares: one object's :func:`occlusion_timeline` (``shares`` (T,)).
+    """
+    import torch
+
+    from evtrack.eval.metrics import error_summary, position_errors, rotation_errors
+
+    t = trajectory.t_us.numpy()
+    use = (trajectory.tracked & torch.isfinite(trajectory.poses).flatten(1).all(1)).numpy()
+    near = np.clip(np.searchsorted(times, t), 0, len(times) - 1)
+    left = np.clip(near - 1, 0, len(times) - 1)
+    near = np.where(np.abs(times[left] - t) <= np.abs(times[near] - t), left, near)
+    share = shares[near]
+    out = []
+    for part in (share < VISIBLE_BELOW, share >= HIDDEN_FROM):
+        pick = torch.from_numpy(use & part)
+        if not bool(pick.any()):
+            out.append(error_summary(torch.zeros(0), torch.zeros(0), int(part.sum())))
+            continue
+        est = trajectory.poses[pick]
+        true = torch.as_tensor(ground_truth.pose_at(trajectory.t_us[pick]), dtype=torch.float64)
+        out.append(error_summary(position_errors(est, true), rotation_errors(est, true),
+                                 int(part.sum())))
+    return out[0], out[1]
 
 
 def _sources(spec: PoseSourceSpec, cfg: TrackerConfig, views: list, weights: dict[str, Path]):
@@ -145,7 +200,7 @@ def evaluate_sequence(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerC
         zip(names, starts, strict=True)), start_t_us=t0)
     together_s = time.perf_counter() - clock
     alone_s = 0.0
-    occluded = occluded_share(seq)
+    times, shares = occlusion_timeline(seq)
     results = []
     for k, (name, view, source) in enumerate(zip(names, views, _sources(pose, cfg, views,
                                                                           weights),
@@ -158,10 +213,13 @@ def evaluate_sequence(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerC
             traj.meta.update({"sequence": sequence.name, "run": spec.name, "object": name,
                               "mode": mode})
             traj.save(folder / f"{spec.name}-{name}-{mode}.h5")
+        visible, hidden = errors_by_occlusion(together[name], view.ground_truth, times,
+                                              shares[k])
         results.append(ObjectResult(
             sequence.name, _set_name(seq), _layout(seq), name, spec.name,
             tracking_errors(together[name], view.ground_truth),
-            tracking_errors(alone, view.ground_truth), float(occluded[k])))
+            tracking_errors(alone, view.ground_truth), float(shares[k].mean()), visible,
+            hidden))
     timing = SequenceTiming(sequence.name, spec.name, len(names), multi.stats.events,
                             together_s, alone_s)
     return results, timing
@@ -232,7 +290,9 @@ def evaluate_multi_object(sequences: list[BenchmarkSequence], runs: list[RunSpec
     return results, [timing for _, timing in out]
 
 
-def _pair(e: TrackingErrors) -> str:
+def _pair(e: TrackingErrors | None) -> str:
+    if e is None or not e.samples:
+        return "—"
     return f"{e.position_rmse_cm:.2f} / {e.rotation_rmse_deg:.2f}"
 
 
@@ -240,20 +300,42 @@ def _ratio(a: float, b: float) -> str:
     return f"{a / b:.2f}" if b > 0 and np.isfinite(a) and np.isfinite(b) else "—"
 
 
+def _mean_pair(errors: list[TrackingErrors | None]) -> str:
+    """Mean RMSE over the objects with samples, ``(n)`` of them when not all."""
+    have = [e for e in errors if e is not None and e.samples]
+    if not have:
+        return "—"
+    p = float(np.mean([e.position_rmse_cm for e in have]))
+    r = float(np.mean([e.rotation_rmse_deg for e in have]))
+    some = f" ({len(have)})" if len(have) < len(errors) else ""
+    return f"{p:.2f} / {r:.2f}{some}"
+
+
+def _csv_pair(e: TrackingErrors | None) -> list[str]:
+    if e is None or not e.samples:
+        return ["", ""]
+    return [f"{e.position_rmse_cm:.4f}", f"{e.rotation_rmse_deg:.4f}"]
+
+
 def multi_object_tables(results: list[ObjectResult], timings: list[SequenceTiming]) -> str:
     """The report in Markdown: per object, averages per set and layout, timings."""
     lines = ["## Per object (RMSE cm / deg)", "",
-             "| sequence | run | object | together | alone | ratio (pos / rot) | occluded |",
-             "|:--|:--|:--|--:|--:|--:|--:|"]
+             f"'occluded': the mean share of the object hidden by nearer ones; 'visible' and "
+             f"'hidden': the together run's error over the samples where under "
+             f"{100 * VISIBLE_BELOW:.0f} % and at least {100 * HIDDEN_FROM:.0f} % of it was "
+             "hidden ('—': no such sample).", "",
+             "| sequence | run | object | together | alone | ratio (pos / rot) | occluded | "
+             "visible | hidden |",
+             "|:--|:--|:--|--:|--:|--:|--:|--:|--:|"]
     for r in results:
         lines.append(
             f"| {r.sequence} | {r.run} | {r.object_name} | {_pair(r.together)} | "
             f"{_pair(r.alone)} | {_ratio(r.together.position_rmse_cm, r.alone.position_rmse_cm)}"
             f" / {_ratio(r.together.rotation_rmse_deg, r.alone.rotation_rmse_deg)} | "
-            f"{100 * r.occluded:.1f} % |")
+            f"{100 * r.occluded:.1f} % | {_pair(r.visible)} | {_pair(r.hidden)} |")
     lines += ["", "## Averages per set and layout (RMSE cm / deg, mean over objects)", "",
               "| set | layout | run | objects | together | alone | ratio (pos / rot) | "
-              "occluded |", "|:--|:--|:--|--:|--:|--:|--:|--:|"]
+              "occluded | visible | hidden |", "|:--|:--|:--|--:|--:|--:|--:|--:|--:|--:|"]
     groups: dict[tuple[str, str, str], list[ObjectResult]] = {}
     for r in results:
         groups.setdefault((r.set_name, r.layout, r.run), []).append(r)
@@ -267,7 +349,8 @@ def multi_object_tables(results: list[ObjectResult], timings: list[SequenceTimin
         occ = float(np.mean([r.occluded for r in rows]))
         lines.append(f"| {set_name} | {layout} | {run} | {len(rows)} | {tp:.2f} / {tr:.2f} | "
                      f"{ap:.2f} / {ar:.2f} | {_ratio(tp, ap)} / {_ratio(tr, ar)} | "
-                     f"{100 * occ:.1f} % |")
+                     f"{100 * occ:.1f} % | {_mean_pair([r.visible for r in rows])} | "
+                     f"{_mean_pair([r.hidden for r in rows])} |")
     lines += ["", "## Processing time (s of wall time)", "",
               "| sequence | run | objects | events | together | alone (sum) | ratio |",
               "|:--|:--|--:|--:|--:|--:|--:|"]
@@ -294,19 +377,23 @@ def write_multi_object_report(results: list[ObjectResult], timings: list[Sequenc
     writer = csv.writer(buf)
     writer.writerow(["sequence", "set", "layout", "run", "object", "together_cm",
                      "together_deg", "alone_cm", "alone_deg", "together_tracked",
-                     "alone_tracked", "occluded"])
+                     "alone_tracked", "occluded", "visible_cm", "visible_deg", "hidden_cm",
+                     "hidden_deg"])
     for r in results:
         writer.writerow([r.sequence, r.set_name, r.layout, r.run, r.object_name,
                          f"{r.together.position_rmse_cm:.4f}",
                          f"{r.together.rotation_rmse_deg:.4f}",
                          f"{r.alone.position_rmse_cm:.4f}", f"{r.alone.rotation_rmse_deg:.4f}",
                          f"{r.together.tracked_fraction:.4f}", f"{r.alone.tracked_fraction:.4f}",
-                         f"{r.occluded:.4f}"])
+                         f"{r.occluded:.4f}", *_csv_pair(r.visible), *_csv_pair(r.hidden)])
     atomic_write_text(out_dir / "multi_object.csv", buf.getvalue())
     manifest = {**info, "caption": caption,
                 "objects": [{"sequence": r.sequence, "run": r.run, "object": r.object_name,
                              "together": r.together.to_dict(), "alone": r.alone.to_dict(),
-                             "occluded": r.occluded} for r in results],
+                             "occluded": r.occluded,
+                             "visible": None if r.visible is None else r.visible.to_dict(),
+                             "hidden": None if r.hidden is None else r.hidden.to_dict()}
+                            for r in results],
                 "timings": [vars(t) for t in timings]}
     atomic_write_text(out_dir / "multi_object.yaml", yaml.safe_dump(manifest, sort_keys=False))
     return markdown

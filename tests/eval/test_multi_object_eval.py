@@ -7,13 +7,19 @@ import csv
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from eval_helpers import TINY_TRACKER_YAML
 
 from evtrack import Sequence
 from evtrack.cli import main
 from evtrack.eval.metrics import tracking_errors
-from evtrack.eval.multi_object import occluded_share
+from evtrack.eval.multi_object import (
+    HIDDEN_FROM,
+    VISIBLE_BELOW,
+    occluded_share,
+    occlusion_timeline,
+)
 from evtrack.sim.benchmark_set import BENCHMARK_SEEDS, MAX_SEEDS, split_seed
 from evtrack.sim.multi_object_set import MULTI_OBJECT_SETS, multi_object_entries
 from evtrack.tracking.trajectory import Trajectory
@@ -73,6 +79,23 @@ def test_evaluate_reports_each_object_together_and_alone(evaluated, two_object_b
             ref = tracking_errors(traj, seq.object_ground_truth(k))
             assert float(r[f"{mode}_cm"]) == pytest.approx(ref.position_rmse_cm, abs=1e-3)
             assert float(r[f"{mode}_deg"]) == pytest.approx(ref.rotation_rmse_deg, abs=1e-3)
+    # visible / hidden: the together run's errors over the samples under 5 % / from 25 % hidden
+    for r in rows:
+        seq = Sequence.load(bench / r["sequence"])
+        k = [o.name for o in seq.objects].index(r["object"])
+        times, shares = occlusion_timeline(seq)
+        traj = Trajectory.load(out / "trajectories" / r["sequence"] /
+                               f"full-{r['object']}-together.h5")
+        t = traj.t_us.numpy()
+        share = shares[k][np.abs(t[:, None] - times[None, :]).argmin(axis=1)]
+        for key, part in (("visible", share < VISIBLE_BELOW), ("hidden", share >= HIDDEN_FROM)):
+            if not (part & traj.tracked.numpy()).any():
+                assert r[f"{key}_cm"] == ""
+                continue
+            ref = tracking_errors(traj[torch.from_numpy(part)], seq.object_ground_truth(k))
+            assert float(r[f"{key}_cm"]) == pytest.approx(ref.position_rmse_cm, abs=1e-3)
+            assert float(r[f"{key}_deg"]) == pytest.approx(ref.rotation_rmse_deg, abs=1e-3)
+    assert any(r["hidden_cm"] for r in rows)  # the crossing hides an object at times
     text = (out / "multi_object.md").read_text()
     assert "ORACLE" in text and "Averages per set and layout" in text
     assert "| 2 objects | apart | full | 2 |" in text
