@@ -213,6 +213,10 @@ class Renderer:
         self._static_dirty = True
 
     def _drawable(self, mesh: ObjectMesh, sign: float, pose, lit: bool) -> _Drawable:
+        with self.ctx:
+            return self._make_drawable(mesh, sign, pose, lit)
+
+    def _make_drawable(self, mesh: ObjectMesh, sign: float, pose, lit: bool) -> _Drawable:
         mgl = self._moderngl
         data = np.hstack([mesh.vertices, mesh.normals, mesh.uv, mesh.colors]).astype("f4")
         vbo = self.ctx.buffer(data.tobytes())
@@ -239,8 +243,9 @@ class Renderer:
         the poses passed to :meth:`render_raw`)."""
         if not meshes:
             raise ConfigError("Renderer.set_objects: give at least one mesh")
-        for d in self._objects:
-            self._release(d)
+        with self.ctx:
+            for d in self._objects:
+                self._release(d)
         self._objects = [self._drawable(m, 1.0, None, True) for m in meshes]
         for k, d in enumerate(self._objects):
             d.label = float(k + 1)
@@ -272,7 +277,14 @@ class Renderer:
         object-to-camera transform of the tracked object, or with several objects
         (:meth:`set_objects`) a list of one per object, or a (K, 4, 4) array (``None``: draw
         the static scene only). :meth:`labels` then gives which object each pixel shows.
+
+        The renderer's GL context is made current for the call (and the one current before
+        restored), so that several renderers can live in one thread.
         """
+        with self.ctx:
+            return self._render_raw(pose)
+
+    def _render_raw(self, pose: np.ndarray | list[np.ndarray] | None) -> np.ndarray:
         mgl = self._moderngl
         if self._static_dirty:
             self._static_fbo.use()
@@ -303,7 +315,8 @@ class Renderer:
     def labels(self) -> np.ndarray:
         """(H, W) int16 object label of the last render: ``k + 1`` where tracked object ``k``
         shows, 0 elsewhere (static scene, nothing)."""
-        self.fbo.read_into(self._label_buffer, components=1, attachment=1, dtype="f4")
+        with self.ctx:
+            self.fbo.read_into(self._label_buffer, components=1, attachment=1, dtype="f4")
         return np.rint(self._label_buffer).astype(np.int16)
 
     def render(self, pose: np.ndarray | None) -> RenderOutput:
@@ -323,13 +336,14 @@ class Renderer:
         """Free the GL objects and the context (also done by ``with``)."""
         if self.ctx is None:
             return
-        for d in self._static + self._objects:
-            self._release(d)
-        self._static, self._objects = [], []
-        for obj in (self.fbo, self._color, self._label, self._depth, self._static_fbo,
-                    self._static_color, self._static_label, self._static_depth):
-            obj.release()
-        self.program.release()
+        with self.ctx:
+            for d in self._static + self._objects:
+                self._release(d)
+            self._static, self._objects = [], []
+            for obj in (self.fbo, self._color, self._label, self._depth, self._static_fbo,
+                        self._static_color, self._static_label, self._static_depth):
+                obj.release()
+            self.program.release()
         self.ctx.release()
         self.ctx = None
 

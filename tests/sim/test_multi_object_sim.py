@@ -219,3 +219,21 @@ def test_bad_objects_in_meta_are_named(objects_field, message) -> None:
     data["objects"] = objects_field
     with pytest.raises(ConfigError, match=message):
         SequenceMeta.from_dict(data, "seq/meta.yaml")
+
+
+def test_two_renderers_in_one_thread_each_draw_their_own(objects) -> None:
+    """Each call makes its renderer's GL context current: interleaved renderers (one per
+    tracked object's appearance alignment) give what each gives alone."""
+    cam = _config().camera.camera()
+    pose = _pose([0.0, 0.0, 0.5])
+    with Renderer(cam) as first:
+        first.set_object(objects[0])
+        alone = first.render_raw(pose).copy()
+        with Renderer(cam) as second:
+            second.set_object(objects[1])
+            other = second.render_raw(pose).copy()
+            again = first.render_raw(pose).copy()
+            assert np.array_equal(again, alone)
+            assert np.array_equal(second.render_raw(pose), other)
+            assert not np.array_equal(alone, other)
+        assert np.array_equal(first.render_raw(pose), alone)
