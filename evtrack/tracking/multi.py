@@ -351,13 +351,43 @@ class MultiTracker:
         Returns:
             each object's :class:`~evtrack.tracking.trajectory.Trajectory`, by name.
         """
+        from contextlib import ExitStack
+
         from evtrack.tracking.offline import push_sequence
+        from evtrack.utils import threads_per_job
 
         if start_poses and start_t_us is None:
             raise ConfigError("MultiTracker.track: start_poses need start_t_us")
-        self.reset(start_t_us, start_poses)
-        push_sequence(self, sequence, None, progress, start_t_us)
-        return self.trajectories()
+        trackers = list(self.trackers.values())
+        threads = torch.get_num_threads()
+        if self.config.torch_threads > 0:
+            torch.set_num_threads(threads_per_job(self.config.torch_threads))
+        for tracker in trackers:  # each object's pose source in its tracker's worker
+            tracker.pose_calls.in_worker = tracker.config.pose_async
+        try:
+            with ExitStack() as stack:
+                for tracker in trackers:
+                    stack.enter_context(tracker._blas)
+                self.reset(start_t_us, start_poses)
+                push_sequence(self, sequence, self._shared_depth_preparation(), progress,
+                              start_t_us)
+                return self.trajectories()
+        finally:
+            for tracker in trackers:
+                tracker.pose_calls.in_worker = False
+            torch.set_num_threads(threads)
+
+    def _shared_depth_preparation(self):
+        """The sensor depth's frame preparation when every object's tracker reads the depth
+        frames the same way (same cameras): each depth frame is then carried into the event
+        camera once, ahead, in the reader thread, and the map shared; else ``None``."""
+        sources = [t.roi_depth.source for t in self.trackers.values()]
+        if not all(t.roi_depth.sensor for t in self.trackers.values()):
+            return None
+        first = sources[0]
+        same = all(s.camera == first.camera and s.rgb_camera == first.rgb_camera
+                   and np.array_equal(s.T_event_rgb, first.T_event_rgb) for s in sources)
+        return first.prepare if same else None
 
     @property
     def method(self) -> str:
