@@ -272,7 +272,8 @@ class AppearanceRefiner:
 
     # ------------------------------------------------------------------ the fit
     def refine(self, pose: np.ndarray | torch.Tensor, rgb: np.ndarray,
-               translation_std_m: float | None = None) -> AppearanceResult:
+               translation_std_m: float | None = None,
+               ignore: np.ndarray | None = None) -> AppearanceResult:
         """Refine one object-to-camera pose on an RGB frame.
 
         Args:
@@ -283,6 +284,8 @@ class AppearanceRefiner:
                 image tells it (e.g. from a depth fit: an image sees the distance along the
                 viewing ray poorly, and the fit may slide along it). ``None``: no prior. The
                 returned information holds the image's part alone.
+            ignore: (H, W) bool, pixels of the frame to leave out (e.g. where another object
+                hides this one); ``None``: none.
 
         Raises:
             ValueError: a pose that is not a finite (4, 4) matrix, or a frame of another size.
@@ -293,6 +296,11 @@ class AppearanceRefiner:
             raise ValueError(f"appearance refinement: pose must be a finite (4, 4) matrix, got "
                              f"shape {T0.shape}")
         frame = self._checked_frame(rgb)
+        if ignore is not None:
+            ignore = np.asarray(ignore, bool)
+            if ignore.shape != frame.shape[:2]:
+                raise ValueError(f"appearance refinement: ignore must be {frame.shape[:2]}, "
+                                 f"got {ignore.shape}")
         cfg = self.config
         if T0[2, 3] <= 0:
             return AppearanceResult(T0, False, refusal="not visible",
@@ -306,7 +314,8 @@ class AppearanceRefiner:
         try:
             for k in range(cfg.renders):
                 levels = cfg.levels if k == 0 else cfg.levels[-1:]
-                T, pixels, corr, scale, info = self._fit_render(T, frame, levels, anchor)
+                T, pixels, corr, scale, info = self._fit_render(T, frame, levels, anchor,
+                                                                ignore)
         except _Refused as refused:
             return AppearanceResult(T0, False, refusal=refused.refusal, reason=refused.reason)
         turned = math.degrees(_rotation_angle(T[:3, :3] @ T0[:3, :3].T))
@@ -324,7 +333,8 @@ class AppearanceRefiner:
         return AppearanceResult(T, True, pixels, corr, scale, info)
 
     def _fit_render(self, T: np.ndarray, frame: np.ndarray, levels: tuple[float, ...],
-                    anchor: tuple[np.ndarray, float] | None = None):
+                    anchor: tuple[np.ndarray, float] | None = None,
+                    ignore: np.ndarray | None = None):
         """Render at ``T`` and fit at the blurs ``levels`` in turn: ``(pose, pixels,
         correlation, scale, information)``.
 
@@ -334,6 +344,8 @@ class AppearanceRefiner:
         cfg = self.config
         out = self._renderer().render(T)
         mask = np.asarray(out.mask, bool)
+        if ignore is not None:  # away from the ignored pixels as from the silhouette's rim
+            mask = mask & ~ignore
         if int(mask.sum()) < cfg.min_pixels:
             raise _Refused("not visible", f"the mesh at the pose covers {int(mask.sum())} "
                                           f"pixels of the image (min_pixels {cfg.min_pixels})")

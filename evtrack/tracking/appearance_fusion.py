@@ -19,6 +19,7 @@ from evtrack.camera import PinholeCamera
 from evtrack.models.appearance_refine import AppearanceRefineConfig, AppearanceRefiner
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.inputs import RgbFrame
+from evtrack.tracking.occlusion import Occluders
 from evtrack.tracking.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.tracking.stats import StageTimer, TrackerStats, count_reason
 
@@ -61,6 +62,10 @@ class AppearanceFusion:
         self.config = config
         self.timeline = timeline
         self.past_pose = past_pose
+        self.rgb_camera = rgb_camera
+        self.occluders: Callable[[], Occluders] = Occluders
+        """The nearer tracked objects whose pixels the alignment leaves out (set by the
+        tracker; none by default)."""
         self.T_event_rgb = np.asarray(T_event_rgb, np.float64)
         self.T_rgb_event = np.linalg.inv(self.T_event_rgb)
         a = config.appearance
@@ -92,7 +97,10 @@ class AppearanceFusion:
             if T_ev is None:
                 return
             self.last_alignment_us = frame.t_us
-            res = self.refiner.refine(self.T_rgb_event @ T_ev, frame.image())
+            occluders = self.occluders()
+            hidden = (occluders.mask(frame.t_us, self.rgb_camera, self.T_rgb_event)
+                      if occluders else None)
+            res = self.refiner.refine(self.T_rgb_event @ T_ev, frame.image(), ignore=hidden)
             if not res.refined:
                 count_reason(self.stats.appearance_alignments_skipped, res.refusal)
                 return

@@ -31,6 +31,7 @@ from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.depth_range import DepthRange
 from evtrack.tracking.inputs import DepthFrame
+from evtrack.tracking.occlusion import Occluders
 from evtrack.tracking.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.tracking.stats import StageTimer, TrackerStats, count_reason
 
@@ -82,6 +83,10 @@ class DepthFusion:
         self.config = config
         self.timeline = timeline
         self.past_pose = past_pose
+        self.depth_camera = depth_camera
+        self.occluders: Callable[[], Occluders] = Occluders
+        """The nearer tracked objects whose pixels the alignment leaves out (set by the
+        tracker; none by default)."""
         self.T_depth_event = T_depth_event
         self.T_event_depth = np.linalg.inv(T_depth_event)
         self.stats = TrackerStats()
@@ -145,7 +150,12 @@ class DepthFusion:
                 return
             self.last_alignment_us = frame.t_us
             T_d = self.T_depth_event @ T_ev
-            res = self.depth_icp.refine(T_d, frame.depth, self._K, self._dist)
+            depth = frame.depth
+            occluders = self.occluders()
+            if occluders:  # the nearer objects' pixels hold their depth, not this object's
+                hidden = occluders.mask(frame.t_us, self.depth_camera, self.T_depth_event)
+                depth = np.where(hidden, np.nan, depth).astype(frame.depth.dtype, copy=False)
+            res = self.depth_icp.refine(T_d, depth, self._K, self._dist)
             if not res.refined:
                 count_reason(self.stats.depth_alignments_skipped, res.refusal)
                 return

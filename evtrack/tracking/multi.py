@@ -40,6 +40,7 @@ from evtrack.events import Events
 from evtrack.tracking.assignment import NO_OBJECT, ObjectMask, assign_events
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.event_gate import moved_pose
+from evtrack.tracking.occlusion import Occluder, Occluders
 from evtrack.tracking.pose_sources import PoseSource
 from evtrack.tracking.tracker import Tracker
 from evtrack.tracking.trajectory import Trajectory
@@ -165,6 +166,8 @@ class MultiTracker:
         self._masks: list[ObjectMask] = []
         self._last_event_us: int | None = None
         self._horizon: int | None = None     # the latest time declared by advance()
+        for tracker in getattr(self, "trackers", {}).values():
+            tracker.occluders = Occluders()
 
     def reset(self, t_us: int | None = None,
               start_poses: Mapping[str, np.ndarray] | None = None) -> None:
@@ -257,30 +260,41 @@ class MultiTracker:
             events, t = events[k:], t[k:]
 
     def _open(self, window: int) -> None:
-        """Advance every tracker to the window's start and predict the silhouettes over it."""
+        """Advance every tracker to the window's start, predict the silhouettes over it, and
+        tell each tracker the nearer objects its frame alignments leave out."""
         start = self._origin + window * self.window_us
         self._window = window
         self.stats.windows += 1
         self._masks = []
+        motions: list[Occluder | None] = []
         for tracker in self.trackers.values():
             if tracker.now_us is None or tracker.now_us < start:
                 tracker.advance(start)
-            self._masks.append(self._predicted_mask(tracker, start))
+            mask, motion = self._predicted_mask(tracker, start)
+            self._masks.append(mask)
+            motions.append(motion)
+        for k, tracker in enumerate(self.trackers.values()):
+            nearer = (o for j, o in enumerate(motions) if o is not None and j != k
+                      and (self._masks[j].depth, j) < (self._masks[k].depth, k))
+            tracker.occluders = Occluders(tuple(nearer))
 
-    def _predicted_mask(self, tracker: Tracker, start: int) -> ObjectMask:
-        """The tracker's silhouette swept over ``[start, start + window)`` and its depth."""
+    def _predicted_mask(self, tracker: Tracker, start: int
+                        ) -> tuple[ObjectMask, Occluder | None]:
+        """The tracker's silhouette swept over ``[start, start + window)`` and its depth,
+        and its predicted motion over the window (as an occluder of farther objects)."""
         pose = tracker.pose()
         if not np.isfinite(pose).all() or not tracker.initialized:
-            return ObjectMask(None, np.inf)
+            return ObjectMask(None, np.inf), None
         twist = tracker.twist()
         now = tracker.now_us if tracker.now_us is not None else start
         if now != start and np.isfinite(twist).all():
             pose = moved_pose(pose, twist, (start - now) * 1e-6)
         poly = tracker.silhouette.polygon(pose)
         if poly is None:
-            return ObjectMask(None, np.inf)
+            return ObjectMask(None, np.inf), None
         swept = tracker.gate.swept_mask(poly, pose, self.window_us, twist)
-        return ObjectMask(swept, float(pose[2, 3]))
+        return (ObjectMask(swept, float(pose[2, 3])),
+                Occluder(pose, np.asarray(twist, np.float64), start, tracker.silhouette.points))
 
     def _dispatch(self, events: Events) -> None:
         """Assign one window's events and push each tracker its share."""

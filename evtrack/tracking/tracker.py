@@ -88,6 +88,7 @@ from evtrack.tracking.inputs import (
 )
 from evtrack.tracking.load_control import LoadController
 from evtrack.tracking.motion import MotionContext, MotionServices, motion_source_class
+from evtrack.tracking.occlusion import Occluders
 from evtrack.tracking.offline import push_sequence
 from evtrack.tracking.outputs import TrackOutputs, ViewCheck, extrapolated, quat_to_matrix
 from evtrack.tracking.pose_calls import PoseCaller
@@ -199,6 +200,12 @@ class Tracker:
                                               self._past_pose)
         self.appearance = make_appearance_fusion(cfg, self.motion, self.mesh, self.rgb_camera,
                                                  self.T_event_rgb, self.timeline, self._past_pose)
+        self.occluders = Occluders()
+        """Nearer tracked objects whose pixels the frame alignments leave out; set by
+        :class:`~evtrack.tracking.multi.MultiTracker` per window, none otherwise."""
+        for fusion in (self.depth_fusion, self.appearance):
+            if fusion is not None:
+                fusion.occluders = lambda: self.occluders
         self._blas = BlasThreads(cfg.blas_threads)
         self.gate = EventGate(camera, self.silhouette, cfg.mask_margin_px, cfg.burst_rate_hz,
                               cfg.flow.roi_size, make_denoiser(cfg, self.motion, camera),
