@@ -221,3 +221,31 @@ def test_bad_input_is_named(box) -> None:
         AppearanceRefineConfig(levels=())
     with pytest.raises(ConfigError, match="min_correlation"):
         AppearanceRefineConfig(min_correlation=2.0)
+
+
+def test_ignored_pixels_are_left_out(gl, box) -> None:
+    """A flat grey patch (another object in front) over half the box: the fit that leaves the
+    patch's pixels out recovers the pose; every pixel ignored leaves nothing to fit."""
+    frame = frame_of(box, BOX_POSE).copy()
+    from evtrack.sim.renderer import Renderer
+
+    with Renderer(CAM) as r:
+        r.set_object(box)
+        drawn = r.render(BOX_POSE).mask
+    rows, cols = np.nonzero(drawn)
+    cover = np.zeros_like(drawn)
+    cover[:, : int(np.median(cols))] = True
+    frame[cover] = 200  # the occluder's flat surface
+    prior = turned(BOX_POSE, [0.3, 1.0, 0.2], 6.0, shift=(0.004, 0.0, 0.0))
+    refiner = AppearanceRefiner(box, CAM)
+    res = refiner.refine(prior, frame, ignore=cover)
+    assert res.refined, res.reason
+    assert angle_deg(res.pose, BOX_POSE) < 1.0
+    assert np.linalg.norm(res.pose[:3, 3] - BOX_POSE[:3, 3]) < 0.005
+    blind = refiner.refine(prior, frame)  # the patch taken for the box: no good fit
+    assert not blind.refined or angle_deg(blind.pose, BOX_POSE) > 2.0
+    everything = np.ones_like(drawn)
+    res = refiner.refine(prior, frame, ignore=everything)
+    assert not res.refined and res.refusal == "not visible"
+    with pytest.raises(ValueError, match="ignore must be"):
+        refiner.refine(prior, frame, ignore=np.zeros((10, 10), bool))
