@@ -59,9 +59,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "first is the sequence's object; see --layout)")
     p.add_argument("--layout", choices=("crossing", "apart"), default=None,
                    help="with several objects: 'crossing' (default), each in its own depth "
-                        "band over the whole image, so that they pass in front of one "
-                        "another; 'apart', each in its own cell of the image, none occluding "
-                        "another")
+                        "band, all moving about the middle of the image, so that they pass in "
+                        "front of one another; 'apart', each in its own cell of the image, "
+                        "none occluding another")
     p.add_argument("--speed", choices=("regular", "faster"), default=None,
                    help="trajectory preset (default: regular, or the config's)")
     p.add_argument("--seed", type=int, default=None,

@@ -158,10 +158,10 @@ class TrajectoryConfig(Config):
         duration_jitter: segment durations are scaled by a uniform factor in
             ``[1 - jitter, 1 + jitter]``.
         layout: how several objects share the view (:mod:`evtrack.sim.layout`):
-            ``"crossing"``, each in its own depth band over the whole image, so that they
-            pass in front of one another; ``"apart"``, each in its own cell of the image with
-            its whole bounding sphere inside, so that none occludes another. One object
-            ignores it.
+            ``"crossing"``, each in its own depth band, all moving about the middle of the
+            image, so that they pass in front of one another; ``"apart"``, each in its own
+            cell of the image with its whole bounding sphere inside, so that none occludes
+            another. One object ignores it.
     """
 
     preset: TrajectoryPreset = "regular"
