@@ -25,21 +25,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=True, cwd=Path(__file__).parent).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def _angle_deg(A: np.ndarray, B: np.ndarray) -> float:
@@ -129,12 +120,12 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=12,
                         help="frames per sequence for the per-call costs (default 12)")
     args = parser.parse_args()
-    from bench_tracker import cpu_model
+    from bench_tracker import cpu_model, short_commit
 
     from evtrack import Sequence
 
     torch.set_num_threads(args.threads)
-    print(f"{datetime.date.today()}, {cpu_model()}, commit {_commit()}, {args.threads} torch "
+    print(f"{datetime.date.today()}, {cpu_model()}, commit {short_commit()}, {args.threads} torch "
           f"thread(s)")
     print()
     print("| sequence | what | ms per call (median / p90), or the run | result |")

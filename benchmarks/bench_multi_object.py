@@ -23,31 +23,10 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import subprocess
 import time
 from pathlib import Path
 
 import torch
-
-
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                              text=True, check=True, cwd=Path(__file__).parent).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _cpu() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    import platform
-
-    return platform.processor() or "unknown CPU"
 
 
 def _oracle(gt, seed: int):
@@ -102,8 +81,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1,
                         help="runs per sequence, the best is kept (default 1)")
     args = parser.parse_args()
+    from bench_tracker import cpu_model, short_commit
+
     torch.set_num_threads(args.threads)
-    print(f"# bench_multi_object.py, {datetime.date.today()}, {_cpu()}, commit {_commit()}, "
+    print(f"# bench_multi_object.py, {datetime.date.today()}, {cpu_model()}, commit "
+          f"{short_commit()}, "
           f"{args.threads} torch thread(s), oracle poses")
     singles = []
     for path in args.single:

@@ -384,6 +384,15 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def short_commit() -> str:
+    """The checkout's short commit hash, for a table's heading ("unknown" outside git)."""
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, check=True, cwd=Path(__file__).parent).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
 def run_order(codes: list[str], index: int) -> list[str]:
     """The order of the trees in the ``index``-th round: reversed every other round."""
     return list(codes) if index % 2 == 0 else list(reversed(codes))
