@@ -15,7 +15,13 @@ filters). The multi-object tracker sits in front of them and shares the stream o
 * **Dispatch.** Each tracker receives its own events and those of nobody (its event gate drops
   the latter as it would alone, and its burst detection still sees the background); the
   events owned by another object never reach it. The counts are in :attr:`stats`.
-* **Frames** go to every tracker (each calls its own pose source on them).
+* **Frames** go to every tracker (each calls its own pose source on them); a frame is read
+  once and shared.
+* **Occlusion in the frames.** Each tracker is told the objects nearer than its own at the
+  window's start, with their predicted motion (:attr:`Tracker.occluders
+  <evtrack.tracking.tracker.Tracker.occluders>`): its depth and appearance alignments
+  (``pose_source: model``, ``depth_fusion.icp``, ``appearance``) leave out the pixels those
+  objects' convex silhouettes cover.
 
 The windows are fixed by the clock, and each window's silhouettes are computed from trackers
 that have seen exactly the stream before the window's start, so the trajectories do not depend
@@ -166,7 +172,7 @@ class MultiTracker:
         self._masks: list[ObjectMask] = []
         self._last_event_us: int | None = None
         self._horizon: int | None = None     # the latest time declared by advance()
-        for tracker in getattr(self, "trackers", {}).values():
+        for tracker in self.trackers.values():
             tracker.occluders = Occluders()
 
     def reset(self, t_us: int | None = None,
