@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from evtrack.errors import ConfigError
 from evtrack.eval.benchmark import RunSpec
 from evtrack.eval.metrics import TrackingErrors, tracking_errors
 from evtrack.eval.pose_setup import PoseSourceSpec, make_pose_source
@@ -189,6 +190,11 @@ def evaluate_sequence(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerC
     cfg = spec.config(base, torch_threads)
     views = [seq.object_view(k) for k in range(len(seq.objects))]
     names = [o.name for o in seq.objects]
+    missing = [n for n, v in zip(names, views, strict=True) if v.ground_truth is None]
+    if missing:
+        raise ConfigError(f"{sequence.path}: object(s) {missing} have no ground truth "
+                          "(meta.yaml objects[].ground_truth); the evaluation needs every "
+                          "object's")
     starts, t0 = _starts(cfg, views)
     folder = Path(out_dir) / "trajectories" / sequence.file_stem
     multi = MultiTracker([TrackedObject(n, v.mesh_file, s) for n, v, s in zip(

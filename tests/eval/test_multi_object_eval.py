@@ -166,3 +166,18 @@ def test_track_refuses_one_object_options_on_several(two_object_bench, tmp_path,
     assert "--start-pose is for one object" in capsys.readouterr().err
     assert main(["track", str(bench / "apart"), "--mesh-only", "--out", str(out)]) == 1
     assert "needs --start-from-ground-truth" in capsys.readouterr().err
+
+
+def test_evaluate_names_an_object_without_ground_truth(two_object_bench, tmp_path,
+                                                      capsys) -> None:
+    import shutil
+
+    bench, _ = two_object_bench
+    copy = tmp_path / "bench" / "apart"
+    shutil.copytree(bench / "apart", copy)
+    (copy / "objects" / "1" / "groundtruth.h5").unlink()
+    assert main(["evaluate", "--benchmark", str(tmp_path / "bench"), "--oracle",
+                 "--out", str(tmp_path / "r"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "['can'] have no ground truth" in err and "apart" in err
+    assert not (tmp_path / "r").exists()
