@@ -23,7 +23,7 @@ import numpy as np
 
 from evtrack.tracking.silhouette import SilhouettePolygon
 
-__all__ = ["NO_OBJECT", "ObjectMask", "assign_events", "assign_events_reference"]
+__all__ = ["NO_OBJECT", "ObjectMask", "assign_events", "event_claims", "owners"]
 
 NO_OBJECT = -1
 """The owner index of an event on no object."""
@@ -43,74 +43,50 @@ class ObjectMask:
     depth: float
 
 
-def assign_events(x: np.ndarray, y: np.ndarray, masks: Sequence[ObjectMask], margin: float,
-                  size: tuple[int, int]) -> np.ndarray:
-    """The owner of each event: the nearest object whose silhouette, grown by ``margin``,
-    contains the event's pixel.
+def event_claims(x: np.ndarray, y: np.ndarray, masks: Sequence[ObjectMask], margin: float,
+                 size: tuple[int, int]) -> np.ndarray:
+    """Which objects' silhouettes, grown by ``margin``, contain each event's pixel.
 
     Args:
         x, y: (N,) integer pixel coordinates of the events.
-        masks: one per object (index = owner).
+        masks: one per object.
         margin: pixels added around every silhouette.
         size: the image's ``(W, H)``.
+
+    Returns:
+        (K, N) bool, row ``k`` for ``masks[k]`` (all False for a mask without a polygon or
+        depth).
+    """
+    x = np.asarray(x)
+    y = np.asarray(y)
+    claims = np.zeros((len(masks), len(x)), bool)
+    for k, mask in enumerate(masks):
+        if mask.polygon is not None and np.isfinite(mask.depth) and len(x):
+            claims[k] = mask.polygon.contains_pixels(x, y, margin, size)
+    return claims
+
+
+def owners(claims: np.ndarray, masks: Sequence[ObjectMask]) -> np.ndarray:
+    """The owner of each event among the objects that claim it (:func:`event_claims`): the
+    nearest; equal depths go to the lower index.
+
+    Returns:
+        (N,) int64 object index, :data:`NO_OBJECT` where no object claims the event.
+    """
+    if not len(masks):
+        return np.full(claims.shape[1], NO_OBJECT, np.int64)
+    order = np.asarray(sorted(range(len(masks)), key=lambda k: (masks[k].depth, k)))
+    owner = order[np.argmax(claims[order], axis=0)]
+    return np.where(claims.any(axis=0), owner, NO_OBJECT).astype(np.int64)
+
+
+def assign_events(x: np.ndarray, y: np.ndarray, masks: Sequence[ObjectMask], margin: float,
+                  size: tuple[int, int]) -> np.ndarray:
+    """The owner of each event: the nearest object whose silhouette, grown by ``margin``,
+    contains the event's pixel (:func:`owners` of :func:`event_claims`).
 
     Returns:
         (N,) int64 object index, :data:`NO_OBJECT` where no silhouette contains the pixel.
         Equal depths go to the lower index.
     """
-    x = np.asarray(x)
-    y = np.asarray(y)
-    owner = np.full(len(x), NO_OBJECT, np.int64)
-    order = sorted(range(len(masks)), key=lambda k: (masks[k].depth, k))
-    for k in order:  # nearest first: a pixel keeps the first object that claims it
-        mask = masks[k]
-        if mask.polygon is None or not np.isfinite(mask.depth):
-            continue
-        free = owner == NO_OBJECT
-        if not free.any():
-            break
-        idx = np.flatnonzero(free)
-        inside = mask.polygon.contains_pixels(x[idx], y[idx], margin, size)
-        owner[idx[inside]] = k
-    return owner
-
-
-def assign_events_reference(x: np.ndarray, y: np.ndarray, masks: Sequence[ObjectMask],
-                            margin: float) -> np.ndarray:
-    """:func:`assign_events` one event at a time, each object's silhouette tested by its
-    distance to the polygon (a plain reference for the tests)."""
-    owner = np.full(len(x), NO_OBJECT, np.int64)
-    for i in range(len(x)):
-        best, best_depth = NO_OBJECT, np.inf
-        for k, mask in enumerate(masks):
-            if mask.polygon is None or not np.isfinite(mask.depth):
-                continue
-            if _distance_to_convex(mask.polygon.vertices, float(x[i]), float(y[i])) > margin:
-                continue
-            if mask.depth < best_depth:
-                best, best_depth = k, mask.depth
-        owner[i] = best
-    return owner
-
-
-def _distance_to_convex(poly: np.ndarray, px: float, py: float) -> float:
-    """Largest signed distance of ``(px, py)`` outside a convex polygon's edge lines (the
-    tracker's mask test: <= margin means within the grown polygon)."""
-    n = len(poly)
-    if n < 3:
-        lo, hi = poly.min(0), poly.max(0)
-        return max(lo[0] - px, px - hi[0], lo[1] - py, py - hi[1])
-    area2 = sum(poly[i, 0] * poly[(i + 1) % n, 1] - poly[(i + 1) % n, 0] * poly[i, 1]
-                for i in range(n))
-    sign = 1.0 if area2 > 0 else -1.0
-    worst = -np.inf
-    for i in range(n):
-        ax, ay = poly[i]
-        bx, by = poly[(i + 1) % n]
-        ex, ey = bx - ax, by - ay
-        length = (ex * ex + ey * ey) ** 0.5
-        if length == 0:
-            continue
-        nx, ny = sign * ey / length, -sign * ex / length
-        worst = max(worst, nx * (px - ax) + ny * (py - ay))
-    return worst
+    return owners(event_claims(x, y, masks, margin, size), masks)

@@ -43,7 +43,7 @@ import torch
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError, EventsError
 from evtrack.events import Events
-from evtrack.tracking.assignment import NO_OBJECT, ObjectMask, assign_events
+from evtrack.tracking.assignment import NO_OBJECT, ObjectMask, event_claims, owners
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.event_gate import moved_pose
 from evtrack.tracking.occlusion import Occluder, Occluders
@@ -306,13 +306,11 @@ class MultiTracker:
         """Assign one window's events and push each tracker its share."""
         if not len(events):
             return
-        margin = self.config.mask_margin_px
-        owner = assign_events(events.x.numpy(), events.y.numpy(), self._masks, margin,
-                              self.camera.size)
+        claims = event_claims(events.x.numpy(), events.y.numpy(), self._masks,
+                              self.config.mask_margin_px, self.camera.size)
+        owner = owners(claims, self._masks)
         self.stats.unassigned += int((owner == NO_OBJECT).sum())
-        if len(self._masks) > 1:
-            self.stats.contested += _contested(events, self._masks, owner, margin,
-                                               self.camera.size)
+        self.stats.contested += int((claims.sum(axis=0) > 1).sum())
         for k, (name, tracker) in enumerate(self.trackers.items()):
             mine = owner == k
             self.stats.per_object[name] = self.stats.per_object.get(name, 0) + int(mine.sum())
@@ -427,17 +425,3 @@ def _read_once(frame: Any) -> Any:
         return cache[0]
 
     return read
-
-
-def _contested(events: Events, masks: list[ObjectMask], owner: np.ndarray, margin: float,
-               size: tuple[int, int]) -> int:
-    """Events of an owner that also lie in another object's silhouette."""
-    owned = owner != NO_OBJECT
-    if not owned.any():
-        return 0
-    x, y = events.x.numpy()[owned], events.y.numpy()[owned]
-    claims = np.zeros(int(owned.sum()), np.int64)
-    for mask in masks:
-        if mask.polygon is not None and np.isfinite(mask.depth):
-            claims += mask.polygon.contains_pixels(x, y, margin, size)
-    return int((claims > 1).sum())

@@ -15,12 +15,7 @@ from evtrack.eval.metrics import tracking_errors
 from evtrack.events import Events
 from evtrack.sim.engine import simulate
 from evtrack.sim.objects import make_box, make_can
-from evtrack.tracking.assignment import (
-    NO_OBJECT,
-    ObjectMask,
-    assign_events,
-    assign_events_reference,
-)
+from evtrack.tracking.assignment import NO_OBJECT, ObjectMask, assign_events
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.multi import MultiTracker, TrackedObject
 from evtrack.tracking.pose_sources import OraclePoseSource
@@ -38,6 +33,62 @@ def _random_polygon(rng: np.random.Generator) -> SilhouettePolygon:
     if len(points) >= 3:
         points = cv2.convexHull(points.astype(np.float32)).reshape(-1, 2).astype(np.float64)
     return SilhouettePolygon(points, (0.5, 0.6), 1.0)
+
+
+def _distance_to_convex(poly: np.ndarray, px: float, py: float) -> float:
+    """Largest signed distance of ``(px, py)`` outside a convex polygon's edge lines (the
+    mask test: <= margin means within the grown polygon), by a loop over the edges."""
+    n = len(poly)
+    if n < 3:
+        lo, hi = poly.min(0), poly.max(0)
+        return max(lo[0] - px, px - hi[0], lo[1] - py, py - hi[1])
+    area2 = sum(poly[i, 0] * poly[(i + 1) % n, 1] - poly[(i + 1) % n, 0] * poly[i, 1]
+                for i in range(n))
+    sign = 1.0 if area2 > 0 else -1.0
+    worst = -np.inf
+    for i in range(n):
+        ax, ay = poly[i]
+        bx, by = poly[(i + 1) % n]
+        ex, ey = bx - ax, by - ay
+        length = (ex * ex + ey * ey) ** 0.5
+        if length == 0:
+            continue
+        nx, ny = sign * ey / length, -sign * ex / length
+        worst = max(worst, nx * (px - ax) + ny * (py - ay))
+    return worst
+
+
+def assign_events_reference(x: np.ndarray, y: np.ndarray, masks: list[ObjectMask],
+                            margin: float) -> np.ndarray:
+    """The assignment one event at a time: the nearest object (lower index on ties) whose
+    silhouette is within ``margin`` of the pixel."""
+    owner = np.full(len(x), NO_OBJECT, np.int64)
+    for i in range(len(x)):
+        best, best_depth = NO_OBJECT, np.inf
+        for k, mask in enumerate(masks):
+            if mask.polygon is None or not np.isfinite(mask.depth):
+                continue
+            if _distance_to_convex(mask.polygon.vertices, float(x[i]), float(y[i])) > margin:
+                continue
+            if mask.depth < best_depth:
+                best, best_depth = k, mask.depth
+        owner[i] = best
+    return owner
+
+
+def record_owners(multi: MultiTracker) -> list[np.ndarray]:
+    """Wrap the multi-tracker's dispatch: the list fills with each dispatched packet's owners
+    (as the window's masks assign them)."""
+    owners: list[np.ndarray] = []
+    dispatch = multi._dispatch
+
+    def recording(events: Events) -> None:
+        owners.append(assign_events(events.x.numpy(), events.y.numpy(), multi._masks,
+                                    multi.config.mask_margin_px, multi.camera.size))
+        dispatch(events)
+
+    multi._dispatch = recording
+    return owners
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -159,19 +210,8 @@ def test_assigned_events_are_on_their_object(two_objects, offline) -> None:
     seq = two_objects
     multi, _ = offline
     truth = seq.ground_truth.event_object.numpy()
-    got: list[np.ndarray] = []
     replay = _multi(seq)
-    dispatch = replay._dispatch
-
-    def recording(events: Events) -> None:
-        masks = replay._masks
-        from evtrack.tracking.assignment import assign_events as assign
-
-        got.append(assign(events.x.numpy(), events.y.numpy(), masks,
-                          replay.config.mask_margin_px, replay.camera.size))
-        dispatch(events)
-
-    replay._dispatch = recording
+    got = record_owners(replay)
     replay.track(seq)
     owner = np.concatenate(got)
     assert len(owner) == len(truth)
@@ -256,15 +296,7 @@ def test_an_occluding_object_owns_the_overlap(crossing) -> None:
     seq = crossing
     truth = seq.ground_truth.event_object.numpy()
     multi = _multi(seq)
-    owners: list[np.ndarray] = []
-    dispatch = multi._dispatch
-
-    def recording(events: Events) -> None:
-        owners.append(assign_events(events.x.numpy(), events.y.numpy(), multi._masks,
-                                    multi.config.mask_margin_px, multi.camera.size))
-        dispatch(events)
-
-    multi._dispatch = recording
+    owners = record_owners(multi)
     tracks = multi.track(seq)
     owner = np.concatenate(owners)
     assert multi.stats.contested > 500
