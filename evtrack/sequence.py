@@ -34,6 +34,7 @@ from torch import Tensor
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError, EventFileError
 from evtrack.events import Events
+from evtrack.sequence_objects import SequenceObject, parse_objects
 from evtrack.utils import make_public
 
 __all__ = ["SequenceMeta", "SequenceObject", "GroundTruth", "Sequence", "SequenceWriter",
@@ -47,25 +48,6 @@ DEPTH_UNITS = ("mm_png16", "m_float32")
 
 
 # ---------------------------------------------------------------------------- metadata
-@dataclass
-class SequenceObject:
-    """One of several objects of a sequence (``meta.yaml``'s ``objects`` list).
-
-    Attributes:
-        name: the object's name (unique in the sequence).
-        mesh_path: its mesh, relative to the sequence folder or absolute; ``None`` if unknown.
-        ground_truth_path: its ground-truth file (:class:`GroundTruth`), relative or absolute;
-            ``None`` if it has none.
-    """
-
-    name: str
-    mesh_path: str | None = None
-    ground_truth_path: str | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "mesh": self.mesh_path, "ground_truth": self.ground_truth_path}
-
-
 @dataclass
 class SequenceMeta:
     """What ``meta.yaml`` holds.
@@ -169,7 +151,7 @@ class SequenceMeta:
         mesh = obj.get("mesh")
         if mesh is not None and not isinstance(mesh, str):
             raise ConfigError(f"{source}: field 'object.mesh' must be a file path, got {mesh!r}")
-        objects = _parse_objects(data.get("objects"), source)
+        objects = parse_objects(data.get("objects"), source)
         try:
             return cls(
                 objects=objects,
@@ -190,34 +172,6 @@ class SequenceMeta:
             if str(exc).startswith(source):
                 raise
             raise ConfigError(f"{source}: {exc}") from exc
-
-
-def _parse_objects(data: Any, source: str) -> list[SequenceObject]:
-    """``meta.yaml``'s ``objects`` list; errors name the entry and the field."""
-    if data is None:
-        return []
-    if not isinstance(data, list):
-        raise ConfigError(f"{source}: field 'objects' must be a list of mappings with 'name', "
-                          "'mesh' and 'ground_truth'")
-    out = []
-    for k, entry in enumerate(data):
-        if not isinstance(entry, Mapping):
-            raise ConfigError(f"{source}: objects[{k}] must be a mapping")
-        unknown = sorted(set(entry) - {"name", "mesh", "ground_truth"})
-        if unknown:
-            raise ConfigError(f"{source}: objects[{k}] has unknown field(s) {unknown}")
-        name = entry.get("name")
-        if not isinstance(name, str) or not name:
-            raise ConfigError(f"{source}: objects[{k}].name must be a non-empty string")
-        paths = {}
-        for key in ("mesh", "ground_truth"):
-            value = entry.get(key)
-            if value is not None and not isinstance(value, str):
-                raise ConfigError(f"{source}: objects[{k}].{key} must be a file path, got "
-                                  f"{value!r}")
-            paths[key] = value
-        out.append(SequenceObject(name, paths["mesh"], paths["ground_truth"]))
-    return out
 
 
 def _plain(value: Any) -> Any:
