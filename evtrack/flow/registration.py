@@ -83,6 +83,9 @@ class Registration:
         lines: (G,) int64 events that gave a constraint line.
         inliers: (G,) int64 events of the data term that agree with ``full_flow`` (their
             candidate nearest to it lies within ``line_gate * max(|F|, 1)``).
+        line_flow: (G, 2) float32 px/s, the normal flow of the group's lines along their
+            dominant normal (what ``flow`` is where ``normal``); NaN without a line.
+        line_normal: (G, 2) float32 that unit normal; NaN without a line.
     """
 
     flow: Tensor
@@ -94,13 +97,16 @@ class Registration:
     normal_dir: Tensor
     lines: Tensor
     inliers: Tensor
+    line_flow: Tensor
+    line_normal: Tensor
 
 
 def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n_groups: int,
                     max_events: int, max_hypotheses: int, aperture_ratio: float,
                     pair_budget: int, refine: bool = True, line_gate: float = 0.35,
                     refine_iters: int = 5, n_ordinals: int = 1 << 20,
-                    backend: RegistrationBackend | None = None) -> Registration:
+                    backend: RegistrationBackend | None = None,
+                    fit_min_lines: int = 2) -> Registration:
     """Solve Eq. 3 for ``n_groups`` groups at once.
 
     Args:
@@ -126,6 +132,9 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
             Triton (:class:`~evtrack.flow.registration_triton.TritonRegistration`, CUDA)
             backends give the same ``full_flow``, ``cost``, ``used_events``, ``inliers`` and
             ``lines`` bit for bit; ``flow``, ``ratio`` and ``normal_dir`` to float rounding.
+        fit_min_lines: the fewest constraint lines for the aperture test and the refinement
+            (:class:`~evtrack.flow.config.FlowConfig`); a single line has ratio 0, so with 1
+            its group reports that line's normal flow.
 
     Returns:
         The :class:`Registration` of every group.
@@ -141,7 +150,8 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                             normal=torch.zeros(g_count, dtype=torch.bool, device=dev),
                             normal_dir=nan2.clone(),
                             lines=torch.zeros(g_count, dtype=torch.int64, device=dev),
-                            inliers=torch.zeros(g_count, dtype=torch.int64, device=dev))
+                            inliers=torch.zeros(g_count, dtype=torch.int64, device=dev),
+                            line_flow=nan2.clone(), line_normal=nan2.clone())
     if ordinal.numel() and int(ordinal.max()) >= n_ordinals:
         raise ValueError(f"candidate ordinals must be < n_ordinals ({n_ordinals})")
     solver = backend if backend is not None else TensorRegistration()
@@ -152,7 +162,7 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
                        / sol.used_events.clamp_min(1), torch.nan).to(torch.float32)
     # --- aperture test and refinement
     ratio = sol.ratio
-    fitted = has & (sol.lines >= 2)
+    fitted = has & (sol.lines >= fit_min_lines)
     normal = fitted & (ratio < aperture_ratio)
     n_dir = sol.major
     if refine:
@@ -161,7 +171,10 @@ def register_groups(group: Tensor, seq: Tensor, ordinal: Tensor, flow: Tensor, n
     else:
         refined = full
         along = (refined * n_dir).sum(1, keepdim=True) * n_dir  # F projected on the normal
+    lined = (has & (sol.lines >= 1))[:, None]
     return Registration(flow=torch.where(normal[:, None], along, refined), full_flow=full,
                         cost=cost, used_events=sol.used_events, ratio=ratio.to(torch.float32),
                         normal=normal, normal_dir=torch.where(normal[:, None], n_dir, nan2),
-                        lines=sol.lines, inliers=sol.inliers)
+                        lines=sol.lines, inliers=sol.inliers,
+                        line_flow=torch.where(lined, along, nan2),
+                        line_normal=torch.where(lined, n_dir, nan2))

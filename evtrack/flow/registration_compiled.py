@@ -46,7 +46,8 @@ _POSITION_FLOOR = 65_536
 @kernel()
 def _report_rows(keys, support, n_events, has, full, best_cost, used_events, inliers, lines,
                  fit_flow, ratio, major, normal_speed, n_roi, window_us, centres, cost_scale,
-                 aperture_ratio, min_support, min_inlier_fraction):
+                 aperture_ratio, min_support, min_inlier_fraction, min_lines, fit_min_lines,
+                 max_lineless_share):
     """The reported rows of registered groups (CPU, compiled): what
     :func:`~evtrack.flow.registration.register_groups` (with ``refine``) makes of the compiled
     registration's outputs, the report test of ``TripletFlow._finalise`` and the rows of
@@ -57,11 +58,31 @@ def _report_rows(keys, support, n_events, has, full, best_cost, used_events, inl
     full_flow, n_events, roi, window``."""
     n_groups = keys.shape[0]
     reported = np.empty(n_groups, np.bool_)
-    n_rows = 0
+    fit_from = np.empty(n_groups, np.int64)  # the lines a group's fit needs
     for g in range(n_groups):
         agree = np.float64(inliers[g]) >= min_inlier_fraction * np.float64(used_events[g])
         reported[g] = support[g] >= min_support and not np.isnan(full[g, 0]) and agree
-        n_rows += reported[g]
+    # the line rules (evtrack.flow.line_rules), per time window (keys are sorted)
+    n_rows = 0
+    a = 0
+    while a < n_groups:
+        w = keys[a] // n_roi
+        b = a
+        passing = 0
+        lineless = 0
+        while b < n_groups and keys[b] // n_roi == w:
+            if reported[b]:
+                passing += 1
+                lineless += lines[b] == 0
+            b += 1
+        strict = (max_lineless_share < 1.0
+                  and np.float64(lineless) > max_lineless_share * np.float64(passing))
+        for g in range(a, b):
+            reported[g] = (reported[g] and lines[g] >= min_lines
+                           and not (strict and lines[g] == 0))
+            fit_from[g] = 1 if strict else fit_min_lines
+            n_rows += reported[g]
+        a = b
     xy = np.empty((n_rows, 2), np.float32)
     t = np.empty(n_rows, np.int64)
     flow = np.empty((n_rows, 2), np.float32)
@@ -87,7 +108,7 @@ def _report_rows(keys, support, n_events, has, full, best_cost, used_events, inl
         full_flow[r, 0], full_flow[r, 1] = full[g, 0], full[g, 1]
         cost[r] = (np.float32(np.float64(best_cost[g]) / cost_scale
                               / np.float64(max(used_events[g], 1))) if has[g] else np.nan)
-        fitted = has[g] and lines[g] >= 2
+        fitted = has[g] and lines[g] >= fit_from[g]
         normal[r] = fitted and ratio[g] < aperture_ratio
         nx, ny = np.float32(major[g, 0]), np.float32(major[g, 1])
         if normal[r]:
@@ -123,8 +144,8 @@ def _register_kernel(group, seq, ordinal, flow, n_groups, max_events, max_hypoth
 def _register_closed_kernel(keys, gkey, seq, ordinal, flow, support, n_events, centres, n_roi,
                             window_us, max_events, max_hypotheses, n_ordinals, line_gate,
                             refine_iters, aperture_ratio, min_support, min_inlier_fraction,
-                            cost_scale, q_max, parallel_eps, irls_delta, slack, floor,
-                            threads):
+                            min_lines, fit_min_lines, max_lineless_share, cost_scale, q_max,
+                            parallel_eps, irls_delta, slack, floor, threads):
     group = group_positions(keys, gkey, slack, floor)
     (ev_per_group, full, has, best_cost, inliers, lines, fit_flow, ratio, major,
      normal_speed) = _register_kernel(group, seq, ordinal, flow, keys.shape[0], max_events,
@@ -135,7 +156,8 @@ def _register_closed_kernel(keys, gkey, seq, ordinal, flow, support, n_events, c
      window) = _report_rows(keys, support, n_events, has, full, best_cost, ev_per_group,
                             inliers, lines, fit_flow, ratio, major, normal_speed, n_roi,
                             window_us, centres, cost_scale, aperture_ratio, min_support,
-                            min_inlier_fraction)
+                            min_inlier_fraction, min_lines, fit_min_lines,
+                            max_lineless_share)
     return (group, reported, full, xy, t, flow_out, sup, cost, normal, normal_dir, full_flow,
             n_ev, roi, window)
 
@@ -181,8 +203,9 @@ class CompiledRegistration:
                         n_events: np.ndarray, centres: np.ndarray, n_roi: int, window_us: int,
                         max_events: int, max_hypotheses: int, n_ordinals: int,
                         line_gate: float, refine_iters: int, aperture_ratio: float,
-                        min_support: int, min_inlier_fraction: float
-                        ) -> tuple[np.ndarray, ...]:
+                        min_support: int, min_inlier_fraction: float,
+                        min_lines: int = 0, fit_min_lines: int = 2,
+                        max_lineless_share: float = 1.0) -> tuple[np.ndarray, ...]:
         """Register the closed RoI windows of the flow and make their reported rows, in one
         compiled call (CPU): the group position of each candidate, the caps and Eq. 3
         (:mod:`evtrack.flow.arrange_kernels`, :mod:`evtrack.flow.solve_kernels`), the line
@@ -201,7 +224,8 @@ class CompiledRegistration:
             n_roi, window_us: RoIs per window, window length (µs).
             max_events, max_hypotheses, n_ordinals, line_gate, refine_iters: as
                 :func:`evtrack.flow.registration.register_groups`.
-            aperture_ratio, min_support, min_inlier_fraction: the flow config's report rules.
+            aperture_ratio, min_support, min_inlier_fraction, min_lines, fit_min_lines,
+                max_lineless_share: the flow config's report rules.
 
         Returns:
             ``(position (M,), reported (G,), full (G, 2), xy, t, flow, support, cost, normal,
@@ -222,7 +246,9 @@ class CompiledRegistration:
                 np.ascontiguousarray(centres, dtype=np.float32), int(n_roi), int(window_us),
                 int(max_events), int(max_hypotheses), int(n_ordinals), float(line_gate),
                 int(refine_iters), float(aperture_ratio), int(min_support),
-                float(min_inlier_fraction), float(COST_SCALE), float(Q_MAX),
+                float(min_inlier_fraction), int(min_lines), int(fit_min_lines),
+                float(max_lineless_share),
+                float(COST_SCALE), float(Q_MAX),
                 float(PARALLEL_EPS), float(IRLS_DELTA), _POSITION_SLACK, _POSITION_FLOOR,
                 numba.get_num_threads())
 

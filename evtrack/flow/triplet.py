@@ -25,6 +25,7 @@ from evtrack.flow.backends import (
 from evtrack.flow.candidates import Candidates
 from evtrack.flow.config import FlowConfig, search_offsets
 from evtrack.flow.constants import COST_SCALE
+from evtrack.flow.line_rules import line_report, one_line_normal
 from evtrack.flow.pending import (
     Pending,
     WindowGrid,
@@ -351,10 +352,15 @@ class TripletFlow(nn.Module):
                                   keys.numel(), cfg.max_events_per_roi, cfg.max_hypotheses,
                                   cfg.aperture_ratio, cfg.pair_budget, cfg.refine,
                                   cfg.line_gate, cfg.refine_iters, n_ordinals=self._n_ordinals,
-                                  backend=registration)
+                                  backend=registration, fit_min_lines=cfg.fit_min_lines)
             agree = reg.inliers.to(torch.float64) >= (float(cfg.min_inlier_fraction)
                                                       * reg.used_events.to(torch.float64))
-            reported = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0]) & agree
+            passing = (support >= cfg.min_support) & ~torch.isnan(reg.full_flow[:, 0]) & agree
+            cols, rows = self.num_rois
+            reported, strict = line_report(torch.div(keys, cols * rows, rounding_mode="floor"),
+                                           passing, reg.lines, cfg.min_lines,
+                                           cfg.max_lineless_share)
+            reg = one_line_normal(reg, strict & (reg.lines == 1))
             result = self._rows(keys, reported, reg, support, p.g_events[:n_g])
             full_flow = reg.full_flow
         if self.return_event_flow:
@@ -384,7 +390,7 @@ class TripletFlow(nn.Module):
             support.numpy(), n_events.numpy(), self._device_centres().numpy(), cols * rows,
             cfg.window_us, cfg.max_events_per_roi, cfg.max_hypotheses, self._n_ordinals,
             cfg.line_gate, cfg.refine_iters, cfg.aperture_ratio, cfg.min_support,
-            cfg.min_inlier_fraction)
+            cfg.min_inlier_fraction, cfg.min_lines, cfg.fit_min_lines, cfg.max_lineless_share)
         position, reported, full, *columns = (torch.from_numpy(a) for a in out)
         names = ("xy", "t", "flow", "support", "cost", "normal", "normal_dir", "full_flow",
                  "n_events", "roi", "window")

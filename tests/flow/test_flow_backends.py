@@ -240,12 +240,19 @@ def test_automatic_strips_give_the_flow_of_one_strip():
                            torch.nan_to_num(getattr(b, name).float(), 1e30)), name
 
 
-def test_both_backends_give_the_same_flow_bit_for_bit():
+SMALL_WINDOWS = {"roi_size": 12, "window_us": 1_000, "min_support": 2, "history": 1,
+                 "max_span_us": 40_000, "tolerance_rel": 0.05}  # some have no line
+
+
+@pytest.mark.parametrize("options", [
+    {"roi_size": 16, "window_us": 2_000}, {**SMALL_WINDOWS, "min_lines": 1, "fit_min_lines": 1},
+    {**SMALL_WINDOWS, "max_lineless_share": 0.1}], ids=["default", "line-rules", "lineless-share"])
+def test_both_backends_give_the_same_flow_bit_for_bit(options):
     ev, _ = translating_texture((64, 48), velocity=(700.0, 300.0), duration_us=30_000, seed=5)
     out = {}
     for backend, chunk in (("torch", 5_000), ("compiled", 1_733)):
-        flow = TripletFlow(FlowConfig(sensor_size=(64, 48), roi_size=16, window_us=2_000,
-                                      backend=backend), return_event_flow=True)
+        flow = TripletFlow(FlowConfig(sensor_size=(64, 48), backend=backend, **options),
+                           return_event_flow=True)
         parts = [flow.update(ev[i:i + chunk]) for i in range(0, len(ev), chunk)]
         out[backend] = FlowResult.cat([*parts, flow.flush()])
     a, b = out["torch"], out["compiled"]

@@ -162,6 +162,30 @@ def test_a_single_edge_is_flagged_as_normal_flow():
         assert abs(float(plain.flow[0].numpy() @ n) - 700.0) < 0.1 * 700.0
 
 
+@pytest.mark.parametrize("backend", [TensorRegistration(), CompiledRegistration()],
+                         ids=["tensor", "compiled"])
+def test_one_constraint_line_gives_its_normal_flow_with_fit_min_lines_1(backend):
+    """One event: all its candidates lie on its line n . F = s, so Eq. 3 picks one arbitrary
+    point along it. Fitted from one line (``fit_min_lines=1``) the group reports that line's
+    normal flow ``s n``; by default (two lines needed) the candidate itself."""
+    n = np.array([math.cos(-0.7), math.sin(-0.7)])
+    group, seq, ordinal, flow = _line_candidates(n[None], np.array([450.0]), DIRECTIONS)
+    kw = {"backend": backend, "line_gate": 0.5}
+    default = register_groups(group, seq, ordinal, flow, 1, 100, 400, 0.05, 10**6, **kw)
+    assert int(default.lines[0]) == 1
+    assert not bool(default.normal[0])
+    assert torch.equal(default.flow[0], default.full_flow[0])
+    assert abs(float(default.full_flow[0].numpy() @ n) - 450.0) < 1e-2  # a point of the line
+    assert np.linalg.norm(default.full_flow[0].numpy() - 450.0 * n) > 50.0  # not the normal
+
+    one = register_groups(group, seq, ordinal, flow, 1, 100, 400, 0.05, 10**6,
+                          fit_min_lines=1, **kw)
+    assert bool(one.normal[0])
+    assert abs(abs(float(one.normal_dir[0].numpy() @ n)) - 1.0) < 1e-5
+    assert np.allclose(one.flow[0].numpy(), 450.0 * n, rtol=1e-4)
+    assert torch.equal(one.full_flow[0], default.full_flow[0])
+
+
 def test_inliers_count_the_events_near_the_solution_like_brute_force():
     gate = 0.35
     for seed in range(3):

@@ -15,6 +15,9 @@ from evtrack.flow.config import search_offsets
 from evtrack.flow.scenes import moving_stripes, translating_texture
 
 SIZE = (64, 48)
+TRACKER_LIKE = {"roi_size": 12, "window_us": 1_000, "min_support": 2, "history": 1,
+                "max_span_us": 40_000, "tolerance_rel": 0.05}
+"""Small, short RoI windows as the tracker's flow has them: some report without a line."""
 
 
 @pytest.fixture(scope="module")
@@ -84,6 +87,49 @@ def test_windows_without_consensus_are_refused(texture):
     assert len(gated) >= 0.75 * len(every)
     kept = set(zip(gated.window.tolist(), gated.roi.tolist(), strict=True))
     assert kept <= set(zip(every.window.tolist(), every.roi.tolist(), strict=True))
+
+
+def test_min_lines_keeps_a_subset_of_the_windows_unchanged(texture):
+    """``min_lines`` only removes windows (those whose events gave no constraint line, which
+    chance triplets of noise do more often than a rigid motion); the windows it keeps have
+    the same flows."""
+    ev, _ = texture
+    noise = _random_events(SIZE, 20_000, 25_000, seed=3)
+    every = TripletFlow(**TRACKER_LIKE)(ev)
+    kept = TripletFlow(**TRACKER_LIKE, min_lines=1)(ev)
+    rows = {k: i for i, k in enumerate(zip(every.window.tolist(), every.roi.tolist(),
+                                            strict=True))}
+    idx = [rows[k] for k in zip(kept.window.tolist(), kept.roi.tolist(), strict=True)]
+    torch.testing.assert_close(kept.flow, every.flow[idx], equal_nan=True)
+    assert 0.8 * len(every) < len(kept) < len(every)  # a rigid motion: lines almost everywhere
+    loose = TripletFlow(roi_size=16, window_us=2_000, min_support=2, min_inlier_fraction=0.0)
+    strict = TripletFlow(roi_size=16, window_us=2_000, min_support=2, min_inlier_fraction=0.0,
+                         min_lines=1)
+    noisy, checked = len(loose(noise)), len(strict(noise))
+    assert noisy > 20 and checked < 0.9 * noisy
+
+
+@pytest.mark.parametrize("backend", ["torch", "compiled"])
+def test_lineless_share_judges_each_time_window_on_its_own(texture, backend):
+    """``max_lineless_share`` 0: a time window with any line-less RoI window is judged as with
+    ``min_lines`` 1 and ``fit_min_lines`` 1, every other one as by default."""
+    ev, _ = texture
+    kw = {**TRACKER_LIKE, "backend": backend}
+    default = TripletFlow(**kw)(ev)
+    strict = TripletFlow(**kw, min_lines=1, fit_min_lines=1)(ev)
+    shared = TripletFlow(**kw, max_lineless_share=0.0)(ev)
+
+    def rows(res):
+        return {(w, r): i for i, (w, r) in enumerate(zip(res.window.tolist(), res.roi.tolist(),
+                                                          strict=True))}
+
+    d, s, m = rows(default), rows(strict), rows(shared)
+    judged = {w for (w, r) in d if (w, r) not in s}  # windows with a line-less RoI window
+    assert judged and judged != {w for w, _ in d}
+    for (w, r), i in m.items():
+        ref, j = (strict, s[(w, r)]) if w in judged else (default, d[(w, r)])
+        assert torch.equal(shared.flow[i], ref.flow[j]) and shared.normal[i] == ref.normal[j]
+    assert set(m) == {k for k in s if k[0] in judged} | {k for k in d if k[0] not in judged}
 
 
 def test_streaming_equals_one_call(texture):
