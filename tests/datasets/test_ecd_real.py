@@ -81,6 +81,42 @@ def test_tracker_on_an_imported_rotation_sample(real_dir: Path, tmp_path: Path) 
     assert tracker.motion.is_scene_at(np.asarray(extra["start_pose"]))
 
 
+def _mean_angular_velocity(seq: Sequence, config) -> np.ndarray:
+    """The tracker's mean ω (rad/s) over the second half of a rotation sample."""
+    from evtrack import Tracker
+
+    tracker = Tracker.for_sequence(seq, config)
+    extra = seq.meta.extra
+    tracker.reset(np.asarray(extra["start_pose"]), t_us=extra["start_t_us"])
+    for chunk in seq.iter_events(window_us=50_000):
+        tracker.push_events(chunk)
+    tracker.flush()
+    traj = tracker.trajectory()
+    return traj.twists.numpy()[len(traj.t_us) // 2:, 3:].mean(0)
+
+
+def test_line_less_flows_are_refused_where_they_dominate(real_dir: Path, tmp_path: Path) -> None:
+    """On the slow poster clip most RoI windows report one unconfirmed candidate: judged
+    strictly (the default ``flow.max_lineless_share``), the tracker's angular velocity points
+    along -w at its magnitude; taking them (share 1) overestimates it by about two thirds."""
+    from evtrack.tracking.config import TrackerConfig
+
+    seq = Sequence.load(import_ecd(real_dir / "ecd_poster_rotation_sample", tmp_path / "poster",
+                                   sensor_size=DAVIS240C_SIZE))
+    ref = -np.asarray(seq.meta.extra["imu_angular_velocity"]["w_rad_s"])
+    default = TrackerConfig().flow.max_lineless_share
+    assert default < 1.0
+    results = {}
+    for share in (default, 1.0):
+        mean = _mean_angular_velocity(seq, TrackerConfig.from_dict(
+            {"method": "velocity", "flow": {"max_lineless_share": share}}))
+        cos = float(mean @ ref / (np.linalg.norm(mean) * np.linalg.norm(ref)))
+        results[share] = (cos, float(np.linalg.norm(mean) / np.linalg.norm(ref)))
+    strict, loose = results[default], results[1.0]
+    assert strict[0] > 0.95 and 0.8 < strict[1] < 1.25, results
+    assert loose[1] > 1.4, results
+
+
 def test_evtrack_track_from_the_imported_start_pose(real_dir: Path, tmp_path: Path,
                                                     capsys: pytest.CaptureFixture) -> None:
     """'evtrack track --method velocity --start-pose' tracks an imported ECD cut with no pose
