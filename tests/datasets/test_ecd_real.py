@@ -51,23 +51,32 @@ def test_rotation_sample_needs_the_sensor_size(real_dir: Path) -> None:
         open_ecd(real_dir / "ecd_shapes_rotation_sample")
 
 
-def test_tracker_on_an_imported_rotation_sample(real_dir: Path, tmp_path: Path) -> None:
-    """The default tracker (method velocity, started from the imported pose) follows the
-    scene's turn: its mean angular velocity over the second half points along -w of the IMU,
-    and its steps stay near it. The imported plane is a scene around the camera, so the
-    velocity noise has no pivot (with the plane's centre as pivot: RMSE 0.49 rad/s)."""
+def _tracked(seq: Sequence, config):
+    """A :class:`~evtrack.Tracker` of ``config`` run over an imported ECD sample from its
+    imported start pose."""
     from evtrack import Tracker
-    from evtrack.tracking.config import TrackerConfig
 
-    seq = Sequence.load(import_ecd(real_dir / "ecd_shapes_rotation_sample", tmp_path / "shapes",
-                                   sensor_size=DAVIS240C_SIZE))
-    assert len(seq.events) == 20_000 and seq.ground_truth is None
-    tracker = Tracker.for_sequence(seq, TrackerConfig(method="velocity"))
+    tracker = Tracker.for_sequence(seq, config)
     extra = seq.meta.extra
     tracker.reset(np.asarray(extra["start_pose"]), t_us=extra["start_t_us"])
     for chunk in seq.iter_events(window_us=50_000):
         tracker.push_events(chunk)
     tracker.flush()
+    return tracker
+
+
+def test_tracker_on_an_imported_rotation_sample(real_dir: Path, tmp_path: Path) -> None:
+    """The default tracker (method velocity, started from the imported pose) follows the
+    scene's turn: its mean angular velocity over the second half points along -w of the IMU,
+    and its steps stay near it. The imported plane is a scene around the camera, so the
+    velocity noise has no pivot (with the plane's centre as pivot: RMSE 0.49 rad/s)."""
+    from evtrack.tracking.config import TrackerConfig
+
+    seq = Sequence.load(import_ecd(real_dir / "ecd_shapes_rotation_sample", tmp_path / "shapes",
+                                   sensor_size=DAVIS240C_SIZE))
+    assert len(seq.events) == 20_000 and seq.ground_truth is None
+    tracker = _tracked(seq, TrackerConfig(method="velocity"))
+    extra = seq.meta.extra
     traj = tracker.trajectory()
     assert len(traj.t_us) >= 95 and bool((traj.status == 1).all())
     omega = traj.twists.numpy()[len(traj.t_us) // 2:, 3:]
@@ -79,20 +88,6 @@ def test_tracker_on_an_imported_rotation_sample(real_dir: Path, tmp_path: Path) 
     rmse = float(np.sqrt(((omega - ref) ** 2).sum(1).mean()))
     assert rmse < 0.35, rmse
     assert tracker.motion.is_scene_at(np.asarray(extra["start_pose"]))
-
-
-def _mean_angular_velocity(seq: Sequence, config) -> np.ndarray:
-    """The tracker's mean ω (rad/s) over the second half of a rotation sample."""
-    from evtrack import Tracker
-
-    tracker = Tracker.for_sequence(seq, config)
-    extra = seq.meta.extra
-    tracker.reset(np.asarray(extra["start_pose"]), t_us=extra["start_t_us"])
-    for chunk in seq.iter_events(window_us=50_000):
-        tracker.push_events(chunk)
-    tracker.flush()
-    traj = tracker.trajectory()
-    return traj.twists.numpy()[len(traj.t_us) // 2:, 3:].mean(0)
 
 
 def test_line_less_flows_are_refused_where_they_dominate(real_dir: Path, tmp_path: Path) -> None:
@@ -108,8 +103,9 @@ def test_line_less_flows_are_refused_where_they_dominate(real_dir: Path, tmp_pat
     assert default < 1.0
     results = {}
     for share in (default, 1.0):
-        mean = _mean_angular_velocity(seq, TrackerConfig.from_dict(
-            {"method": "velocity", "flow": {"max_lineless_share": share}}))
+        traj = _tracked(seq, TrackerConfig.from_dict(
+            {"method": "velocity", "flow": {"max_lineless_share": share}})).trajectory()
+        mean = traj.twists.numpy()[len(traj.t_us) // 2:, 3:].mean(0)
         cos = float(mean @ ref / (np.linalg.norm(mean) * np.linalg.norm(ref)))
         results[share] = (cos, float(np.linalg.norm(mean) / np.linalg.norm(ref)))
     strict, loose = results[default], results[1.0]
