@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from evtrack.camera import PinholeCamera
 from evtrack.tracking.event_gate import moved_pose
@@ -69,8 +70,7 @@ def occluder_mask(camera: PinholeCamera, poses: list[np.ndarray],
         P = np.asarray(V, np.float64) @ T[:3, :3].T + T[:3, 3]
         if (P[:, 2] < MIN_DEPTH_M).any():
             continue
-        u = camera.fx * P[:, 0] / P[:, 2] + camera.cx
-        v = camera.fy * P[:, 1] / P[:, 2] + camera.cy
-        hull = cv2.convexHull(np.stack([u, v], 1).astype(np.float32))
+        uv = camera.project(torch.from_numpy(P)).numpy()  # the lens's distortion included
+        hull = cv2.convexHull(uv.astype(np.float32))
         cv2.fillConvexPoly(mask, np.round(hull.reshape(-1, 2)).astype(np.int32), 1)
     return mask.astype(bool)

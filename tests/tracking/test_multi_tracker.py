@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 from tracker_helpers import ORACLE_NOISE, TEST_TRACKER, sim_config
@@ -336,6 +337,21 @@ def test_the_occluder_mask_covers_the_rendered_silhouette() -> None:
     behind[2, 3] = -0.4
     assert not occluder_mask(cam, [behind], [hull]).any()
     assert not Occluders()
+    # a lens with distortion: the mask covers the silhouette as the tracker projects it
+    from evtrack.camera import PinholeCamera
+    from evtrack.tracking.silhouette import Silhouette
+
+    lens = PinholeCamera(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height,
+                         dist=[-0.35, 0.12, 0.0, 0.0, 0.0])
+    corner = pose.copy()
+    corner[:3, 3] = [0.09, 0.06, 0.4]  # towards the image's corner, where the lens bends most
+    poly = Silhouette(can.vertices.astype(np.float64), lens).polygon(corner)
+    bent = occluder_mask(lens, [corner], [hull])
+    seen = np.zeros(bent.shape, np.uint8)
+    cv2.fillConvexPoly(seen, np.round(poly.vertices).astype(np.int32), 1)
+    seen = seen.astype(bool)
+    assert seen.sum() > 300
+    assert (bent & seen).sum() / (bent | seen).sum() > 0.9
 
 
 def test_each_tracker_is_told_the_nearer_objects(crossing) -> None:
