@@ -233,6 +233,7 @@ def run(args: argparse.Namespace) -> int:
           + (f", {st.depth_alignments} depth alignments fused" if cfg.uses_depth_icp else "")
           + (f", {st.appearance_alignments} appearance alignments fused"
              if cfg.uses_appearance else ""))
+    _print_unobserved(tracker)
     if st.roi_flows and st.depth_fallbacks > 0.5 * st.roi_flows:
         print(f"warning: {st.depth_fallbacks} of {st.roi_flows} RoI flows had no depth from the "
               "depth frames and took the fallback (the predicted depth of the object's centre); "
@@ -312,7 +313,20 @@ def _track_objects(args: argparse.Namespace, seq, cfg) -> int:
         if view.ground_truth is not None and bool(traj.tracked.any()):
             line += f"; error against ground truth: {tracking_errors(traj, view.ground_truth)}"
         print(line)
+        _print_unobserved(multi.trackers[name], f"{name}: ")
     return 0
+
+
+def _print_unobserved(tracker, prefix: str = "") -> None:
+    """Name the object axes about which the frame alignments did not observe the rotation
+    (:meth:`~evtrack.tracking.tracker.Tracker.unobserved_rotations`)."""
+    unobserved = tracker.unobserved_rotations()
+    if unobserved:
+        print(f"{prefix}the frame alignments did not observe the rotation "
+              + "; ".join(u.describe() for u in unobserved)
+              + " (one alignment's standard deviation; rotations about it come from the "
+              "events" + (" and the pose source" if tracker.pose_source is not None else "")
+              + " only)")
 
 
 def _check_bop_results(path: Path, seq) -> None:

@@ -19,6 +19,7 @@ from evtrack.camera import PinholeCamera
 from evtrack.models.appearance_refine import AppearanceRefineConfig, AppearanceRefiner
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.inputs import RgbFrame
+from evtrack.tracking.observability import RotationObservability
 from evtrack.tracking.occlusion import Occluders
 from evtrack.tracking.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.tracking.stats import StageTimer, TrackerStats, count_reason
@@ -53,6 +54,8 @@ class AppearanceFusion:
 
     Attributes:
         stats: the counters it adds to.
+        observability: the rotational information of the fused alignments (source
+            ``"appearance"``) is added to it.
     """
 
     def __init__(self, config: TrackerConfig, mesh: Any, rgb_camera: PinholeCamera,
@@ -74,6 +77,7 @@ class AppearanceFusion:
             min_correlation=a.min_correlation, max_rotation_deg=a.max_rotation_deg,
             max_translation_m=a.max_translation_m))
         self.stats = TrackerStats()
+        self.observability = RotationObservability()
         self.reset()
 
     def reset(self) -> None:
@@ -115,3 +119,5 @@ class AppearanceFusion:
             cov = torch.as_tensor(Ra @ cov_rgb @ Ra.T, **kw).reshape(1, 6, 6)
             if self.timeline.add(frame.t_us, "aligned", value, cov):
                 self.stats.appearance_alignments += 1
+                self.observability.add("appearance", res.information, res.residual_std ** 2,
+                                       res.pose[:3, :3])

@@ -31,6 +31,7 @@ from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner
 from evtrack.tracking.config import TrackerConfig
 from evtrack.tracking.depth_range import DepthRange
 from evtrack.tracking.inputs import DepthFrame
+from evtrack.tracking.observability import RotationObservability
 from evtrack.tracking.occlusion import Occluders
 from evtrack.tracking.pose_timeline import PoseTimeline, pose_measurement_value
 from evtrack.tracking.stats import StageTimer, TrackerStats, count_reason
@@ -75,6 +76,8 @@ class DepthFusion:
 
     Attributes:
         stats: the counters it adds to.
+        observability: the rotational information of the fused alignments (source
+            ``"depth"``) is added to it.
     """
 
     def __init__(self, config: TrackerConfig, mesh: Any, depth_camera: PinholeCamera,
@@ -90,6 +93,7 @@ class DepthFusion:
         self.T_depth_event = T_depth_event
         self.T_event_depth = np.linalg.inv(T_depth_event)
         self.stats = TrackerStats()
+        self.observability = RotationObservability()
         self.depth_range: DepthRange | None = None
         if config.depth_fusion.range:
             self.depth_range = DepthRange(mesh, depth_camera, std_m=config.depth_fusion.range_std_m)
@@ -171,3 +175,5 @@ class DepthFusion:
             cov = torch.as_tensor(Ra @ cov_d @ Ra.T, **kw).reshape(1, 6, 6)
             if self.timeline.add(frame.t_us, "aligned", value, cov):
                 self.stats.depth_alignments += 1
+                self.observability.add("depth", res.information, res.rmse_m ** 2,
+                                       res.pose[:3, :3])

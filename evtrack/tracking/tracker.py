@@ -88,6 +88,7 @@ from evtrack.tracking.inputs import (
 )
 from evtrack.tracking.load_control import LoadController
 from evtrack.tracking.motion import MotionContext, MotionServices, motion_source_class
+from evtrack.tracking.observability import RotationObservability, UnobservedRotation
 from evtrack.tracking.occlusion import Occluders
 from evtrack.tracking.offline import push_sequence
 from evtrack.tracking.outputs import TrackOutputs, ViewCheck, extrapolated, quat_to_matrix
@@ -282,6 +283,10 @@ class Tracker:
         for part in parts:
             if part is not None:
                 part.stats = self.stats
+        self.observability = RotationObservability()
+        for fusion in (self.depth_fusion, self.appearance):
+            if fusion is not None:
+                fusion.observability = self.observability
         self.motion.reset()
         self.ukf.reset(1)
         for part in (self.roi_depth, self.gate, self.load, self.pose_gate, self.pose_calls,
@@ -562,8 +567,18 @@ class Tracker:
 
     def trajectory(self) -> Trajectory:
         """Every output so far: one sample at the end of each velocity step."""
-        meta = {"config": self.config.to_dict(), "stats": self.stats.to_dict()}
+        meta = {"config": self.config.to_dict(), "stats": self.stats.to_dict(),
+                "rotations": self.observability.to_dict()}
         return self.outputs.trajectory(self.method, meta)
+
+    def unobserved_rotations(self, max_std_deg: float = 2.0) -> list[UnobservedRotation]:
+        """The object axes about which no frame alignment fused since the last :meth:`reset`
+        (``depth_fusion.icp``, ``appearance``, ``pose_source: model``) observed the rotation
+        (:mod:`~evtrack.tracking.observability`): those about which one alignment's standard
+        deviation was ``max_std_deg`` or more for every source, e.g. a plain cylinder's spin
+        about its axis with depth alone. Empty without such alignments; rotations about these
+        axes were carried by the events and the pose source only."""
+        return self.observability.unobserved(max_std_deg)
 
     def pose(self, t_us: int | None = None) -> np.ndarray:
         """The pose (4, 4) at ``t_us`` (default: now).
