@@ -35,12 +35,18 @@ from evtrack.models.decode import (
     solve_pose,
 )
 from evtrack.models.depth_refine import DepthRefineConfig, DepthRefiner, RefineResult
+from evtrack.models.depth_regions import DepthRegion, RegionConfig, object_regions
 from evtrack.models.dope_lite import DopeLite, DopeLiteConfig
 from evtrack.models.estimator import PoseEstimator, TorchPoseEstimator, preprocess
 from evtrack.models.factory import create, load_model
 from evtrack.models.fold_batchnorm import fold_batchnorm
 from evtrack.models.keypoints import find_peaks, grid_to_pixel, pixel_to_grid
-from evtrack.models.mesh_registration import Registration, RegistrationConfig, register_mesh
+from evtrack.models.mesh_registration import (
+    Registration,
+    RegistrationConfig,
+    find_mesh,
+    register_mesh,
+)
 from evtrack.models.onnx_estimator import OnnxPoseEstimator
 from evtrack.models.onnx_export import ExportError, export_onnx, read_onnx_record
 from evtrack.models.summary import count_flops, count_parameters
@@ -67,6 +73,7 @@ __all__ = [
     "DecodeConfig",
     "DepthRefineConfig",
     "DepthRefiner",
+    "DepthRegion",
     "DopeLite",
     "DopeLiteConfig",
     "ExportError",
@@ -75,6 +82,7 @@ __all__ = [
     "PoseDetection",
     "PoseEstimator",
     "RefineResult",
+    "RegionConfig",
     "Registration",
     "RegistrationConfig",
     "TorchPoseEstimator",
@@ -88,6 +96,7 @@ __all__ = [
     "export_onnx",
     "extract_instances",
     "find_default_weights",
+    "find_mesh",
     "find_peaks",
     "fold_batchnorm",
     "grid_to_pixel",
@@ -98,10 +107,12 @@ __all__ = [
     "load_weights_file",
     "model_card",
     "model_entrypoint",
+    "object_regions",
     "pixel_to_grid",
     "preprocess",
     "read_onnx_record",
     "read_record",
+    "register_mesh",
     "register_mesh",
     "register_model",
     "save_weights",

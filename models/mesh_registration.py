@@ -18,6 +18,10 @@ detector's box, a BOP ``scene_gt_info`` box) and
    not: a can's spin about its axis, a box's faces that look alike in depth; a prior keeps the
    depth's position), and returns the fit whose frame and render correlate best.
 
+Without a box, :func:`find_mesh` looks for one: the regions of the depth frame that stand out
+of the scene's dominant planes (a table, a wall) with the object's size
+(:mod:`~evtrack.models.depth_regions`), each registered as above, the best kept.
+
 When the colour image confirms none of the candidates, it raises rather than guess: a shape
 the depth fits in many orientations (a box-like can whose faces look alike in depth) may leave
 none of them within the colour fit's reach. The result says how sure it is:
@@ -38,8 +42,9 @@ from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
 from evtrack.models.appearance_refine import AppearanceRefiner
 from evtrack.models.depth_refine import DepthRefiner
+from evtrack.models.depth_regions import RegionConfig, object_regions
 
-__all__ = ["RegistrationConfig", "Registration", "register_mesh"]
+__all__ = ["RegistrationConfig", "Registration", "find_mesh", "register_mesh"]
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,7 @@ class Registration:
         runner_up: ``(correlation, degrees from the best)`` of the best fit more than
             ``distinct_deg`` away, or ``None`` without one.
         tried: orientations tried; fitted: of those, the depth fits accepted.
+        box: the box it was registered in (given, or found by :func:`find_mesh`).
     """
 
     pose: np.ndarray
@@ -94,6 +100,7 @@ class Registration:
     runner_up: tuple[float, float] | None = None
     tried: int = 0
     fitted: int = 0
+    box: tuple[int, int, int, int] | None = None
 
 
 def _rotation_deg(A: np.ndarray, B: np.ndarray) -> float:
@@ -203,4 +210,49 @@ def register_mesh(mesh, camera: PinholeCamera, rgb: np.ndarray, depth: np.ndarra
     best_corr, best_share, best = scored[0]
     runner = next(((c, _rotation_deg(best, p)) for c, _, p in scored[1:]
                    if _rotation_deg(best, p) > cfg.distinct_deg), None)
-    return Registration(best, best_corr, best_share, runner, len(rotations), len(fits))
+    return Registration(best, best_corr, best_share, runner, len(rotations), len(fits),
+                        (u0, v0, u1, v1))
+
+
+def find_mesh(mesh, camera: PinholeCamera, rgb: np.ndarray, depth: np.ndarray,
+              config: RegistrationConfig | None = None, regions: RegionConfig | None = None,
+              max_regions: int = 3, depth_refiner: DepthRefiner | None = None,
+              appearance: AppearanceRefiner | None = None) -> Registration:
+    """Find the object's pose on one RGB-D frame without a box: the regions of the depth
+    that stand out of the scene's dominant planes and fit the object's size
+    (:func:`~evtrack.models.depth_regions.object_regions`), the best ``max_regions`` of them
+    registered as :func:`register_mesh` does, and the registration whose colour image
+    correlates best kept (:attr:`Registration.box` says where).
+
+    Raises:
+        ValueError: no valid depth, no region of the object's size, or no region the
+            registration confirms (each region's reason is given).
+    """
+    if max_regions < 1:
+        raise ConfigError(f"find_mesh: max_regions must be >= 1, got {max_regions}")
+    verts = np.asarray(mesh.vertices, np.float64)
+    if len(verts) == 0:
+        raise ValueError("find_mesh: the mesh has no vertices")
+    centre_obj = 0.5 * (verts.min(0) + verts.max(0))
+    radius = float(np.linalg.norm(verts - centre_obj, axis=1).max())
+    found = object_regions(depth, camera, radius, regions)
+    if not found:
+        raise ValueError(f"find_mesh: no region of the depth frame stands out of its dominant "
+                         f"planes with the size of the object (radius {radius * 100:.1f} cm); "
+                         "is the object in view, and the mesh in metres? Give a box around it "
+                         "instead (register_mesh, evtrack track --start-box)")
+    icp = depth_refiner or DepthRefiner(verts, np.asarray(mesh.faces))
+    looks = appearance or AppearanceRefiner(mesh, camera)
+    best: Registration | None = None
+    reasons = []
+    for region in found[:max_regions]:
+        try:
+            reg = register_mesh(mesh, camera, rgb, depth, region.box, config, icp, looks)
+        except ValueError as exc:
+            reasons.append(f"{region.box}: {exc}")
+            continue
+        if best is None or reg.correlation > best.correlation:
+            best = reg
+    if best is None:
+        raise ValueError("find_mesh: no region was registered: " + "; ".join(reasons))
+    return best

@@ -76,11 +76,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "mesh alone, given this box around it in the RGB image (pixels; global "
                         "registration: the mesh fitted to the depth from many orientations, the "
                         "texture picking among them)")
+    p.add_argument("--start-find", action="store_true",
+                   help="as --start-box, without a box: the object is looked for where the first "
+                        "depth frame stands out of the scene's dominant planes (table, walls) "
+                        "with the object's size, and the region whose registration the colour "
+                        "image confirms best is kept")
     p.add_argument("--mesh-only", action="store_true",
                    help="no pose network: correct the pose with the object's mesh alone "
                         "(pose_source: model: the mesh aligned with the depth frames, its "
                         "textured render with the RGB frames); needs a start pose "
-                        "(--start-pose, --start-from-ground-truth or --start-box). Not in the "
+                        "(--start-pose, --start-from-ground-truth, --start-box or --start-find). "
+                        "Not in the "
                         "paper")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -134,13 +140,14 @@ def _start(args: argparse.Namespace, seq) -> dict:
     tracker is built, :func:`_registered_start`). Checked before the tracker is built."""
     from_truth = getattr(args, "start_from_ground_truth", False)
     box = getattr(args, "start_box", None)
+    find = getattr(args, "start_find", False)
     given = [o for o, v in (("--start-pose", args.start_pose),
                             ("--start-from-ground-truth", from_truth),
-                            ("--start-box", box is not None)) if v]
+                            ("--start-box", box is not None), ("--start-find", find)) if v]
     if len(given) > 1:
         raise ConfigError(f"give one start: {' and '.join(given)} were given")
-    if box is not None:
-        return {"box": tuple(box)}
+    if box is not None or find:
+        return {"box": None if find else tuple(box)}
     if from_truth:
         gt = seq.ground_truth
         if gt is None:
@@ -149,7 +156,7 @@ def _start(args: argparse.Namespace, seq) -> dict:
         return {"start_pose": gt.pose_at(t0), "start_t_us": t0}
     if getattr(args, "mesh_only", False) and not args.start_pose:
         raise ConfigError("--mesh-only needs a start pose: --start-pose (recorded by the import), "
-                          "--start-from-ground-truth or --start-box U0 V0 U1 V1")
+                          "--start-from-ground-truth, --start-box U0 V0 U1 V1 or --start-find")
     if not args.start_pose:
         return {}
     import numpy as np
@@ -169,23 +176,26 @@ def _start(args: argparse.Namespace, seq) -> dict:
 
 
 def _registered_start(seq, tracker, box) -> dict:
-    """``--start-box``: the start pose registered on the first RGB frame and the depth frame
-    nearest it."""
+    """``--start-box`` / ``--start-find`` (``box`` None): the start pose registered on the
+    first RGB frame and the depth frame nearest it."""
     import numpy as np
 
+    option = "--start-find" if box is None else "--start-box"
     if seq.num_rgb == 0 or seq.num_depth == 0:
-        raise ConfigError(f"--start-box: {seq.root} needs RGB and depth frames to register the "
+        raise ConfigError(f"{option}: {seq.root} needs RGB and depth frames to register the "
                           "mesh on")
     t_us = int(seq.rgb_times_us[0])
     k = int(np.argmin(np.abs(seq.depth_times_us.numpy() - t_us)))
     try:
-        found = tracker.start_from_frame(t_us, seq.rgb(0), seq.depth(k), tuple(box))
+        found = tracker.start_from_frame(t_us, seq.rgb(0), seq.depth(k),
+                                         None if box is None else tuple(box))
     except ValueError as exc:
-        raise ConfigError(f"--start-box: {exc}") from None
+        raise ConfigError(f"{option}: {exc}") from None
     runner = ("" if found.runner_up is None else
               f"; the next best, {found.runner_up[1]:.0f}° away, correlates "
               f"{found.runner_up[0]:.3f}")
-    print(f"start pose registered on the frame at {t_us} µs: the colour image correlates "
+    where = f" in the box {found.box} it found" if box is None else ""
+    print(f"start pose registered on the frame at {t_us} µs{where}: the colour image correlates "
           f"{found.correlation:.3f} with the mesh there ({found.fitted} of {found.tried} "
           f"orientations fitted the depth){runner}")
     return {"start_pose": tracker.pose(), "start_t_us": t_us}
@@ -269,19 +279,26 @@ def _track_objects(args: argparse.Namespace, seq, cfg) -> int:
             raise ConfigError(f"{seq.root} holds {len(names)} objects ({', '.join(names)}): "
                               f"{option} is for one object. Track them with --oracle, with "
                               "each object's shipped network (no pose option), or with "
-                              "--mesh-only --start-from-ground-truth")
+                              "--mesh-only and --start-from-ground-truth or --start-find")
     views = [seq.object_view(k) for k in range(len(names))]
     start_t = None
     starts: dict = {}
-    if getattr(args, "mesh_only", False) or getattr(args, "start_from_ground_truth", False):
-        if not getattr(args, "start_from_ground_truth", False):
-            raise ConfigError("--mesh-only with several objects needs --start-from-ground-truth")
+    from_truth = getattr(args, "start_from_ground_truth", False)
+    find = getattr(args, "start_find", False)
+    if from_truth and find:
+        raise ConfigError("give one start: --start-from-ground-truth and --start-find were given")
+    if getattr(args, "mesh_only", False) and not (from_truth or find):
+        raise ConfigError("--mesh-only with several objects needs --start-from-ground-truth or "
+                          "--start-find")
+    if from_truth:
         if any(v.ground_truth is None for v in views):
             raise ConfigError(f"--start-from-ground-truth: an object of {seq.root} has no "
                               "ground truth")
         start_t = int(views[0].ground_truth.pose_t_us[0])
         starts = {n: v.ground_truth.pose_at(start_t).numpy()
                   for n, v in zip(names, views, strict=True)}
+    elif find:
+        start_t, starts = _found_starts(seq, names, views)
     if getattr(args, "mesh_only", False):
         sources = [None] * len(views)
     elif args.oracle:
@@ -315,6 +332,34 @@ def _track_objects(args: argparse.Namespace, seq, cfg) -> int:
         print(line)
         _print_unobserved(multi.trackers[name], f"{name}: ")
     return 0
+
+
+def _found_starts(seq, names, views) -> tuple[int, dict]:
+    """``--start-find`` with several objects: each object's start pose found on the first
+    RGB-D frame (:func:`~evtrack.models.mesh_registration.find_mesh`), in the event camera."""
+    import numpy as np
+
+    from evtrack.models.mesh_registration import find_mesh
+    from evtrack.sim.objects import load_mesh
+
+    if seq.num_rgb == 0 or seq.num_depth == 0:
+        raise ConfigError(f"--start-find: {seq.root} needs RGB and depth frames to register "
+                          "the meshes on")
+    t_us = int(seq.rgb_times_us[0])
+    k = int(np.argmin(np.abs(seq.depth_times_us.numpy() - t_us)))
+    rgb, depth = seq.rgb(0), seq.depth(k)
+    T_event_rgb = np.asarray(seq.meta.T_event_rgb, np.float64)
+    starts = {}
+    for name, view in zip(names, views, strict=True):
+        try:
+            found = find_mesh(load_mesh(view.mesh_file, recenter=False), seq.meta.rgb_camera,
+                              rgb, depth)
+        except ValueError as exc:
+            raise ConfigError(f"--start-find: object {name!r}: {exc}") from None
+        print(f"{name}: start pose registered on the frame at {t_us} µs in the box "
+              f"{found.box} it found (correlation {found.correlation:.3f})")
+        starts[name] = T_event_rgb @ found.pose
+    return t_us, starts
 
 
 def _print_unobserved(tracker, prefix: str = "") -> None:

@@ -414,35 +414,40 @@ class Tracker:
         self.measurements.replace_pending_calls(self.fusion.settled)
 
     def start_from_frame(self, t_us: int, rgb: np.ndarray, depth: np.ndarray,
-                         box: tuple[int, int, int, int], config: Any = None) -> Any:
+                         box: tuple[int, int, int, int] | None = None, config: Any = None
+                         ) -> Any:
         """Find the object's pose on the RGB-D frame taken at ``t_us`` from its textured mesh
-        alone, given a box around it in the RGB image, and start the track there
-        (:meth:`reset`); the events and frames from ``t_us`` on follow. See
-        :func:`evtrack.models.mesh_registration.register_mesh` (``config``: its
-        :class:`~evtrack.models.mesh_registration.RegistrationConfig`).
+        alone and start the track there (:meth:`reset`); the events and frames from ``t_us``
+        on follow. With ``box``, around the object in the RGB image, see
+        :func:`evtrack.models.mesh_registration.register_mesh`; without, the object is looked
+        for where the depth stands out of the scene's planes with the object's size
+        (:func:`evtrack.models.mesh_registration.find_mesh`). ``config``: the
+        :class:`~evtrack.models.mesh_registration.RegistrationConfig`.
 
         Args:
             t_us: the frame's time (µs).
             rgb: (H, W, 3) uint8 image of the RGB-D camera.
             depth: (H, W) metres registered to it (NaN or <= 0: missing).
-            box: ``(u0, v0, u1, v1)`` pixels of the RGB image around the object.
+            box: ``(u0, v0, u1, v1)`` pixels of the RGB image around the object, or ``None``.
 
         Returns:
             the :class:`~evtrack.models.mesh_registration.Registration` (pose in the RGB
-            camera, how sure it is).
+            camera, how sure it is, the box).
 
         Raises:
             ConfigError: a tracker without the object's textured mesh.
-            ValueError: what :func:`~evtrack.models.mesh_registration.register_mesh` refuses.
+            ValueError: what :func:`~evtrack.models.mesh_registration.register_mesh` or
+                :func:`~evtrack.models.mesh_registration.find_mesh` refuses.
         """
-        from evtrack.models.mesh_registration import register_mesh
+        from evtrack.models.mesh_registration import find_mesh, register_mesh
 
         if self.mesh is None:
             raise ConfigError("start_from_frame needs the object's textured mesh (an ObjectMesh "
                               "or a mesh file), not bare vertices")
         rgb = checked_rgb(int(t_us), rgb, self.rgb_camera)
-        found = register_mesh(self.mesh, self.rgb_camera, rgb, np.asarray(depth, np.float32),
-                              box, config)
+        depth = np.asarray(depth, np.float32)
+        found = (find_mesh(self.mesh, self.rgb_camera, rgb, depth, config) if box is None
+                 else register_mesh(self.mesh, self.rgb_camera, rgb, depth, box, config))
         self.reset(self.T_event_rgb.numpy() @ found.pose, int(t_us))
         return found
 

@@ -3,6 +3,8 @@ alignment and appearance alignment), nothing trained; and its bad input."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from tracker_helpers import TEST_TRACKER, stream
@@ -209,4 +211,46 @@ def test_the_start_is_found_on_the_first_frame(fast_sequence, mesh_runs, tmp_pat
                                  (500, 500, 600, 600))
     assert main(["track", str(fast_sequence.root), "--out", str(out), "--mesh-only",
                  "--start-box", *map(str, box), "--start-from-ground-truth", "--quiet"]) == 1
+    assert "give one start" in capsys.readouterr().err
+
+
+def test_the_start_is_found_without_a_box(fast_sequence, mesh_runs, tmp_path, capsys) -> None:
+    """Without a box the object is looked for where the depth stands out of the scene's
+    planes (``find_mesh``): the same start as with the box; ``evtrack track --start-find``."""
+    from evtrack.cli import main
+    from evtrack.models import RegistrationConfig, find_mesh
+
+    t0 = int(fast_sequence.rgb_times_us[0])
+    tracker = _tracker(fast_sequence, pose_source="model")
+    found = tracker.start_from_frame(t0, fast_sequence.rgb(0), fast_sequence.depth(0), None,
+                                     RegistrationConfig(rotations=32))
+    truth = fast_sequence.ground_truth.pose_at(t0).numpy()
+    R = tracker.pose()[:3, :3].T @ truth[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 2.0
+    assert np.linalg.norm(tracker.pose()[:3, 3] - truth[:3, 3]) < 0.005
+    su0, sv0, su1, sv1 = _silhouette_box(fast_sequence, t0)
+    u0, v0, u1, v1 = found.box
+    overlap = max(0, min(u1, su1) - max(u0, su0)) * max(0, min(v1, sv1) - max(v0, sv0))
+    assert overlap > 0.7 * (su1 - su0) * (sv1 - sv0)
+    assert found.correlation > 0.9 and tracker.now_us == t0
+
+    config = tmp_path / "tracker.yaml"
+    config.write_text("flow: {roi_size: 16}\nmask_margin_px: 8.0\n")
+    out = tmp_path / "t.csv"
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--mesh-only",
+                 "--config", str(config), "--start-find", "--quiet"]) == 0
+    assert "in the box" in capsys.readouterr().out
+    err = tracking_errors(evtrack.Trajectory.load(out), fast_sequence.ground_truth)
+    assert err.rotation_rmse_deg < 1.5 * mesh_runs["rgbd"][0].rotation_rmse_deg + 0.5
+
+    mesh = tracker.mesh
+    empty = np.zeros_like(fast_sequence.depth(0))
+    with pytest.raises(ValueError, match="no valid pixel"):
+        find_mesh(mesh, fast_sequence.meta.rgb_camera, fast_sequence.rgb(0), empty)
+    millimetres = dataclasses.replace(mesh, vertices=mesh.vertices * 1000.0)
+    with pytest.raises(ValueError, match="mesh in metres"):
+        find_mesh(millimetres, fast_sequence.meta.rgb_camera, fast_sequence.rgb(0),
+                  fast_sequence.depth(0))
+    assert main(["track", str(fast_sequence.root), "--out", str(out), "--mesh-only",
+                 "--start-find", "--start-from-ground-truth", "--quiet"]) == 1
     assert "give one start" in capsys.readouterr().err
