@@ -89,6 +89,12 @@ class Remeasurer:
         self.past_pose = past_pose
         self.stats = TrackerStats()
         self.unposed: dict[int, UnposedStep] = {}
+        self.check_events = True
+        """Check that the late pose explains the kept events (:meth:`explains_events`) before
+        measuring them again. :class:`~evtrack.tracking.multi.MultiTracker` turns it off:
+        before its objects' first poses nobody owns an event, so every tracker keeps the
+        flows of all objects, which no one pose explains; measured again, each keeps those
+        inside its own silhouette."""
 
     def keep(self, t_end: int, flows: StepFlows, k: int) -> None:
         """Keep step ``k`` (ending at ``t_end``) of an unposed group, and forget the kept steps
@@ -108,7 +114,7 @@ class Remeasurer:
         ``step_runs``: the velocity filter's compiled runs where they apply."""
         kept, self.unposed = self.unposed, {}
         cfg = self.config
-        if not self.explains_events(t_pose, kept):
+        if self.check_events and not self.explains_events(t_pose, kept):
             self.stats.remeasures_skipped += 1
             return
         self.vkf.reset(1)
@@ -271,3 +277,4 @@ class Remeasurer:
         if total < CHECK_MIN_ROIS:
             return True
         return inside / total >= self.config.remeasure.min_inside
+

@@ -400,3 +400,17 @@ def test_alignments_leave_out_the_occluders_pixels(crossing) -> None:
         errors[masked] = tracking_errors(tracks["box"], seq.object_ground_truth(1))
     assert errors[True].position_rmse_cm < 0.9 * errors[False].position_rmse_cm  # 1.40 vs 1.70
     assert errors[True].rotation_rmse_deg <= errors[False].rotation_rmse_deg + 0.1
+
+
+def test_first_poses_measure_the_kept_flows_again_without_the_check(two_objects,
+                                                                   offline) -> None:
+    """Before the first poses every tracker keeps the flows of both objects' events; each
+    object's late first pose measures them again inside its silhouette, without the check
+    that one pose explains the kept events (``remeasure.min_inside``), which the other
+    object's flows would fail."""
+    multi, _ = offline
+    for tracker in multi.trackers.values():
+        assert tracker.motion.remeasurer.check_events is False
+        assert tracker.stats.steps_remeasured > 0 and tracker.stats.remeasures_skipped == 0
+    """(The refusal itself is pinned on hand-made flows in test_remeasure.py; on this small
+    sequence too few well-supported RoI flows follow the first poses for the check to judge.)"""

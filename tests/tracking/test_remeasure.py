@@ -52,3 +52,15 @@ def test_a_pose_explains_the_events_inside_its_silhouette() -> None:
     # only the steps of CHECK_US after the pose count
     late = {remeasure.CHECK_US + 2000: _kept(0, 50)[1000]}
     assert r.explains_events(0, late)
+
+
+def test_without_the_check_other_objects_flows_do_not_refuse_the_pose() -> None:
+    """``check_events`` off (the multi-object tracker): a pose whose silhouette holds none of
+    the kept flows (another object's) is still used to measure them again."""
+    for check, skipped in ((True, 1), (False, 0)):
+        r = _remeasurer()
+        r.check_events = check
+        r.unposed = _kept(0, 50)
+        r.remeasure(0, step_runs=False)
+        assert r.stats.remeasures_skipped == skipped
+        assert r.unposed == {}
