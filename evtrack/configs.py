@@ -130,6 +130,10 @@ class FieldError(ConfigError):
         self.problem = problem
         super().__init__(f"{self.owner.__name__}.{name}: {problem}")
 
+    def __reduce__(self) -> tuple:
+        # rebuilt from its arguments, so that the error crosses process boundaries
+        return type(self), (self.owner, self.field, self.problem)
+
 
 class RenamedKeyWarning(FutureWarning):
     """A config used a key that has a new name (``RENAMED_KEYS`` of its class)."""

@@ -31,6 +31,11 @@ class EventFileError(EvtrackError, OSError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
+    def __reduce__(self) -> tuple:
+        # rebuilt from its arguments (the default would pass the message as ``path``), so
+        # that the error crosses process boundaries (evaluate --jobs)
+        return type(self), (self.path, self.problem)
+
 
 class UnknownFormatError(EventFileError):
     """A file whose format is recognised neither by its extension nor by its first bytes."""

@@ -581,9 +581,10 @@ class Sequence:
         import dataclasses
 
         obj = self.objects[index]
-        mesh = self.object_mesh_file(index)
+        # the view keeps this folder as its root: the object's path as meta.yaml gives it
+        # (relative to the root, or absolute), not the path already resolved against it
         meta = dataclasses.replace(self.meta, object_name=obj.name, objects=[],
-                                   mesh_path=None if mesh is None else str(mesh))
+                                   mesh_path=obj.mesh_path)
         view = Sequence(meta, self._events, self.rgb_times_us, self._rgb_frames,
                         self.depth_times_us, self._depth_frames,
                         self.object_ground_truth(index), self.root)

@@ -18,6 +18,11 @@ class MeshFileError(EvtrackError, OSError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
+    def __reduce__(self) -> tuple:
+        # rebuilt from its arguments (the default would pass the message as ``path``), so
+        # that the error crosses process boundaries (evaluate --jobs)
+        return type(self), (self.path, self.problem)
+
 
 class RendererUnavailableError(EvtrackError, RuntimeError):
     """No headless OpenGL context could be created."""

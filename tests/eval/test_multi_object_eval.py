@@ -4,6 +4,7 @@ sets, and ``evtrack evaluate`` per object (together and alone)."""
 from __future__ import annotations
 
 import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -205,3 +206,16 @@ def test_evaluate_names_an_object_without_ground_truth(two_object_bench, tmp_pat
     err = capsys.readouterr().err
     assert "['can'] have no ground truth" in err and "apart" in err
     assert not (tmp_path / "r").exists()
+
+
+def test_object_views_of_a_sequence_loaded_by_a_relative_path(two_object_bench,
+                                                             monkeypatch) -> None:
+    """Each object's view names its own mesh file (relative to the same folder), also when the
+    sequence was loaded by a relative path (``evaluate --benchmark multi --jobs 2``)."""
+    bench, _ = two_object_bench
+    monkeypatch.chdir(bench.parent)
+    seq = Sequence.load(Path(bench.name) / "apart")
+    for k in range(len(seq.objects)):
+        view = seq.object_view(k)
+        assert view.mesh_file == seq.object_mesh_file(k) and view.mesh_file.is_file()
+        assert view.meta.object_name == seq.objects[k].name
