@@ -2,7 +2,7 @@
 of events.
 
     python benchmarks/bench_multi_object.py --multi SEQ [SEQ ...] --single SEQ [SEQ ...]
-        [--threads N] [--repeats R]
+        [--threads N] [--repeats R] [--config tracker.yaml]
 
 * ``--multi``: sequences with several objects (``evtrack simulate-benchmark --multi-object``):
   every object tracked by one :class:`evtrack.tracking.multi.MultiTracker`;
@@ -35,7 +35,7 @@ def _oracle(gt, seed: int):
     return OraclePoseSource(gt.pose_at, std_translation=0.01, std_rotation=0.03, seed=seed)
 
 
-def time_single(path: Path, repeats: int) -> tuple[float, int, float]:
+def time_single(path: Path, repeats: int, config=None) -> tuple[float, int, float]:
     """(best seconds, events, duration s) of one tracker on a one-object sequence."""
     from evtrack import Sequence
     from evtrack.tracking.tracker import Tracker
@@ -43,7 +43,7 @@ def time_single(path: Path, repeats: int) -> tuple[float, int, float]:
     seq = Sequence.load(path)
     best = float("inf")
     for _ in range(repeats):
-        tracker = Tracker.for_sequence(seq, None, _oracle(seq.ground_truth, 0))
+        tracker = Tracker.for_sequence(seq, config, _oracle(seq.ground_truth, 0))
         t0 = time.perf_counter()
         tracker.track(seq)
         best = min(best, time.perf_counter() - t0)
@@ -51,7 +51,7 @@ def time_single(path: Path, repeats: int) -> tuple[float, int, float]:
     return best, tracker.stats.events, duration
 
 
-def time_multi(path: Path, repeats: int) -> tuple[float, int, int, float]:
+def time_multi(path: Path, repeats: int, config=None) -> tuple[float, int, int, float]:
     """(best seconds, events, objects, duration s) of a multi-object tracker."""
     from evtrack import Sequence
     from evtrack.tracking.multi import MultiTracker
@@ -61,7 +61,7 @@ def time_multi(path: Path, repeats: int) -> tuple[float, int, int, float]:
     for _ in range(repeats):
         sources = {o.name: _oracle(seq.object_ground_truth(k), k)
                    for k, o in enumerate(seq.objects)}
-        multi = MultiTracker.for_sequence(seq, None, sources)
+        multi = MultiTracker.for_sequence(seq, config, sources)
         t0 = time.perf_counter()
         multi.track(seq)
         best = min(best, time.perf_counter() - t0)
@@ -80,16 +80,23 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--repeats", type=int, default=1,
                         help="runs per sequence, the best is kept (default 1)")
+    parser.add_argument("--config", type=Path, default=None, metavar="YAML",
+                        help="tracker config of every run (default: the tracker's defaults)")
     args = parser.parse_args()
     from bench_tracker import cpu_model, short_commit
+
+    from evtrack.tracking.config import TrackerConfig
+
+    config = TrackerConfig.from_yaml(args.config) if args.config else None
 
     torch.set_num_threads(args.threads)
     print(f"# bench_multi_object.py, {datetime.date.today()}, {cpu_model()}, commit "
           f"{short_commit()}, "
-          f"{args.threads} torch thread(s), oracle poses")
+          f"{args.threads} torch thread(s), oracle poses"
+          + (f", config {args.config}" if args.config else ""))
     singles = []
     for path in args.single:
-        seconds, events, duration = time_single(path, args.repeats)
+        seconds, events, duration = time_single(path, args.repeats, config)
         singles.append((path.name, seconds, events, duration))
         print(f"one object  {path.name:44s} {events:>10d} events {duration:5.2f} s stream "
               f"{seconds:7.2f} s  {1e6 * seconds / max(events, 1):6.2f} us/event")
@@ -98,7 +105,7 @@ def main() -> None:
           "its events | its time scaled (s) | ratio |")
     print("|:--|--:|--:|--:|:--|--:|--:|--:|")
     for path in args.multi:
-        seconds, events, objects, _ = time_multi(path, args.repeats)
+        seconds, events, objects, _ = time_multi(path, args.repeats, config)
         name, s1, e1, _ = min(singles, key=lambda s: abs(s[2] - events))
         scaled = s1 * events / max(e1, 1)
         print(f"| {path.parent.name}/{path.name} | {objects} | {events} | {seconds:.2f} | "

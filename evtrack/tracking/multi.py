@@ -148,6 +148,12 @@ class MultiTracker:
             remeasurer = getattr(tracker.motion, "remeasurer", None)
             if remeasurer is not None:
                 remeasurer.check_events = False
+        first = next(iter(self.trackers.values()))
+        self._shares_unposed = len(self.trackers) > 1 and all(
+            getattr(t.motion, "remeasurer", None) is not None and t.config == first.config
+            for t in self.trackers.values())
+        """Whether the waiting trackers share one keeper's unposed steps: every tracker keeps
+        them (``remeasure.before_pose`` and ``on_pose``) with the same config."""
         windows = {t.config.velocity_step_us * t.config.flow_batch_steps
                    for t in self.trackers.values()}
         if len(windows) != 1:
@@ -185,6 +191,7 @@ class MultiTracker:
         self._masks: list[ObjectMask] = []
         self._last_event_us: int | None = None
         self._horizon: int | None = None     # the latest time declared by advance()
+        self._kept: dict | None = None       # the unposed steps the waiting trackers share
         for tracker in self.trackers.values():
             tracker.occluders = Occluders()
 
@@ -278,10 +285,36 @@ class MultiTracker:
             self._dispatch(events[:k])
             events, t = events[k:], t[k:]
 
+    def _share_unposed(self) -> None:
+        """Before the next step group: of the trackers whose objects wait for their first pose,
+        the first (the keeper) runs the flow on the events nobody owns and keeps the unposed
+        steps; the others run none and share its kept steps (see the module docstring)."""
+        if not self._shares_unposed:
+            return
+        waiting = [t for t in self.trackers.values() if not t.initialized]
+        for tracker in self.trackers.values():
+            remeasurer = tracker.motion.remeasurer
+            if tracker in waiting[1:]:
+                tracker.motion.events_before_pose = False
+                remeasurer.keeping = False
+            else:
+                tracker.motion.events_before_pose = True
+                remeasurer.keeping = True
+        if not waiting:
+            self._kept = None
+            return
+        keeper = waiting[0].motion.remeasurer
+        if self._kept is not None and keeper.unposed is not self._kept:
+            keeper.unposed = self._kept  # a new keeper goes on with the steps kept so far
+        self._kept = keeper.unposed
+        for tracker in waiting[1:]:
+            tracker.motion.remeasurer.unposed = self._kept
+
     def _open(self, window: int) -> None:
         """Advance every tracker to the window's start, predict the silhouettes over it, and
         tell each tracker the nearer objects its frame alignments leave out."""
         start = self._origin + window * self.window_us
+        self._share_unposed()
         self._window = window
         self.stats.windows += 1
         self._masks = []
@@ -360,6 +393,7 @@ class MultiTracker:
         """Close every step up to the latest time known (the last event or :meth:`advance`),
         in every tracker. Call it at the end of a stream."""
         ends = [t for t in (self._horizon, self._last_event_us) if t is not None]
+        self._share_unposed()
         for tracker in self.trackers.values():
             if ends:
                 tracker.advance(max(ends))

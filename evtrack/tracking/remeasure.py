@@ -89,6 +89,10 @@ class Remeasurer:
         self.past_pose = past_pose
         self.stats = TrackerStats()
         self.unposed: dict[int, UnposedStep] = {}
+        self.keeping = True
+        """Keep the unposed steps (:meth:`keep`). A :class:`~evtrack.tracking.multi.MultiTracker`
+        turns it off for the trackers whose objects wait for their first pose behind another
+        one's, which keeps the steps for all of them (:attr:`unposed` is then that one's)."""
         self.check_events = True
         """Check that the late pose explains the kept events (:meth:`explains_events`) before
         measuring them again. :class:`~evtrack.tracking.multi.MultiTracker` turns it off:
@@ -98,7 +102,9 @@ class Remeasurer:
 
     def keep(self, t_end: int, flows: StepFlows, k: int) -> None:
         """Keep step ``k`` (ending at ``t_end``) of an unposed group, and forget the kept steps
-        older than the pose filter's past."""
+        older than the pose filter's past (nothing while not :attr:`keeping`)."""
+        if not self.keeping:
+            return
         uv, flow, normal = flows.step(k)
         depth = self.depth.snapshot()
         lo, hi = int(flows.bounds[k]), int(flows.bounds[k + 1])

@@ -414,3 +414,91 @@ def test_first_poses_measure_the_kept_flows_again_without_the_check(two_objects,
         assert tracker.stats.steps_remeasured > 0 and tracker.stats.remeasures_skipped == 0
     """(The refusal itself is pinned on hand-made flows in test_remeasure.py; on this small
     sequence too few well-supported RoI flows follow the first poses for the check to judge.)"""
+
+
+def test_the_waiting_trackers_share_one_keepers_unposed_steps(two_objects) -> None:
+    """Before the first poses only the first waiting tracker runs the flow on the events
+    nobody owns and keeps the unposed steps; the other one keeps none and shares them."""
+    seq = two_objects
+    multi = _multi(seq)
+    first, second = multi.trackers.values()
+    multi.reset()
+    ev = seq.events.between(0, 60_000)  # the first poses come at 100 ms (the latency)
+    multi.push_events(ev)
+    multi.advance(60_000)
+    assert not first.initialized and not second.initialized
+    assert first.motion.events_before_pose and not second.motion.events_before_pose
+    assert len(first.motion.remeasurer.unposed) >= 20
+    assert second.motion.remeasurer.unposed is first.motion.remeasurer.unposed
+    assert second.motion.flow.events_seen == 0 < first.motion.flow.events_seen
+
+
+class _Withheld:
+    """A pose source that finds nothing before ``t_first`` µs."""
+
+    def __init__(self, source, t_first: int) -> None:
+        self.source, self.t_first = source, t_first
+
+    def __call__(self, t_us: int, rgb, depth=None):
+        return None if t_us < self.t_first else self.source(t_us, rgb, depth)
+
+
+class _Feed:
+    """Streams a sequence into a multi-object tracker: events and frames in time order."""
+
+    def __init__(self, multi: MultiTracker, seq: Sequence) -> None:
+        self.multi, self.seq = multi, seq
+        self.frames = list(enumerate(seq.rgb_times_us.tolist()))
+        self.depth_at = {t: k for k, t in enumerate(seq.depth_times_us.tolist())}
+        self.pushed = 0
+
+    def until(self, t_us: int) -> None:
+        seq, multi = self.seq, self.multi
+        while self.frames and self.frames[0][1] < t_us:
+            i, t_frame = self.frames.pop(0)
+            multi.push_events(seq.events.between(self.pushed, t_frame))
+            k = self.depth_at.get(t_frame)
+            multi.push_frame(t_frame, seq.rgb(i), None if k is None else seq.depth(k))
+            self.pushed = t_frame
+        multi.push_events(seq.events.between(self.pushed, t_us))
+        multi.advance(t_us)
+        self.pushed = t_us
+
+
+def test_a_later_first_pose_takes_over_the_kept_steps(two_objects) -> None:
+    """The box's first pose comes 200 ms after the can's, and the can is the first object:
+    once the can is tracked, the box's tracker runs the flow and keeps the steps itself, going
+    on from those kept so far; the box's track is then as without sharing."""
+    seq = two_objects
+    box, can = seq.objects[0].name, seq.objects[1].name
+    tracks = {}
+    for shared in (True, False):
+        sources = _sources(seq)
+        sources[box] = _Withheld(sources[box], 250_000)
+        objects = [TrackedObject(can, seq.object_mesh_file(1), sources[can]),
+                   TrackedObject(box, seq.object_mesh_file(0), sources[box])]
+        multi = MultiTracker(objects, TrackerConfig.from_dict(TEST_TRACKER),
+                             camera=seq.meta.event_camera, rgb_camera=seq.meta.rgb_camera,
+                             T_event_rgb=seq.meta.T_event_rgb)
+        assert multi._shares_unposed
+        multi._shares_unposed = shared
+        first, late = multi.trackers[can], multi.trackers[box]
+        multi.reset()
+        feed = _Feed(multi, seq)
+        feed.until(60_000)
+        kept = first.motion.remeasurer.unposed
+        assert not first.initialized and (late.motion.remeasurer.unposed is kept) == shared
+        for t_us in (200_000, 280_000):  # the can is tracked from ~108 ms
+            feed.until(t_us)
+            assert first.initialized and not late.initialized
+            assert late.motion.events_before_pose and late.motion.remeasurer.keeping
+            if shared:
+                assert late.motion.remeasurer.unposed is kept and max(kept) > 150_000
+        tracks[shared] = multi.track(seq)[box]
+    t_first = int(tracks[True].t_us[tracks[True].tracked][0])
+    assert t_first > 250_000
+    gt = seq.object_ground_truth(0)
+    errors = {k: tracking_errors(t, gt, t_start_us=t_first) for k, t in tracks.items()}
+    assert errors[True].samples == errors[False].samples > 150
+    assert errors[True].position_rmse_cm < errors[False].position_rmse_cm + 0.5
+    assert errors[True].rotation_rmse_deg < errors[False].rotation_rmse_deg + 2.0
