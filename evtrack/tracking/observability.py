@@ -87,8 +87,9 @@ class RotationObservability:
         >>> obs = RotationObservability()
         >>> info = np.diag([1e4, 1e4, 1e4, 1e5, 1e5, 10.0])  # the fit barely saw a turn about z
         >>> obs.add("depth", info, variance=1.0, rotation=np.eye(3))
-        >>> [u.describe() for u in obs.unobserved(max_std_deg=2.0)]
-        ["about the object's axis (+0.00, +0.00, +1.00): depth ±18°"]
+        >>> for unobserved in obs.unobserved(max_std_deg=2.0):
+        ...     print(unobserved.describe())
+        about the object's axis (+0.00, +0.00, +1.00): depth ±18°
     """
 
     information: dict[str, np.ndarray] = field(default_factory=dict)

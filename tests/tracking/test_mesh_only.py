@@ -173,6 +173,14 @@ def _silhouette_box(seq, t_us: int) -> tuple[int, int, int, int]:
     return int(u.min()) - 3, int(v.min()) - 3, int(u.max()) + 4, int(v.max()) + 4
 
 
+def _assert_started_near_truth(tracker: Tracker, seq, t_us: int) -> None:
+    """The tracker's pose is within 2° and 5 mm of the truth at ``t_us``."""
+    truth = seq.ground_truth.pose_at(t_us).numpy()
+    R = tracker.pose()[:3, :3].T @ truth[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 2.0
+    assert np.linalg.norm(tracker.pose()[:3, 3] - truth[:3, 3]) < 0.005
+
+
 def test_the_start_is_found_on_the_first_frame(fast_sequence, mesh_runs, tmp_path,
                                                capsys) -> None:
     """``start_from_frame`` registers the mesh on the first RGB-D frame (a box around the
@@ -186,10 +194,7 @@ def test_the_start_is_found_on_the_first_frame(fast_sequence, mesh_runs, tmp_pat
     tracker = _tracker(fast_sequence, pose_source="model")
     found = tracker.start_from_frame(t0, fast_sequence.rgb(0), fast_sequence.depth(0), box,
                                      RegistrationConfig(rotations=32))
-    truth = fast_sequence.ground_truth.pose_at(t0).numpy()
-    R = tracker.pose()[:3, :3].T @ truth[:3, :3]
-    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 2.0
-    assert np.linalg.norm(tracker.pose()[:3, 3] - truth[:3, 3]) < 0.005
+    _assert_started_near_truth(tracker, fast_sequence, t0)
     assert found.correlation > 0.9 and tracker.initialized and tracker.now_us == t0
     config = tmp_path / "tracker.yaml"
     config.write_text("flow: {roi_size: 16}\nmask_margin_px: 8.0\n")
@@ -224,10 +229,7 @@ def test_the_start_is_found_without_a_box(fast_sequence, mesh_runs, tmp_path, ca
     tracker = _tracker(fast_sequence, pose_source="model")
     found = tracker.start_from_frame(t0, fast_sequence.rgb(0), fast_sequence.depth(0), None,
                                      RegistrationConfig(rotations=32))
-    truth = fast_sequence.ground_truth.pose_at(t0).numpy()
-    R = tracker.pose()[:3, :3].T @ truth[:3, :3]
-    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 2.0
-    assert np.linalg.norm(tracker.pose()[:3, 3] - truth[:3, 3]) < 0.005
+    _assert_started_near_truth(tracker, fast_sequence, t0)
     su0, sv0, su1, sv1 = _silhouette_box(fast_sequence, t0)
     u0, v0, u1, v1 = found.box
     overlap = max(0, min(u1, su1) - max(u0, su0)) * max(0, min(v1, sv1) - max(v0, sv0))

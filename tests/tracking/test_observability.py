@@ -153,3 +153,12 @@ def test_the_track_command_names_the_unobserved_axis(can_sequence, fast_sequence
     assert main(["track", str(fast_sequence.root), "--out", str(out), "--oracle", "--quiet",
                  "--depth-icp"]) == 0
     assert "did not observe" not in capsys.readouterr().out
+
+
+def test_the_docstring_example_runs() -> None:
+    import doctest
+
+    from evtrack.tracking import observability
+
+    result = doctest.testmod(observability)
+    assert result.attempted >= 3 and result.failed == 0
