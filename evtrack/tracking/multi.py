@@ -34,7 +34,8 @@ filters). The multi-object tracker sits in front of them and shares the stream o
   four-object ``apart`` set tracked at 5.72 cm / 9.67° (the check refused every object's
   first pose, leaving the motion of all objects' events to carry it); without, 4.64 cm /
   9.02°; sharing the keeper's flow instead of one flow per waiting tracker: 4.60 cm / 8.97°,
-  and the four trackers took 3.4-5.0 s instead of 4.3-4.4 s.
+  and the four trackers took 4.73 s instead of 4.87 s (6.11 s -> 5.29 s on the
+  ``crossing`` set, whose objects wait with more events).
 
 The windows are fixed by the clock, and each window's silhouettes are computed from trackers
 that have seen exactly the stream before the window's start, so the trajectories do not depend

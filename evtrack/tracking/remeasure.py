@@ -283,4 +283,3 @@ class Remeasurer:
         if total < CHECK_MIN_ROIS:
             return True
         return inside / total >= self.config.remeasure.min_inside
-
