@@ -94,10 +94,9 @@ class DepthRegion:
     fill: float
 
 
-def _back_project(depth: np.ndarray, camera: PinholeCamera, stride: int
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 3) camera-frame points of the valid pixels on a ``stride`` grid, and (N,) their
-    flat pixel indices (pinhole; the lens distortion is left to the registration)."""
+def _back_project(depth: np.ndarray, camera: PinholeCamera, stride: int) -> np.ndarray:
+    """(N, 3) camera-frame points (m) of the valid pixels on a ``stride`` grid (pinhole; the
+    lens distortion is left to the registration)."""
     H, W = depth.shape
     v, u = np.mgrid[0:H:stride, 0:W:stride]
     z = depth[v, u]
@@ -105,7 +104,7 @@ def _back_project(depth: np.ndarray, camera: PinholeCamera, stride: int
     u, v, z = u[ok].astype(np.float64), v[ok].astype(np.float64), z[ok].astype(np.float64)
     x = (u - camera.cx) / camera.fx * z
     y = (v - camera.cy) / camera.fy * z
-    return np.stack([x, y, z], 1), (v * W + u).astype(np.int64)
+    return np.stack([x, y, z], 1)
 
 
 def dominant_planes(points: np.ndarray, config: RegionConfig | None = None
@@ -172,7 +171,7 @@ def object_regions(depth: np.ndarray, camera: PinholeCamera, radius_m: float,
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
         raise ValueError("depth regions: the depth frame has no valid pixel (all zero or NaN)")
-    points, _ = _back_project(depth, camera, cfg.stride)
+    points = _back_project(depth, camera, cfg.stride)
     H, W = depth.shape
     v, u = np.mgrid[0:H, 0:W]
     z = np.where(valid, depth, np.nan)
