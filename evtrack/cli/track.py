@@ -297,8 +297,6 @@ def _track_objects(args: argparse.Namespace, seq, cfg) -> int:
         start_t = int(views[0].ground_truth.pose_t_us[0])
         starts = {n: v.ground_truth.pose_at(start_t).numpy()
                   for n, v in zip(names, views, strict=True)}
-    elif find:
-        start_t, starts = _found_starts(seq, names, views)
     if getattr(args, "mesh_only", False):
         sources = [None] * len(views)
     elif args.oracle:
@@ -316,6 +314,8 @@ def _track_objects(args: argparse.Namespace, seq, cfg) -> int:
     multi = MultiTracker([TrackedObject(n, v.mesh_file, s) for n, v, s in zip(
         names, views, sources, strict=True)], cfg, camera=seq.meta.event_camera,
         rgb_camera=seq.meta.rgb_camera, T_event_rgb=seq.meta.T_event_rgb)
+    if find:
+        start_t, starts = _found_starts(seq, multi)
     tracks = multi.track(seq, progress=not args.quiet, start_poses=starts or None,
                          start_t_us=start_t)
     st = multi.stats
@@ -334,32 +334,26 @@ def _track_objects(args: argparse.Namespace, seq, cfg) -> int:
     return 0
 
 
-def _found_starts(seq, names, views) -> tuple[int, dict]:
+def _found_starts(seq, multi) -> tuple[int, dict]:
     """``--start-find`` with several objects: each object's start pose found on the first
-    RGB-D frame (:func:`~evtrack.models.mesh_registration.find_mesh`), in the event camera."""
+    RGB-D frame (:meth:`MultiTracker.start_from_frame
+    <evtrack.tracking.multi.MultiTracker.start_from_frame>`), in the event camera."""
     import numpy as np
-
-    from evtrack.models.mesh_registration import find_mesh
-    from evtrack.sim.objects import load_mesh
 
     if seq.num_rgb == 0 or seq.num_depth == 0:
         raise ConfigError(f"--start-find: {seq.root} needs RGB and depth frames to register "
                           "the meshes on")
     t_us = int(seq.rgb_times_us[0])
     k = int(np.argmin(np.abs(seq.depth_times_us.numpy() - t_us)))
-    rgb, depth = seq.rgb(0), seq.depth(k)
-    T_event_rgb = np.asarray(seq.meta.T_event_rgb, np.float64)
-    starts = {}
-    for name, view in zip(names, views, strict=True):
-        try:
-            found = find_mesh(load_mesh(view.mesh_file, recenter=False), seq.meta.rgb_camera,
-                              rgb, depth)
-        except ValueError as exc:
-            raise ConfigError(f"--start-find: object {name!r}: {exc}") from None
+    try:
+        found = multi.start_from_frame(t_us, seq.rgb(0), seq.depth(k))
+    except ValueError as exc:
+        raise ConfigError(f"--start-find: {exc}") from None
+    for name, reg in found.items():
         print(f"{name}: start pose registered on the frame at {t_us} µs in the box "
-              f"{found.box} it found (correlation {found.correlation:.3f})")
-        starts[name] = T_event_rgb @ found.pose
-    return t_us, starts
+              f"{reg.box} it found (correlation {reg.correlation:.3f})")
+    return t_us, {name: multi.trackers[name].T_event_rgb.numpy() @ reg.pose
+                  for name, reg in found.items()}
 
 
 def _print_unobserved(tracker, prefix: str = "") -> None:

@@ -221,6 +221,29 @@ class MultiTracker:
         if t_us is not None and any(t.now_us is not None for t in self.trackers.values()):
             self._start(int(t_us))
 
+    def start_from_frame(self, t_us: int, rgb: np.ndarray, depth: np.ndarray,
+                         config: Any = None) -> dict[str, Any]:
+        """Find every object's pose on the RGB-D frame taken at ``t_us`` from its textured
+        mesh alone, each where the depth stands out of the scene's planes with its size
+        (:meth:`Tracker.register_frame <evtrack.tracking.tracker.Tracker.register_frame>`
+        without a box), and start every object there (:meth:`reset`).
+
+        Returns:
+            each object's :class:`~evtrack.models.mesh_registration.Registration`, by name.
+
+        Raises:
+            ValueError: an object that could not be found (named), before anything is reset.
+        """
+        found, starts = {}, {}
+        for name, tracker in self.trackers.items():
+            try:
+                found[name] = tracker.register_frame(t_us, rgb, depth, None, config)
+            except ValueError as exc:
+                raise ValueError(f"object {name!r}: {exc}") from None
+            starts[name] = tracker.T_event_rgb.numpy() @ found[name].pose
+        self.reset(int(t_us), starts)
+        return found
+
     def _start(self, t_us: int) -> None:
         self._origin = t_us
         for tracker in self.trackers.values():

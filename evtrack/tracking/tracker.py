@@ -417,8 +417,25 @@ class Tracker:
                          box: tuple[int, int, int, int] | None = None, config: Any = None
                          ) -> Any:
         """Find the object's pose on the RGB-D frame taken at ``t_us`` from its textured mesh
-        alone and start the track there (:meth:`reset`); the events and frames from ``t_us``
-        on follow. With ``box``, around the object in the RGB image, see
+        alone (:meth:`register_frame`) and start the track there (:meth:`reset`); the events
+        and frames from ``t_us`` on follow.
+
+        Returns:
+            the :class:`~evtrack.models.mesh_registration.Registration` (pose in the RGB
+            camera, how sure it is, the box).
+
+        Raises:
+            as :meth:`register_frame`.
+        """
+        found = self.register_frame(t_us, rgb, depth, box, config)
+        self.reset(self.T_event_rgb.numpy() @ found.pose, int(t_us))
+        return found
+
+    def register_frame(self, t_us: int, rgb: np.ndarray, depth: np.ndarray,
+                       box: tuple[int, int, int, int] | None = None, config: Any = None
+                       ) -> Any:
+        """Find the object's pose on one RGB-D frame from its textured mesh alone, without
+        touching the track. With ``box``, around the object in the RGB image, see
         :func:`evtrack.models.mesh_registration.register_mesh`; without, the object is looked
         for where the depth stands out of the scene's planes with the object's size
         (:func:`evtrack.models.mesh_registration.find_mesh`). ``config``: the
@@ -431,8 +448,8 @@ class Tracker:
             box: ``(u0, v0, u1, v1)`` pixels of the RGB image around the object, or ``None``.
 
         Returns:
-            the :class:`~evtrack.models.mesh_registration.Registration` (pose in the RGB
-            camera, how sure it is, the box).
+            the :class:`~evtrack.models.mesh_registration.Registration`; its ``pose`` is in
+            the RGB camera (``T_event_rgb @ pose`` in the event camera).
 
         Raises:
             ConfigError: a tracker without the object's textured mesh.
@@ -446,10 +463,9 @@ class Tracker:
                               "or a mesh file), not bare vertices")
         rgb = checked_rgb(int(t_us), rgb, self.rgb_camera)
         depth = np.asarray(depth, np.float32)
-        found = (find_mesh(self.mesh, self.rgb_camera, rgb, depth, config) if box is None
-                 else register_mesh(self.mesh, self.rgb_camera, rgb, depth, box, config))
-        self.reset(self.T_event_rgb.numpy() @ found.pose, int(t_us))
-        return found
+        if box is None:
+            return find_mesh(self.mesh, self.rgb_camera, rgb, depth, config)
+        return register_mesh(self.mesh, self.rgb_camera, rgb, depth, box, config)
 
     def push_frame(self, t_us: int, rgb: FrameInput = None, depth: FrameInput = None) -> None:
         """Add the RGB-D frame taken at ``t_us`` (after the events before ``t_us``).
