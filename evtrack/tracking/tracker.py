@@ -425,7 +425,8 @@ class Tracker:
             camera, how sure it is, the box).
 
         Raises:
-            as :meth:`register_frame`.
+            ConfigError: a tracker without the object's textured mesh.
+            ValueError: what :meth:`register_frame` refuses.
         """
         found = self.register_frame(t_us, rgb, depth, box, config)
         self.reset(self.T_event_rgb.numpy() @ found.pose, int(t_us))
