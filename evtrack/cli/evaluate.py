@@ -262,7 +262,7 @@ def _run_multi_object(args: argparse.Namespace, spec, base, sequences) -> int:
 
 def _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out: Path) -> int:
     """Track, measure and write the report (see :func:`run`)."""
-    from evtrack.eval.benchmark import pose_warnings, run_benchmark
+    from evtrack.eval.benchmark import pose_warnings, rotation_notes, run_benchmark
     from evtrack.eval.report import write_report
 
     print(f"evaluating {len(sequences)} sequence(s) x {len(runs)} run(s) "
@@ -279,7 +279,7 @@ def _evaluate(args, spec, runs, base, sequences, objects, weights, caption, out:
                          video=args.video, progress=not args.quiet)
     print()
     print(files.markdown)
-    for line in pose_warnings(results):
+    for line in pose_warnings(results) + rotation_notes(results):
         print(line)
     print(f"wrote {out}/: results.md, results.csv, results.yaml, trajectories/ "
           f"({len(results)} files), plots/ ({len(files.plots)} PNG)"

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from evtrack.errors import ConfigError
 from evtrack.eval.metrics import TrackingErrors, tracking_errors
 from evtrack.eval.pose_auc import PoseScores, sequence_pose_scores
@@ -27,7 +29,8 @@ from evtrack.tracking.config import METHODS, TrackerConfig
 from evtrack.utils import threads_per_job
 
 __all__ = ["RunSpec", "RunResult", "ABLATIONS", "DEFAULT_METHODS", "MESH_ONLY_RUNS", "run_specs",
-           "run_one", "run_benchmark", "trajectory_path", "pose_warnings", "start_pose"]
+           "run_one", "run_benchmark", "trajectory_path", "pose_warnings", "rotation_notes",
+           "start_pose"]
 
 #: Methods in the default column order (the paper's "Ours (OF)" first).
 DEFAULT_METHODS = ("full", "velocity", "pose", "ge", "frame-flow")
@@ -137,6 +140,10 @@ class RunResult:
             ones failing (:class:`~evtrack.eval.pose_auc.PoseScores`); ``None``: not measured.
         split, replicate: the sequence's split and seed index (see
             :class:`~evtrack.eval.sequences.BenchmarkSequence`).
+        rotations: the rotations the frame alignments observed
+            (:meth:`RotationObservability.to_dict
+            <evtrack.tracking.observability.RotationObservability.to_dict>`: alignments per
+            source, the unobserved object axes); empty without frame alignments.
     """
 
     sequence: str
@@ -152,6 +159,7 @@ class RunResult:
     scores: PoseScores | None = None
     split: str = ""
     replicate: int | None = None
+    rotations: dict[str, Any] = field(default_factory=dict)
 
 
 def trajectory_path(out_dir: str | Path, sequence: BenchmarkSequence, run: str) -> Path:
@@ -183,7 +191,9 @@ def run_one(sequence: BenchmarkSequence, spec: RunSpec, base: TrackerConfig,
     scores = sequence_pose_scores(traj, seq, workers=threads_per_job(cfg.torch_threads))
     return RunResult(sequence.name, sequence.object_name, sequence.speed, spec.name, spec.method,
                      tracking_errors(traj, seq.ground_truth), path, seconds, cpu,
-                     tracker.stats.to_dict(), scores, sequence.split, sequence.replicate)
+                     tracker.stats.to_dict(), scores, sequence.split, sequence.replicate,
+                     tracker.observability.to_dict() if tracker.observability.alignments
+                     else {})
 
 
 def _run_job(args: tuple) -> RunResult:
@@ -248,6 +258,22 @@ def run_benchmark(sequences: list[BenchmarkSequence], runs: list[RunSpec],
     finally:
         bar.close()
     return [r for r in results if r is not None]
+
+
+def rotation_notes(results: Iterable[RunResult]) -> list[str]:
+    """One line per run whose frame alignments left a rotation of the object unobserved
+    (:meth:`Tracker.unobserved_rotations
+    <evtrack.tracking.tracker.Tracker.unobserved_rotations>`): its error about that axis
+    comes from the events and the pose source alone."""
+    from evtrack.tracking.observability import UnobservedRotation
+
+    lines = []
+    for r in results:
+        for u in r.rotations.get("unobserved", ()):
+            axis = UnobservedRotation(np.asarray(u["axis"], np.float64), u["std_deg"])
+            lines.append(f"note: {r.sequence} ({r.run}): the frame alignments did not observe "
+                         f"the rotation {axis.describe()}")
+    return lines
 
 
 def pose_warnings(results: Iterable[RunResult]) -> list[str]:

@@ -76,6 +76,7 @@ def write_manifest(path: Path, results: Sequence[RunResult],
             "trajectory": _rel(r.trajectory, root),
             "seconds": round(r.seconds, 3), "cpu_seconds": round(r.cpu_seconds, 3),
             "counters": {k: v for k, v in r.stats.items() if k != "time_s"},
+            **({"rotations": r.rotations} if r.rotations else {}),
         } for r in results],
     }
     spreads = seed_spreads(results, list(dict.fromkeys(r.run for r in results)))

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from ycbev_scene import OBJ_ID, SCENE, distorted_events, simulation_config, write_scene
 
 from evtrack.cli import main
@@ -160,6 +161,11 @@ def test_tracks_from_the_bop_mesh_alone(imported: Path, tmp_path: Path) -> None:
     rgbd = rows["full-model"]
     assert float(rgbd["position_rmse_cm"]) < 1.5 and float(rgbd["rotation_rmse_deg"]) < 10.0
     assert np.isfinite(float(rows["full-model-rgb"]["rotation_rmse_deg"]))
+    manifest = yaml.safe_load((out / "results.yaml").read_text())
+    rotations = {r["run"]: r["rotations"] for r in manifest["results"]}
+    assert rotations["full-model"]["alignments"]["depth"] > 0
+    assert rotations["full-model"]["alignments"]["appearance"] > 0
+    assert "depth" not in rotations["full-model-rgb"]["alignments"]  # no depth frames used
 
 
 # ---------------------------------------------------------------------------- bad input

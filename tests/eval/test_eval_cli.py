@@ -414,3 +414,21 @@ def test_onnx_problems_show_before_any_tracking(tiny_benchmark, tmp_path, capsys
                  str(tmp_path / "pt"), "--backend", "onnxruntime", "--oracle-where-missing",
                  "--methods", "pose", "--out", str(out), "--quiet"]) == 1
     assert "pass --backend torch" in capsys.readouterr().err and not out.exists()
+
+
+def test_rotation_notes_name_the_unobserved_axes(tmp_path):
+    """evaluate notes each run whose frame alignments left a rotation unobserved (its
+    trajectory's ``meta["rotations"]``), and nothing for the others."""
+    from evtrack.eval.benchmark import RunResult, rotation_notes
+    from evtrack.eval.metrics import TrackingErrors
+
+    err = TrackingErrors(1.0, 0.5, 2.0, 1.0, 10, 10)
+    unseen = {"alignments": {"depth": 30},
+              "unobserved": [{"axis": [-0.0014, 1.0, 0.0007], "std_deg": {"depth": 4.83}}]}
+    seen = {"alignments": {"depth": 30, "appearance": 10}, "unobserved": []}
+    results = [RunResult(seq, "can", "faster", "full", "full", err, tmp_path / "x.h5", 1.0,
+                         1.0, {}, rotations=rotations)
+               for seq, rotations in (("a", unseen), ("b", seen), ("c", {}))]
+    assert rotation_notes(results) == [
+        "note: a (full): the frame alignments did not observe the rotation about the object's "
+        "axis (+0.00, +1.00, +0.00): depth ±4.8°"]
