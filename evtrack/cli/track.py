@@ -86,8 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(pose_source: model: the mesh aligned with the depth frames, its "
                         "textured render with the RGB frames); needs a start pose "
                         "(--start-pose, --start-from-ground-truth, --start-box or --start-find). "
-                        "Not in the "
-                        "paper")
+                        "Not in the paper")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
