@@ -5,7 +5,8 @@ scene's dominant planes, each with a box for
 A table, a wall, a floor: most of a tabletop or lab scene's depth pixels lie on a few planes,
 and an object stands in front of them. :func:`object_regions`
 
-1. back-projects a subsample of the valid depth pixels and finds up to ``max_planes``
+1. back-projects the valid depth pixels through the camera (its lens distortion included,
+   :meth:`~evtrack.camera.PinholeCamera.unproject`) and, on a subsample, finds up to ``max_planes``
    dominant planes by RANSAC (each holding at least ``min_plane_share`` of the valid pixels;
    the fit refined by least squares on its inliers);
 2. leaves out every pixel within ``plane_tolerance_m`` of such a plane or behind it (seen from
@@ -30,6 +31,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import torch
 
 from evtrack.camera import PinholeCamera
 from evtrack.errors import ConfigError
@@ -92,19 +94,6 @@ class DepthRegion:
     pixels: int
     depth_m: float
     fill: float
-
-
-def _back_project(depth: np.ndarray, camera: PinholeCamera, stride: int) -> np.ndarray:
-    """(N, 3) camera-frame points (m) of the valid pixels on a ``stride`` grid (pinhole; the
-    lens distortion is left to the registration)."""
-    H, W = depth.shape
-    v, u = np.mgrid[0:H:stride, 0:W:stride]
-    z = depth[v, u]
-    ok = np.isfinite(z) & (z > 0)
-    u, v, z = u[ok].astype(np.float64), v[ok].astype(np.float64), z[ok].astype(np.float64)
-    x = (u - camera.cx) / camera.fx * z
-    y = (v - camera.cy) / camera.fy * z
-    return np.stack([x, y, z], 1)
 
 
 def dominant_planes(points: np.ndarray, config: RegionConfig | None = None
@@ -171,11 +160,13 @@ def object_regions(depth: np.ndarray, camera: PinholeCamera, radius_m: float,
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
         raise ValueError("depth regions: the depth frame has no valid pixel (all zero or NaN)")
-    points = _back_project(depth, camera, cfg.stride)
     H, W = depth.shape
     v, u = np.mgrid[0:H, 0:W]
-    z = np.where(valid, depth, np.nan)
-    X = np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], -1)
+    uv = torch.from_numpy(np.stack([u, v], -1).astype(np.float64))
+    z = torch.from_numpy(np.where(valid, depth, np.nan))
+    X = camera.unproject(uv, z).numpy()  # (H, W, 3) m; NaN where no depth
+    stride = cfg.stride
+    points = X[::stride, ::stride][valid[::stride, ::stride]]
     keep = valid.copy()
     for normal, offset in dominant_planes(points, cfg):
         with np.errstate(invalid="ignore"):

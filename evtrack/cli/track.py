@@ -174,20 +174,26 @@ def _start(args: argparse.Namespace, seq) -> dict:
     return {"start_pose": pose, "start_t_us": t_us}
 
 
-def _registered_start(seq, tracker, box) -> dict:
-    """``--start-box`` / ``--start-find`` (``box`` None): the start pose registered on the
-    first RGB frame and the depth frame nearest it."""
+def _first_rgbd_frame(seq, option: str) -> tuple:
+    """``(t_us, rgb, depth)``: the first RGB frame and the depth frame nearest it, on which
+    ``option`` registers the mesh."""
     import numpy as np
 
-    option = "--start-find" if box is None else "--start-box"
     if seq.num_rgb == 0 or seq.num_depth == 0:
         raise ConfigError(f"{option}: {seq.root} needs RGB and depth frames to register the "
                           "mesh on")
     t_us = int(seq.rgb_times_us[0])
     k = int(np.argmin(np.abs(seq.depth_times_us.numpy() - t_us)))
+    return t_us, seq.rgb(0), seq.depth(k)
+
+
+def _registered_start(seq, tracker, box) -> dict:
+    """``--start-box`` / ``--start-find`` (``box`` None): the start pose registered on the
+    first RGB frame and the depth frame nearest it."""
+    option = "--start-find" if box is None else "--start-box"
+    t_us, rgb, depth = _first_rgbd_frame(seq, option)
     try:
-        found = tracker.start_from_frame(t_us, seq.rgb(0), seq.depth(k),
-                                         None if box is None else tuple(box))
+        found = tracker.start_from_frame(t_us, rgb, depth, None if box is None else tuple(box))
     except ValueError as exc:
         raise ConfigError(f"{option}: {exc}") from None
     runner = ("" if found.runner_up is None else
@@ -337,15 +343,9 @@ def _found_starts(seq, multi) -> tuple[int, dict]:
     """``--start-find`` with several objects: each object's start pose found on the first
     RGB-D frame (:meth:`MultiTracker.start_from_frame
     <evtrack.tracking.multi.MultiTracker.start_from_frame>`), in the event camera."""
-    import numpy as np
-
-    if seq.num_rgb == 0 or seq.num_depth == 0:
-        raise ConfigError(f"--start-find: {seq.root} needs RGB and depth frames to register "
-                          "the meshes on")
-    t_us = int(seq.rgb_times_us[0])
-    k = int(np.argmin(np.abs(seq.depth_times_us.numpy() - t_us)))
+    t_us, rgb, depth = _first_rgbd_frame(seq, "--start-find")
     try:
-        found = multi.start_from_frame(t_us, seq.rgb(0), seq.depth(k))
+        found = multi.start_from_frame(t_us, rgb, depth)
     except ValueError as exc:
         raise ConfigError(f"--start-find: {exc}") from None
     for name, reg in found.items():
