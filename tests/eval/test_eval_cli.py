@@ -432,3 +432,32 @@ def test_rotation_notes_name_the_unobserved_axes(tmp_path):
     assert rotation_notes(results) == [
         "note: a (full): the frame alignments did not observe the rotation about the object's "
         "axis (+0.00, +1.00, +0.00): depth ±4.8°"]
+
+
+def test_pose_latency_flag_sets_when_poses_reach_the_filter(evaluated, tiny_benchmark,
+                                                             tiny_tracker_yaml, tmp_path):
+    """--pose-latency-ms 0 runs each sequence as its config with pose_latency_ms 0 would (the
+    same trajectory as run_one with that config), records it in results.yaml, and differs from
+    the config's own latency."""
+    base = TrackerConfig.from_yaml(tiny_tracker_yaml)
+    assert base.pose_latency_ms > 0
+    out = tmp_path / "results"
+    assert main(["evaluate", "--benchmark", str(tiny_benchmark / "box_faster"), "--oracle",
+                 "--config", str(tiny_tracker_yaml), "--methods", "pose",
+                 "--pose-latency-ms", "0", "--out", str(out), "--quiet"]) == 0
+    manifest = yaml.safe_load((out / "results.yaml").read_text())
+    assert manifest["tracker_config"]["pose_latency_ms"] == 0.0
+    got = Trajectory.load(out / "trajectories" / "box_faster" / "pose.h5")
+    seqs = find_sequences(tiny_benchmark / "box_faster")
+    ref = run_one(seqs[0], run_specs(["pose"])[0], base.replace(pose_latency_ms=0.0),
+                  PoseSourceSpec("oracle"), None, tmp_path / "ref")
+    expected = Trajectory.load(ref.trajectory)
+    assert np.array_equal(got.poses.numpy(), expected.poses.numpy(), equal_nan=True)
+    late = Trajectory.load(evaluated / "trajectories" / "box_faster" / "pose.h5")
+    assert not np.array_equal(got.poses.numpy(), late.poses.numpy(), equal_nan=True)
+
+
+def test_a_negative_pose_latency_is_refused(tiny_benchmark, capsys):
+    assert main(["evaluate", "--benchmark", str(tiny_benchmark), "--oracle",
+                 "--pose-latency-ms", "-5"]) == 1
+    assert "--pose-latency-ms must be finite and >= 0, got -5.0" in capsys.readouterr().err
