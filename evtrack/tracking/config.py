@@ -273,8 +273,9 @@ class TrackerConfig(Config):
             inside it. With the default 3 at 5 Hz: 0.6 s without a detection.
         pose_rate_hz: the pose source runs on RGB frames at this rate (the paper: 5 Hz).
         pose_latency_ms: a pose computed from the frame at ``t`` becomes available to the filter at
-            ``t + latency`` (simulated offline, as in the paper; the filter rolls back to ``t`` to
-            fuse it). Default: one pose period (a network just fast enough for its rate).
+            ``t + latency`` (simulated offline; the filter rolls back to ``t`` to fuse it).
+            Default: one pose period (a network just fast enough for its rate). The method
+            paper states no latency for its tables; 0 fuses each pose at its frame's time.
         pose_async: in :meth:`~evtrack.tracking.tracker.Tracker.track` (offline), run the pose
             source in a worker thread of the tracker (one, so calls keep the frames' order) and take
             its result when it becomes available to the filter (``pose_latency_ms`` after the
